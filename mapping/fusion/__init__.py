@@ -1,0 +1,1 @@
+"""Fusion backends behind one interface (:class:`mapping.fusion.base.FusionBackend`)."""

@@ -1,0 +1,77 @@
+"""The interface every fusion backend (TSDF, surfel) implements.
+
+Colours handed to a backend are float32 in *map units*: irradiance ``f^-1(I) / V / k`` when the run
+corrects, or raw intensity levels (0..255 as float) when it does not. Backends never convert colours;
+the pipeline owns the conversion to display units (``to_display``) for histograms and exports.
+
+Poses are camera-to-world (4, 4) float64; K is the (3, 3) colour intrinsics; depth is float32 metres
+with 0 = invalid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass
+class ModelView:
+    """The map rendered at one camera pose (what a ray cast or a surfel splat returns).
+
+    depth:  (H, W) float32 metres along the optical axis, 0 where no surface.
+    colour: (H, W, 3) float32 map units, 0 where no surface.
+    vertex: (H, W, 3) float32 points in the camera frame (0 where none), for ICP; or None.
+    normal: (H, W, 3) float32 unit normals in the camera frame (0 where none), for ICP; or None.
+    """
+
+    depth: np.ndarray
+    colour: np.ndarray
+    vertex: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.depth > 0
+
+
+@dataclass
+class ColourPairs:
+    """Colour samples compared before fusion, for the disagreement histogram.
+
+    map_colour, sample_colour: (N, 3) float32 in map units; row i of each is one comparison between the
+    map's current colour and the incoming sample that is about to be averaged into it.
+    """
+
+    map_colour: np.ndarray
+    sample_colour: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.map_colour.shape[0])
+
+
+class FusionBackend(Protocol):
+    """A map that can be rendered at a pose and that fuses RGB-D frames."""
+
+    def render(self, pose: np.ndarray, K: np.ndarray, height: int, width: int) -> ModelView:
+        """The map as seen from ``pose``; an empty map gives all-zero depth."""
+        ...
+
+    def integrate(self, depth: np.ndarray, colour: np.ndarray, K: np.ndarray, pose: np.ndarray, *,
+                  view: ModelView | None = None, frame_index: int = 0) -> ColourPairs | None:
+        """Fuse one frame. ``view`` is the map rendered at ``pose`` just before (the pipeline passes the
+        one it already has, so a backend need not ray cast twice). Returns the colour pairs this
+        backend compared (map colour vs the sample about to be merged into it), or None."""
+        ...
+
+    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray]) -> dict[str, Path]:
+        """Write the map's geometry with colours mapped through ``to_display`` ((N, 3) map units ->
+        (N, 3) float display levels 0..255); returns {kind: path} of the written files."""
+        ...
+
+    def stats(self) -> dict:
+        """Size figures for metrics.json (voxel blocks, surfels, memory)."""
+        ...

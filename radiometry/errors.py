@@ -1,0 +1,39 @@
+"""The project's exceptions: one base class, a subclass per area.
+
+The CLI prints ``str(error)`` of any :class:`RadiomapError` as one line and exits with code 1, so a
+message must name the file or parameter at fault and say how to fix it.
+"""
+
+from __future__ import annotations
+
+
+class RadiomapError(Exception):
+    """Base class of every error the project raises on bad input or a failed run."""
+
+
+class CalibrationFileError(RadiomapError):
+    """A model file (response, vignetting, radical, DSO) is missing, corrupt or inconsistent."""
+
+
+class ImageError(RadiomapError):
+    """An image file is missing, unreadable, truncated or of the wrong kind."""
+
+
+class DatasetError(RadiomapError):
+    """An RGB-D sequence is missing, empty, inconsistent or in an unknown layout."""
+
+
+class CalibrationError(RadiomapError):
+    """A calibration cannot produce a trustworthy model from the data it was given."""
+
+
+class ModelMismatchError(RadiomapError):
+    """A model does not fit the images (resolution, aspect ratio, channel count)."""
+
+
+class OutputError(RadiomapError):
+    """An output cannot be written (permissions, full disk, existing file without --force)."""
+
+
+class TrackingError(RadiomapError):
+    """Camera tracking failed in a way that cannot be recovered by skipping frames."""

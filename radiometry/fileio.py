@@ -1,0 +1,261 @@
+"""File boundary: images in RGB, depth in float32 metres, atomic writes, the model file format.
+
+Everything that touches the disk goes through here so that errors name the file and the fix, colour
+is converted from OpenCV's BGR exactly once, and no write ever leaves a half file where a good one stood.
+
+Model files (response, vignetting, ...) share one versioned, self-describing format: a NumPy ``.npz``
+archive (read with ``allow_pickle=False``) whose ``meta`` entry is a JSON document with at least
+``{"format": "radiomap", "kind": <kind>, "version": <int>}``; the remaining entries are plain arrays.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import tempfile
+import zipfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import CalibrationFileError, ImageError, OutputError
+
+MODEL_FORMAT = "radiomap"
+MODEL_FORMAT_VERSION = 1
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+
+
+# --------------------------------------------------------------------------------------------------
+# atomic writes
+# --------------------------------------------------------------------------------------------------
+def _os_error_message(path: Path, exc: OSError) -> str:
+    if exc.errno == errno.ENOSPC:
+        return f"cannot write {path}: the disk is full; free some space or choose another output folder"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return f"cannot write {path}: permission denied; choose a writable output folder"
+    return f"cannot write {path}: {exc.strerror or exc}; choose another output folder"
+
+
+def ensure_dir(path: str | os.PathLike) -> Path:
+    """Create a folder (and parents) or raise :class:`OutputError` naming it."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"output folder {path} is an existing file; choose a folder name")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(_os_error_message(path, exc)) from None
+    if not os.access(path, os.W_OK):
+        raise OutputError(f"cannot write into {path}: permission denied; choose a writable output folder")
+    return path
+
+
+def check_overwrite(path: str | os.PathLike, *, force: bool) -> None:
+    """Refuse to replace an existing calibration unless ``force`` is given."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise OutputError(f"{path} exists; pass --force to overwrite it or choose another name")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it into place only if the block succeeds.
+
+    The temporary name keeps the final suffix so that writers choosing a format by extension (OpenCV,
+    trimesh, matplotlib) still work. On any exception the temporary file is removed and ``path`` is
+    left exactly as it was.
+    """
+    path = Path(path)
+    ensure_dir(path.parent if str(path.parent) else Path("."))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(_os_error_message(path, exc)) from None
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        if not tmp_path.exists() or tmp_path.stat().st_size == 0 and not _allow_empty(path):
+            raise OutputError(f"writing {path} produced no data; nothing was replaced")
+        os.replace(tmp_path, path)
+    except OSError as exc:
+        raise OutputError(_os_error_message(path, exc)) from None
+    finally:
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+
+
+def _allow_empty(path: Path) -> bool:
+    return path.suffix in (".txt", ".csv", ".log")
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
+
+
+# --------------------------------------------------------------------------------------------------
+# model files
+# --------------------------------------------------------------------------------------------------
+def save_model_file(path: str | os.PathLike, kind: str, arrays: Mapping[str, np.ndarray],
+                    meta: Mapping[str, Any] | None = None, *, version: int = MODEL_FORMAT_VERSION) -> Path:
+    """Write a model archive atomically: ``arrays`` plus a JSON ``meta`` describing them."""
+    header = {"format": MODEL_FORMAT, "kind": kind, "version": int(version)}
+    header.update(dict(meta or {}))
+    header["arrays"] = {name: {"shape": list(np.shape(a)), "dtype": str(np.asarray(a).dtype)}
+                        for name, a in arrays.items()}
+    payload = {name: np.asarray(a) for name, a in arrays.items()}
+    if "meta" in payload:
+        raise ValueError("'meta' is reserved in model files; rename that array")
+    payload["meta"] = np.array(json.dumps(header, default=_json_default))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **payload)
+    return Path(path)
+
+
+def load_model_file(path: str | os.PathLike, kind: str, *,
+                    max_version: int = MODEL_FORMAT_VERSION) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a model archive written by :func:`save_model_file`, checking format, kind and version."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"{path}: no such file; check the path of the {kind} model")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise CalibrationFileError(
+            f"{path}: not a radiomap {kind} file ({type(exc).__name__}); re-create it with radiomap") from None
+    if "meta" not in arrays:
+        raise CalibrationFileError(f"{path}: no 'meta' entry, not a radiomap {kind} file; re-create it")
+    try:
+        meta = json.loads(str(arrays.pop("meta")))
+    except (json.JSONDecodeError, TypeError) as exc:
+        raise CalibrationFileError(f"{path}: corrupt 'meta' entry ({exc}); re-create the file") from None
+    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
+        raise CalibrationFileError(f"{path}: not a radiomap model file; re-create it with radiomap")
+    if meta.get("kind") != kind:
+        raise CalibrationFileError(
+            f"{path}: holds a '{meta.get('kind')}' model where a '{kind}' model is needed; pass the right file")
+    version = meta.get("version")
+    if not isinstance(version, int) or version < 1 or version > max_version:
+        raise CalibrationFileError(
+            f"{path}: format version {version!r} is not supported (this radiomap reads up to {max_version}); "
+            "upgrade radiomap or re-create the file")
+    return meta, arrays
+
+
+# --------------------------------------------------------------------------------------------------
+# images
+# --------------------------------------------------------------------------------------------------
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
+
+    16-bit images are scaled to 8 bits. Raises :class:`ImageError` naming the file when it is missing,
+    unreadable or truncated.
+    """
+    cv2 = _cv2()
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: no such image; check the path")
+    data = np.fromfile(path, dtype=np.uint8)
+    if data.size == 0:
+        raise ImageError(f"{path}: empty file; replace it with a valid image")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageError(f"{path}: cannot decode the image (corrupt, truncated or not an image); replace it")
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        elif img.shape[2] == 1:
+            img = img[:, :, 0]
+        else:
+            raise ImageError(f"{path}: {img.shape[2]} channels; expected 1, 3 or 4")
+    return np.ascontiguousarray(img)
+
+
+def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
+    """Read a 16-bit depth image and return float32 metres (``raw / scale``; 0 stays 0 = invalid)."""
+    cv2 = _cv2()
+    path = Path(path)
+    if scale <= 0 or not np.isfinite(scale):
+        raise ValueError(f"depth scale must be a positive number, got {scale}")
+    if not path.is_file():
+        raise ImageError(f"{path}: no such depth image; check the path")
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise ImageError(f"{path}: cannot decode the depth image (corrupt, truncated or not an image); replace it")
+    if img.ndim == 3:
+        raise ImageError(f"{path}: depth image has {img.shape[2]} channels; expected a single-channel 16-bit PNG")
+    if img.dtype not in (np.uint16, np.float32):
+        raise ImageError(f"{path}: depth must be 16-bit (got {img.dtype}); save depth as 16-bit PNG")
+    depth = img.astype(np.float32) / np.float32(scale)
+    depth[~np.isfinite(depth)] = 0.0
+    return depth
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix."""
+    cv2 = _cv2()
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    path = Path(path)
+    ok, buf = cv2.imencode(path.suffix or ".png", image)
+    if not ok:
+        raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def write_depth(path: str | os.PathLike, depth_m: np.ndarray, scale: float) -> Path:
+    """Write float32 metres as a 16-bit PNG (``round(depth * scale)``, clipped to the uint16 range)."""
+    raw = np.clip(np.round(np.nan_to_num(depth_m) * scale), 0, 65535).astype(np.uint16)
+    return write_image(path, raw)
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """Image files in a folder, sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ImageError(f"{folder}: no such folder; check the path")
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
