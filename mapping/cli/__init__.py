@@ -51,9 +51,12 @@ class LazyGroup(click.Group):
     """A group whose subcommands are imported on first use and whose known errors print one line."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return [name for name, mod in SUBCOMMANDS.items() if importlib.util.find_spec(mod) is not None]
+        lazy = [name for name, mod in SUBCOMMANDS.items() if importlib.util.find_spec(mod) is not None]
+        return lazy + sorted(set(self.commands) - set(lazy))
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name in self.commands:
+            return self.commands[cmd_name]
         module = SUBCOMMANDS.get(cmd_name)
         if module is None or importlib.util.find_spec(module) is None:
             return None
