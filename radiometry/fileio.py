@@ -27,6 +27,9 @@ from radiometry.errors import CalibrationFileError, ImageError, OutputError
 MODEL_FORMAT = "radiomap"
 MODEL_FORMAT_VERSION = 1
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 
 
@@ -78,6 +81,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise OutputError(_os_error_message(path, exc)) from None
     os.close(fd)
     tmp_path = Path(tmp)
+    os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp creates 0600; follow the user's umask like open() does
     try:
         yield tmp_path
         if not tmp_path.exists() or tmp_path.stat().st_size == 0 and not _allow_empty(path):

@@ -112,3 +112,8 @@ def test_list_images_sorted(tmp_path):
     assert [p.name for p in fileio.list_images(tmp_path)] == ["a.jpg", "b.png"]
     with pytest.raises(ImageError, match="no such folder"):
         fileio.list_images(tmp_path / "nope")
+
+
+def test_atomic_files_follow_umask(tmp_path):
+    path = fileio.atomic_write_text(tmp_path / "x.txt", "x")
+    assert path.stat().st_mode & 0o777 == 0o666 & ~fileio._UMASK

@@ -1,0 +1,151 @@
+"""``radiomap response``: recover the camera response from bracketed exposures."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
+
+EPILOG = """\b
+Examples:
+  radiomap response data_samples/brackets -o out/crf.npz
+      Debevec & Malik on the embedded sample (times from data_samples/brackets/times.txt)
+  radiomap response ../shared/data/brackets/memorial_debevec1997 --mask-blue -o memorial.crf
+      the memorial stack without its blue border fill, saved for radical
+  radiomap response brackets/ --times times.txt --method robertson -o pcalib.txt
+      OpenCV's Robertson, saved as a DSO pcalib.txt (mean of R, G, B; or --channel G)
+
+\b
+The times file has one 'image_name seconds' line per image ('#' comments; further columns, such as
+the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OUT's name with .png
+(plot of the curves) and .json (the run's parameters and summary).
+"""
+
+
+@click.command("response", epilog=EPILOG, short_help="Recover the camera response from bracketed exposures.")
+@click.argument("folder", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--times", "times_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Exposure times file ('name seconds' per line). Default: FOLDER/times.txt or image_list.txt.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Response file: .npz (radiomap), .crf (radical) or .txt (DSO/TUM pcalib, one channel).")
+@click.option("--method", type=click.Choice(["debevec", "opencv-debevec", "robertson"]), default="debevec",
+              show_default=True, help="Our sparse Debevec & Malik, or OpenCV's Debevec / Robertson.")
+@click.option("--lambda", "lam", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Smoothness weight (debevec: per level of data, default 10; opencv-debevec: OpenCV's "
+                   "lambda, default 10).")
+@click.option("--samples", type=click.IntRange(min=1), default=None,
+              help="debevec: observations per intensity level (default 50); opencv-debevec: pixel locations (70).")
+@click.option("--mask-blue", is_flag=True,
+              help="Ignore pure-blue fill (registered stacks such as memorial); debevec only.")
+@click.option("--channel", type=click.Choice(["mean", "R", "G", "B"], case_sensitive=False), default=None,
+              help="For a .txt (pcalib, one channel) OUTPUT of colour images: the channel to write [default: "
+                   "mean, with a warning].")
+@click.option("--force", is_flag=True, help="Overwrite OUTPUT if it exists.")
+def command(folder: Path, times_file: Path | None, output: Path, method: str, lam: float | None,
+            samples: int | None, mask_blue: bool, channel: str | None, force: bool) -> None:
+    """Recover the inverse camera response f^-1 from bracketed exposures of a static scene.
+
+    FOLDER holds the images (same size, 8-bit, fixed white balance) and usually their times file.
+    Prints a summary and writes the response, a plot of the curves and a JSON record of the run.
+    """
+    import numpy as np
+
+    from mapping.cli._common import format_table, run_manifest
+    from radiometry.errors import DatasetError, OutputError
+    from radiometry.fileio import atomic_write_json, check_overwrite
+    from radiometry.response_fit import (blue_fill_mask, find_times_file, fit_response, load_brackets,
+                                         prediction_rms)
+
+    params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
+              "samples": samples, "mask_blue": mask_blue, "channel": channel, "force": force}
+    suffix = output.suffix.lower()
+    if suffix not in FORMATS:
+        raise OutputError(f"{output}: unknown response format {output.suffix!r}; use .npz (radiomap), "
+                          ".crf (radical) or .txt (DSO pcalib)")
+    kwargs = {}
+    if method == "robertson" and (lam is not None or samples is not None):
+        raise click.UsageError("--lambda and --samples apply to debevec and opencv-debevec, not robertson")
+    if channel is not None and suffix != ".txt":
+        raise click.UsageError("--channel applies to a .txt (pcalib) output only")
+    if mask_blue and method != "debevec":
+        raise click.UsageError("--mask-blue needs --method debevec (OpenCV's methods take no mask)")
+    if lam is not None:
+        kwargs["lam"] = lam
+    if samples is not None:
+        kwargs["samples"] = samples
+    check_overwrite(output, force=force)
+
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
+    used_times = times_file if times_file is not None else find_times_file(folder)
+    images, times, names = load_brackets(folder, used_times)
+    if mask_blue:
+        mask = blue_fill_mask(images)
+        kwargs["mask"] = mask
+        click.echo(f"masked {100 * (1 - mask.mean()):.1f}% of the pixels (pure-blue fill)")
+    import scipy.sparse.linalg  # noqa: F401  (imported before the clock starts: the time is the fit's)
+
+    start = time.perf_counter()
+    try:
+        response = fit_response(images, times, method=method, **kwargs)
+    except ValueError as exc:  # the images or times of this folder are unusable
+        raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
+    fit_seconds = time.perf_counter() - start
+    rms = prediction_rms(images, times, response, mask=kwargs.get("mask"))
+    meta = response.meta
+    meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names,
+                 "prediction_rms_levels": rms})
+
+    _save(output, response, suffix, channel)
+    plot_path = output.with_suffix(".png")
+    _plot(plot_path, response, f"{method}: {folder.name}")
+
+    repaired = meta.get("repaired_levels")
+    monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
+    if method == "debevec":
+        sampled = "/".join(str(p) for p in meta["pixels"]) + " px"
+    elif method == "opencv-debevec":
+        sampled = f"{meta['samples']} px"
+    else:
+        sampled = "all px"
+    row = {"method": method, "channels": response.channels, "images": len(images),
+           "exposures [s]": f"{times.min():.4g}..{times.max():.4g}", "samples": sampled,
+           "fit RMS [levels]": rms, "monotone": monotone, "time [s]": fit_seconds}
+    summary = format_table([row])
+    record = run_manifest("response", params)
+    record.update({"summary": row, "response": {k: v for k, v in meta.items()}, "outputs": {
+        "response": str(output), "plot": str(plot_path)}})
+    atomic_write_json(output.with_suffix(".json"), record)
+    click.echo(summary)
+    click.echo("fit RMS: error of predicting every unsaturated pixel of every exposure from the merged radiance")
+    click.echo(f"wrote {output} ({FORMATS[suffix]}), {plot_path}, {output.with_suffix('.json')}")
+    if not np.isfinite(rms) or rms > 10:
+        click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "
+                   "or auto exposure/white balance; check the plot", err=True)
+
+
+def _save(output: Path, response, suffix: str, channel: str | None) -> None:
+    if suffix == ".crf":
+        from radiometry.formats.crf import write_radical_crf
+
+        write_radical_crf(output, response)
+    elif suffix == ".txt":
+        from radiometry.formats.pcalib import write_pcalib
+
+        if response.channels == 3 and channel is None:
+            click.echo("warning: pcalib.txt holds one channel: writing the mean of R, G and B "
+                       "(choose one with --channel R|G|B)", err=True)
+            channel = "mean"
+        index = {"mean": "mean", "r": 0, "g": 1, "b": 2}[channel.lower()] if channel else None
+        write_pcalib(output, response, channel=index if response.channels == 3 else None)
+    else:
+        response.save(output)
+
+
+def _plot(path: Path, response, title: str) -> None:
+    from radiometry.plots import response_figure, save_figure
+
+    save_figure(response_figure(response, title=title), path)

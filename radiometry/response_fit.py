@@ -1,0 +1,649 @@
+"""Recover the inverse camera response ``f^-1`` from bracketed exposures.
+
+Methods (one function each, plus the :func:`fit_response` dispatcher):
+
+- ``"debevec"`` (:func:`fit_response_debevec`): Debevec & Malik (SIGGRAPH 1997) on a sparse least-squares
+  solve. Per channel, unknowns ``g(z) = ln f^-1(z)`` for z = 0..255 and ``ln E_i`` per sampled pixel;
+  data rows ``w(z_ij) (g(z_ij) - ln E_i - ln t_j) = 0``, smoothness rows ``lam' w(z) g''(z) = 0``,
+  hat weights ``w(z) = min(z, 255 - z)`` (levels 0 and 255 carry no data), gauge ``g(128) = 0``. Unlike
+  Debevec's ``lambda``, ``lam`` is per level of data (``lam' = lam sqrt(observations / 254)``), so it
+  keeps its meaning whatever the number of samples. Pixels are sampled stratified over intensity like
+  radical does: level by level in the longest exposure until every level has ``samples`` observations,
+  then from the shorter exposures for the levels still short (:func:`select_samples`). Levels never
+  observed are extrapolated by the smoothness term (linearly in ``g``). The normal equations are
+  factorised with the ``ln E`` block eliminated first, so time and memory grow linearly with samples.
+  Noise biases any such fit towards the radiances that fill many pixels (errors in the regressor);
+  averaging several frames per exposure, as radical does, reduces it.
+- ``"opencv-debevec"``, ``"robertson"``: OpenCV's ``CalibrateDebevec`` / ``CalibrateRobertson``, for
+  comparison.
+
+Every method returns a :class:`~radiometry.response.CameraResponse` (``f^-1(255) = 1``) whose ``meta``
+records the method, its parameters and fit statistics. Images are uint8 RGB ``(H, W, 3)`` or grayscale
+``(H, W)``; times are in seconds. :func:`load_brackets` reads a folder of brackets and its times file;
+:func:`merge_radiance` and :func:`prediction_rms` check a response against the images.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import CalibrationError, DatasetError
+from radiometry.response import LEVELS, CameraResponse
+
+log = logging.getLogger(__name__)
+
+METHODS = ("debevec", "opencv-debevec", "robertson")
+DEFAULT_LAMBDA = 10.0
+DEFAULT_SAMPLES = 50
+GAUGE_LEVEL = 128
+TIMES_FILE_NAMES = ("times.txt", "image_list.txt")
+
+_LEVELS = np.arange(LEVELS)
+#: Debevec's hat weight ``w(z) = min(z, 255 - z)``: 0 at the empty (0) and saturated (255) levels.
+HAT_WEIGHTS = np.minimum(_LEVELS, 255 - _LEVELS).astype(np.float64)
+
+
+# --------------------------------------------------------------------------------------------------
+# input validation
+# --------------------------------------------------------------------------------------------------
+def _as_stack(images: Sequence[np.ndarray], times: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Check images and times; return ``(P, H, W, C)`` uint8 and float64 ``(P,)`` times (input order)."""
+    try:
+        images = list(images)
+    except TypeError:
+        raise TypeError(f"images must be a list of arrays, got {type(images).__name__}") from None
+    if len(images) < 2:
+        raise ValueError(f"images must hold at least 2 exposures, got {len(images)}; pass a bracketed stack")
+    arrays = []
+    for k, img in enumerate(images):
+        arr = np.asarray(img)
+        if arr.ndim == 3 and arr.shape[2] == 1:
+            arr = arr[:, :, 0]
+        if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+            raise ValueError(f"images[{k}] must be (H, W) grayscale or (H, W, 3) RGB, got shape {arr.shape}")
+        if arr.dtype != np.uint8:
+            if np.issubdtype(arr.dtype, np.integer) and arr.size and arr.min() >= 0 and arr.max() <= 255:
+                arr = arr.astype(np.uint8)
+            else:
+                raise TypeError(f"images[{k}] must be uint8 (levels 0..255), got {arr.dtype}; "
+                                "convert 16-bit images with (img >> 8).astype(np.uint8)")
+        arrays.append(arr)
+    shape = arrays[0].shape
+    for k, arr in enumerate(arrays):
+        if arr.shape != shape:
+            raise ValueError(f"images must all have the same shape: images[0] is {shape}, "
+                             f"images[{k}] is {arr.shape}")
+    stack = np.stack(arrays)
+    if stack.ndim == 3:
+        stack = stack[..., None]
+    t = np.asarray(times, dtype=np.float64).ravel() if not isinstance(times, (str, bytes)) else None
+    if t is None:
+        raise TypeError("times must be a sequence of exposure times in seconds")
+    if t.size != len(arrays):
+        raise ValueError(f"times must have one exposure time per image: {len(arrays)} images, {t.size} times")
+    if not np.all(np.isfinite(t)) or np.any(t <= 0):
+        raise ValueError(f"times must be positive finite seconds, got {t.tolist()}")
+    if np.unique(t).size < 2:
+        raise ValueError(f"times must contain at least two different exposure times, got {t.tolist()}")
+    return stack, t
+
+
+def _check_brightness_order(stack: np.ndarray, times: np.ndarray) -> None:
+    """Longer exposures must be brighter: reject times that are clearly inverted (e.g. a 1/t column)."""
+    means = stack.reshape(stack.shape[0], -1).mean(axis=1)
+    concordant = discordant = 0
+    for a in range(len(times)):
+        for b in range(a + 1, len(times)):
+            if times[a] == times[b] or abs(means[a] - means[b]) < 1.0:
+                continue
+            if (times[a] < times[b]) == (means[a] < means[b]):
+                concordant += 1
+            else:
+                discordant += 1
+    if discordant > 0 and discordant >= 2 * concordant:
+        raise ValueError(
+            "times are inverted: the images with the longest times are the darkest "
+            f"({discordant} of {concordant + discordant} pairs disagree); pass exposure times in seconds, "
+            "not 1/t (in image_list.txt the second column is seconds, the third 1/t)")
+
+
+def _check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != shape:
+        raise ValueError(f"mask must have the image shape {shape}, got {m.shape}")
+    if m.dtype != bool:
+        raise TypeError(f"mask must be a boolean array (True = usable pixel), got {m.dtype}")
+    if not m.any():
+        raise ValueError("mask excludes every pixel; True marks the pixels to use")
+    return m
+
+
+def blue_fill_mask(images: Sequence[np.ndarray], *, tolerance: int = 8, dilate: int = 2) -> np.ndarray:
+    """Usable-pixel mask for registered stacks whose borders are filled with pure blue (memorial).
+
+    A pixel is excluded when it is pure blue (R <= tolerance, G <= tolerance, B >= 255 - tolerance) in
+    any image; the excluded region is grown by ``dilate`` pixels to drop resampled border blends.
+    Returns a boolean ``(H, W)`` array, True = usable.
+    """
+    arrays = [np.asarray(im) for im in images]
+    if not arrays:
+        raise ValueError("images must hold at least one RGB image")
+    for k, arr in enumerate(arrays):
+        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape != arrays[0].shape:
+            raise ValueError(f"images must be RGB (H, W, 3) of one size to find blue fill; images[{k}] has "
+                             f"shape {arr.shape}")
+    stack = np.stack(arrays)
+    if tolerance < 0 or dilate < 0:
+        raise ValueError(f"tolerance and dilate must be >= 0, got {tolerance} and {dilate}")
+    r, g, b = stack[..., 0], stack[..., 1], stack[..., 2]
+    blue = ((r <= tolerance) & (g <= tolerance) & (b >= 255 - tolerance)).any(axis=0)
+    if dilate and blue.any():
+        from scipy.ndimage import binary_dilation
+
+        blue = binary_dilation(blue, structure=np.ones((3, 3), bool), iterations=int(dilate))
+    return ~blue
+
+
+# --------------------------------------------------------------------------------------------------
+# sampling
+# --------------------------------------------------------------------------------------------------
+def select_samples(values: np.ndarray, times: np.ndarray, *, samples: int = DEFAULT_SAMPLES,
+                   valid: np.ndarray | None = None, levels: tuple[int, int] = (1, 254),
+                   seed: int = 0) -> np.ndarray:
+    """Pixel indices stratified over intensity, as radical samples (one channel).
+
+    ``values`` is ``(P, N)`` uint8 (P exposures, N pixels); ``valid`` an optional ``(N,)`` boolean mask.
+    From the top of ``levels`` (valid range, inclusive) down, pixels of each level in the longest
+    exposure are taken in random (spatially spread) order until the level has ``samples`` valid
+    observations, counted over all exposures of the pixels taken so far (radical's rule). Levels still
+    short of observations are then filled the same way from the next longest exposure (among the pixels
+    not taken yet), and so on: this reaches the pixels saturated in the longest exposure and the levels
+    that only the shorter ones show.
+    """
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1 observation per level, got {samples}")
+    values = np.asarray(values)
+    n_img, n_pix = values.shape
+    rng = np.random.default_rng(seed)
+    lo, hi = levels
+    usable = (values >= lo) & (values <= hi)
+    free = np.ones(n_pix, bool) if valid is None else np.asarray(valid, bool).copy()
+    hist = np.zeros(LEVELS, dtype=np.int64)
+    chosen: list[np.ndarray] = []
+    for j in np.argsort(-np.asarray(times), kind="stable"):
+        if np.all(hist[lo:hi + 1] >= samples):
+            break
+        short = np.zeros(LEVELS, bool)
+        short[lo:hi + 1] = hist[lo:hi + 1] < samples
+        pool = np.flatnonzero(free & short[values[j]])  # pixels of the levels still short, not taken yet
+        if pool.size == 0:
+            continue
+        pool = pool[rng.permutation(pool.size)]
+        pool_levels = values[j, pool]
+        by_level = np.argsort(pool_levels, kind="stable")
+        bounds = np.searchsorted(pool_levels[by_level], np.arange(LEVELS + 1))
+        for z in range(hi, lo - 1, -1):
+            need = samples - hist[z]
+            if need <= 0:
+                continue
+            # every candidate adds at least its own observation of z: `need` of them always suffice
+            cand = pool[by_level[bounds[z]:min(bounds[z + 1], bounds[z] + need)]]
+            if cand.size == 0:
+                continue
+            gain = (values[:, cand] == z).sum(axis=0)
+            picked = cand[:int(np.searchsorted(np.cumsum(gain), need)) + 1]
+            chosen.append(picked)
+            free[picked] = False
+            hist += np.bincount(values[:, picked][usable[:, picked]], minlength=LEVELS)
+    if not chosen:
+        return np.empty(0, dtype=np.intp)
+    return np.sort(np.concatenate(chosen))
+
+
+# --------------------------------------------------------------------------------------------------
+# Debevec & Malik, sparse
+# --------------------------------------------------------------------------------------------------
+def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
+                           levels: tuple[int, int] = (1, 254)) -> dict[str, Any]:
+    """Solve one channel. ``values`` is ``(P, S)`` uint8 of the sampled pixels.
+
+    Returns ``g`` (256,), ``ln_e`` (S,) and the observations used (image, pixel, level index arrays).
+    The unknowns are ordered ``ln E`` first, then ``g`` (without the gauge level), so that factorising the
+    sparse normal equations in natural order eliminates the diagonal ``ln E`` block first: the only fill-in
+    is the 255 x 255 block of ``g`` and the cost grows linearly with the number of samples.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    n_img, n_pix = values.shape
+    w_obs = np.where((values >= levels[0]) & (values <= levels[1]), HAT_WEIGHTS[values], 0.0)
+    img_idx, pix_idx = np.nonzero(w_obs > 0)
+    z = values[img_idx, pix_idx].astype(np.intp)
+    w = w_obs[img_idx, pix_idx]
+    n_obs = z.size
+    if n_obs == 0:
+        raise CalibrationError("no usable observations (every sampled pixel is outside the valid levels); "
+                               "check the exposures, the mask and the levels")
+    per_pixel = np.bincount(pix_idx, minlength=n_pix)
+    multi = per_pixel[pix_idx] >= 2
+    if not multi.any() or np.unique(log_t[img_idx[multi]]).size < 2:
+        raise CalibrationError("no pixel is unsaturated in two different exposures, so the response is not "
+                               "observable; add exposures that overlap (e.g. one stop apart)")
+
+    gcol = n_pix + np.where(_LEVELS < GAUGE_LEVEL, _LEVELS, _LEVELS - 1)
+    gcol[GAUGE_LEVEL] = -1
+    n_cols = n_pix + LEVELS - 1
+    # data rows w (g(z) - ln E_i) = w ln t_j (the weights are applied in the normal equations)
+    keep = z != GAUGE_LEVEL
+    r = np.arange(n_obs)
+    data = sp.csr_matrix((np.concatenate([-np.ones(n_obs), np.ones(int(keep.sum()))]),
+                          (np.concatenate([r, r[keep]]), np.concatenate([pix_idx, gcol[z[keep]]]))),
+                         shape=(n_obs, n_cols))
+    # smoothness rows: lam' w(k) (g(k-1) - 2 g(k) + g(k+1)) = 0, k = 1..254, lam' = lam sqrt(obs per level)
+    k = np.arange(1, LEVELS - 1)
+    sw = lam * math.sqrt(n_obs / (LEVELS - 2)) * HAT_WEIGHTS[k]
+    rows, cols, vals = [], [], []
+    for offset, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
+        lev = k + offset
+        m = lev != GAUGE_LEVEL
+        rows.append(np.arange(k.size)[m])
+        cols.append(gcol[lev[m]])
+        vals.append(coef * sw[m])
+    smooth = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(k.size, n_cols))
+    dw = sp.diags(w * w) @ data
+    ata = ((data.T @ dw) + (smooth.T @ smooth)).tocsc()
+    atb = dw.T @ log_t[img_idx]
+    try:
+        x = splu(ata, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}).solve(atb)
+    except RuntimeError as exc:  # "Factor is exactly singular"
+        raise CalibrationError(f"the least-squares system is singular ({exc}); add overlapping exposures "
+                               "or more samples") from None
+    if not np.all(np.isfinite(x)):
+        raise CalibrationError("the least-squares solve gave non-finite values; add overlapping exposures "
+                               "or more samples")
+    g = np.insert(x[n_pix:], GAUGE_LEVEL, 0.0)
+    return {"g": g, "ln_e": x[:n_pix], "img": img_idx, "pix": pix_idx, "z": z}
+
+
+def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float = DEFAULT_LAMBDA,
+                         samples: int = DEFAULT_SAMPLES, mask: np.ndarray | None = None,
+                         levels: tuple[int, int] = (1, 254), seed: int = 0) -> CameraResponse:
+    """Debevec & Malik on a sparse least-squares solve (see the module docstring).
+
+    ``lam``: smoothness weight per level of data (> 0). ``samples``: target number of observations per
+    intensity level. ``mask``: boolean ``(H, W)``, True = usable pixel (see :func:`blue_fill_mask`).
+    ``levels``: the valid intensity range (inclusive, like radical's ``--valid-min/--valid-max``):
+    observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
+    still estimated (extrapolated) there. ``seed``: sampling order. The result is repaired to strictly
+    increasing only if the solve is not (``meta["repaired"]``, ``meta["repaired_levels"]``). ``meta``
+    also records the sampled pixels and observations per channel, the levels never observed and
+    ``fit_rms_levels`` (observed level minus ``f(E_i t_j)`` over the samples, 8-bit levels).
+    """
+    if not (np.isfinite(lam) and lam > 0):
+        raise ValueError(f"lam must be a positive number (smoothness weight, e.g. {DEFAULT_LAMBDA}), got {lam}")
+    if int(samples) != samples or samples < 1:
+        raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
+    try:
+        lo, hi = (int(v) for v in levels)
+    except (TypeError, ValueError):
+        raise TypeError(f"levels must be a pair (low, high) of intensity levels, got {levels!r}") from None
+    if not (1 <= lo and hi <= 254 and hi - lo >= 16):
+        raise ValueError(f"levels must satisfy 1 <= low, high <= 254 and span at least 16 levels, got {levels!r}")
+    start = time.perf_counter()
+    stack, t = _as_stack(images, times)
+    _check_brightness_order(stack, t)
+    n_img, h, w, n_ch = stack.shape
+    valid = _check_mask(mask, (h, w))
+    valid_flat = None if valid is None else valid.ravel()
+    flat = stack.reshape(n_img, h * w, n_ch)
+    log_t = np.log(t)
+    g = np.empty((LEVELS, n_ch))
+    solved = []
+    for c in range(n_ch):
+        values = np.ascontiguousarray(flat[:, :, c])
+        idx = select_samples(values, t, samples=int(samples), valid=valid_flat, levels=(lo, hi), seed=seed + c)
+        if idx.size == 0:
+            raise CalibrationError(f"channel {c}: every pixel is saturated, empty or masked in every image (no "
+                                   f"level in {lo}..{hi}); use shorter or longer exposures or check the mask")
+        sol = _solve_debevec_channel(values[:, idx], log_t, float(lam), (lo, hi))
+        g[:, c] = sol["g"]
+        solved.append(sol)
+    unobserved = []
+    for c, sol in enumerate(solved):
+        seen = np.bincount(sol["z"], minlength=LEVELS)
+        unobserved.append([int(v) for v in np.flatnonzero(seen[1:255] == 0) + 1])  # includes levels outside lo..hi
+        if len(unobserved[-1]) > 16:
+            log.warning("channel %d: %d intensity levels were never observed; their values are extrapolated "
+                        "by the smoothness term", c, len(unobserved[-1]))
+    meta: dict[str, Any] = {
+        "method": "debevec", "lambda": float(lam), "samples_per_level": int(samples), "levels": [lo, hi],
+        "seed": int(seed),
+        "images": int(n_img), "times": t.tolist(), "masked": valid is not None,
+        "pixels": [int(sol["ln_e"].size) for sol in solved],
+        "observations": [int(sol["z"].size) for sol in solved],
+        "unobserved_levels": unobserved,
+    }
+    response = _finish(g, meta)
+    # fit residual in 8-bit levels: observed level vs f(E_i t_j) on the sampled pixels
+    sq, n = [], 0
+    for c, sol in enumerate(solved):
+        x = np.exp(sol["ln_e"][sol["pix"]] + log_t[sol["img"]] - g[-1, c])
+        pred = np.interp(x, response.inverse_table[:, c], _LEVELS)
+        err = pred - sol["z"]
+        sq.append(float(np.sum(err ** 2)))
+        n += err.size
+        response.meta.setdefault("fit_rms_levels_per_channel", []).append(math.sqrt(sq[-1] / err.size))
+    response.meta["fit_rms_levels"] = math.sqrt(sum(sq) / n)
+    response.meta["fit_seconds"] = time.perf_counter() - start
+    return response
+
+
+def _finish(g: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
+    """Build the model from ``g = ln f^-1``; repair monotonicity only if needed and record it."""
+    g = np.asarray(g, dtype=np.float64)
+    bad = [np.flatnonzero(np.diff(g[:, c]) <= 0).tolist() for c in range(g.shape[1])]
+    repaired = any(bad)
+    meta = dict(meta, repaired=repaired)
+    if repaired:
+        meta["repaired_levels"] = [[int(i) + 1 for i in b] for b in bad]
+        log.warning("the fitted response is not strictly increasing at %d level(s); repaired (running maximum)",
+                    sum(len(b) for b in bad))
+    return CameraResponse.from_log_table(g, repair=repaired, **meta)
+
+
+# --------------------------------------------------------------------------------------------------
+# OpenCV methods
+# --------------------------------------------------------------------------------------------------
+def _fill_log_table(ln_f: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Replace invalid entries of a log table by linear inter/extrapolation of the valid ones (per channel)."""
+    out = ln_f.copy()
+    for c in range(out.shape[1]):
+        ok = valid[:, c]
+        if ok.sum() < 2:
+            raise CalibrationError("the OpenCV fit observed fewer than 2 intensity levels; use more exposures")
+        lv = np.flatnonzero(ok)
+        out[~ok, c] = np.interp(np.flatnonzero(~ok), lv, out[lv, c])
+        for side in (slice(None, lv[0]), slice(lv[-1] + 1, None)):
+            idx = _LEVELS[side]
+            if idx.size == 0:
+                continue
+            near = lv[:8] if side.stop is not None else lv[-8:]
+            slope = np.polyfit(near, out[near, c], 1)[0]
+            slope = max(slope, 1e-3)
+            anchor = near[0] if side.stop is not None else near[-1]
+            out[idx, c] = out[anchor, c] + slope * (idx - anchor)
+    return out
+
+
+def _opencv_table(result: np.ndarray, n_ch: int) -> np.ndarray:
+    table = np.asarray(result, dtype=np.float64).reshape(LEVELS, -1)
+    return table[:, :n_ch]
+
+
+def fit_response_opencv_debevec(images: Sequence[np.ndarray], times: Sequence[float], *,
+                                lam: float = DEFAULT_LAMBDA, samples: int = 70,
+                                random: bool = False) -> CameraResponse:
+    """OpenCV's ``CalibrateDebevec`` (``samples`` pixel locations on a grid, or random; weight lam).
+
+    OpenCV takes no mask. Levels without a finite positive value are extrapolated in the log domain and
+    a non-monotone result is repaired (both recorded in ``meta``). ``lam`` is OpenCV's lambda (relative
+    to one data row, unlike :func:`fit_response_debevec`'s).
+    """
+    import cv2
+
+    if not (np.isfinite(lam) and lam >= 0):
+        raise ValueError(f"lam must be a finite number >= 0, got {lam}")
+    if int(samples) != samples or samples < 1:
+        raise ValueError(f"samples must be a positive whole number of pixel locations, got {samples}")
+    start = time.perf_counter()
+    stack, t = _as_stack(images, times)
+    _check_brightness_order(stack, t)
+    n_ch = stack.shape[-1]
+    src = [np.ascontiguousarray(im if n_ch == 3 else im[..., 0]) for im in stack]
+    calib = cv2.createCalibrateDebevec(int(samples), float(lam), bool(random))
+    table = _opencv_table(calib.process(src, t.astype(np.float32)), n_ch)
+    response = _from_opencv(table, {"method": "opencv-debevec", "lambda": float(lam), "samples": int(samples),
+                                    "random": bool(random), "images": int(len(t)), "times": t.tolist()})
+    response.meta["fit_seconds"] = time.perf_counter() - start
+    return response
+
+
+def fit_response_robertson(images: Sequence[np.ndarray], times: Sequence[float], *, max_iter: int = 30,
+                           threshold: float = 0.01) -> CameraResponse:
+    """OpenCV's ``CalibrateRobertson`` (Gauss-Seidel iterations on all pixels).
+
+    Level 255 only sees clipped irradiance (Robertson's average of saturated pixels is biased) and some
+    levels may never be observed (NaN): those are extrapolated in the log domain, recorded in ``meta``.
+    Grayscale stacks are fed as 3 equal channels (OpenCV 5.0 corrupts memory on 1-channel input).
+    """
+    import cv2
+
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive whole number, got {max_iter}")
+    if not (np.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a positive number, got {threshold}")
+    start = time.perf_counter()
+    stack, t = _as_stack(images, times)
+    _check_brightness_order(stack, t)
+    n_ch = stack.shape[-1]
+    src = [np.ascontiguousarray(im if n_ch == 3 else np.repeat(im, 3, axis=2)) for im in stack]
+    calib = cv2.createCalibrateRobertson(int(max_iter), float(threshold))
+    table = _opencv_table(calib.process(src, t.astype(np.float32)), n_ch)
+    table[LEVELS - 1] = np.nan  # saturated level: extrapolate instead of the clipped average
+    response = _from_opencv(table, {"method": "robertson", "max_iter": int(max_iter),
+                                    "threshold": float(threshold), "images": int(len(t)), "times": t.tolist()})
+    response.meta["fit_seconds"] = time.perf_counter() - start
+    return response
+
+
+def _from_opencv(table: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
+    ok = np.isfinite(table) & (table > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ln_f = np.where(ok, np.log(np.where(ok, table, 1.0)), np.nan)
+    extrapolated = [np.flatnonzero(~ok[:, c]).tolist() for c in range(table.shape[1])]
+    if not ok.all():
+        ln_f = _fill_log_table(ln_f, ok)
+    meta = dict(meta, extrapolated_levels=extrapolated)
+    return _finish(ln_f, meta)
+
+
+# --------------------------------------------------------------------------------------------------
+# dispatcher
+# --------------------------------------------------------------------------------------------------
+_FITTERS = {
+    "debevec": fit_response_debevec,
+    "opencv-debevec": fit_response_opencv_debevec,
+    "robertson": fit_response_robertson,
+}
+
+
+def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method: str = "debevec",
+                 **kwargs: Any) -> CameraResponse:
+    """Fit ``f^-1`` with ``method`` in :data:`METHODS`; ``kwargs`` go to that method's function."""
+    fitter = _FITTERS.get(method)
+    if fitter is None:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    import inspect
+
+    accepted = {p for p in inspect.signature(fitter).parameters if p not in ("images", "times")}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise TypeError(f"method {method!r} does not take {', '.join(unknown)}; "
+                        f"it takes {', '.join(sorted(accepted))}")
+    return fitter(images, times, **kwargs)
+
+
+# --------------------------------------------------------------------------------------------------
+# checking a response against the images
+# --------------------------------------------------------------------------------------------------
+def merge_radiance(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
+                   mask: np.ndarray | None = None) -> np.ndarray:
+    """HDR merge: per pixel, the hat-weighted mean of ``ln f^-1(z_j) - ln t_j`` over the exposures.
+
+    Returns float32 ``(H, W, C)`` relative radiance; NaN where no exposure has a level in 1..254 or the
+    mask is False.
+    """
+    stack, t = _as_stack(images, times)
+    n_img, h, w, n_ch = stack.shape
+    valid = _check_mask(mask, (h, w))
+    tables = response.channel_tables(n_ch).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        g = np.log(tables)
+    g = np.where(np.isfinite(g), g, 0.0)  # level 0 may map to 0; it has weight 0 anyway
+    num = np.zeros((h, w, n_ch))
+    den = np.zeros((h, w, n_ch))
+    log_t = np.log(t)
+    for j in range(n_img):
+        z = stack[j]
+        wj = HAT_WEIGHTS[z]
+        gz = np.stack([g[:, c][z[..., c]] for c in range(n_ch)], axis=-1)
+        num += wj * (gz - log_t[j])
+        den += wj
+    with np.errstate(invalid="ignore", divide="ignore"):
+        radiance = np.exp(num / den)
+    radiance[den == 0] = np.nan
+    if valid is not None:
+        radiance[~valid] = np.nan
+    return radiance.astype(np.float32)
+
+
+def prediction_rms(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
+                   mask: np.ndarray | None = None, per_image: bool = False) -> float | list[float]:
+    """RMS error (8-bit levels) of predicting every exposure from the merged radiance map.
+
+    Each image is predicted as ``f(E * t_j)`` (``response.forward``, interpolated) from
+    :func:`merge_radiance`; the error is taken over unmasked pixels whose observed level is in 1..254
+    (not empty, not saturated). ``per_image=True`` returns one RMS per image.
+    """
+    stack, t = _as_stack(images, times)
+    radiance = merge_radiance(stack, t, response, mask=mask)
+    defined = np.isfinite(radiance)
+    sq_sum, count, per = 0.0, 0, []
+    for j in range(stack.shape[0]):
+        z = stack[j]
+        sel = defined & (z > 0) & (z < 255)
+        pred = response.forward(np.where(defined, radiance, 0.0) * np.float32(t[j]))
+        err = (pred - z.astype(np.float32))[sel].astype(np.float64)
+        sq_sum += float(np.sum(err ** 2))
+        count += err.size
+        per.append(math.sqrt(float(np.mean(err ** 2))) if err.size else float("nan"))
+    if per_image:
+        return per
+    if count == 0:
+        raise CalibrationError("no pixel has an unsaturated, non-empty observation to compare with")
+    return math.sqrt(sq_sum / count)
+
+
+# --------------------------------------------------------------------------------------------------
+# bracket folders
+# --------------------------------------------------------------------------------------------------
+def _parse_seconds(token: str) -> float:
+    if "/" in token:
+        num, den = token.split("/", 1)
+        return float(num) / float(den)
+    return float(token)
+
+
+def read_times_file(path: str | os.PathLike) -> list[tuple[str, float]]:
+    """Read ``name seconds [more columns]`` lines (``#`` comments and blank lines ignored).
+
+    ``seconds`` may be a fraction such as ``1/250``. Extra columns (``image_list.txt`` has ``1/t``) are
+    ignored. Raises :class:`DatasetError` naming the file and line for anything else.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such times file; pass --times FILE with lines 'image_name seconds'")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read the times file ({exc}); it must be a text file") from None
+    entries: list[tuple[str, float]] = []
+    seen: dict[str, int] = {}
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) < 2:
+            raise DatasetError(f"{path}:{lineno}: expected 'image_name seconds', got {raw.strip()!r}")
+        name, token = parts[0], parts[1]
+        try:
+            seconds = _parse_seconds(token)
+        except (ValueError, ZeroDivisionError):
+            raise DatasetError(f"{path}:{lineno}: exposure time {token!r} is not a number of seconds; "
+                               "write e.g. 'img.png 0.004' or 'img.png 1/250' (comment headers with #)") from None
+        if not (math.isfinite(seconds) and seconds > 0):
+            raise DatasetError(f"{path}:{lineno}: exposure time must be positive seconds, got {token!r}")
+        if name in seen:
+            raise DatasetError(f"{path}:{lineno}: {name} is listed twice (first on line {seen[name]}); "
+                               "keep one line per image")
+        seen[name] = lineno
+        entries.append((name, seconds))
+    if not entries:
+        raise DatasetError(f"{path}: no 'image_name seconds' lines; list every bracket image with its exposure")
+    return entries
+
+
+def find_times_file(folder: str | os.PathLike) -> Path:
+    """The default times file of a bracket folder: ``times.txt`` or ``image_list.txt``."""
+    folder = Path(folder)
+    for name in TIMES_FILE_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    raise DatasetError(f"{folder}: no {' or '.join(TIMES_FILE_NAMES)}; write one with lines "
+                       "'image_name seconds' or pass --times FILE")
+
+
+def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | None = None
+                  ) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
+    """Read a bracket folder: ``(images, times, names)`` in the order of the times file.
+
+    Images are RGB uint8 (or grayscale). The times file defaults to ``times.txt`` / ``image_list.txt``
+    in the folder. Every listed image must exist and every image in the folder must be listed.
+    """
+    from tqdm import tqdm
+
+    from radiometry.fileio import list_images, read_rgb
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
+    tfile = Path(times_file) if times_file is not None else find_times_file(folder)
+    entries = read_times_file(tfile)
+    present = {p.name: p for p in list_images(folder)}
+    missing = [name for name, _ in entries if name not in present and not (folder / name).is_file()]
+    if missing:
+        raise DatasetError(f"{tfile}: lists {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
+                           f"but {folder} has no such image; fix the names or remove those lines")
+    listed = {Path(name).name for name, _ in entries}
+    unlisted = sorted(set(present) - listed)
+    if unlisted:
+        more = " ..." if len(unlisted) > 3 else ""
+        raise DatasetError(f"{tfile}: does not list {', '.join(unlisted[:3])}{more} found in {folder}; "
+                           "add a line 'name seconds' for each or move them out")
+    images = [read_rgb(folder / name) for name, _ in tqdm(entries, desc="reading brackets", unit="image",
+                                                          disable=None, leave=False)]
+    shapes = {im.shape for im in images}
+    if len(shapes) > 1:
+        first = images[0].shape
+        odd, shape = next((name, im.shape) for (name, _), im in zip(entries, images) if im.shape != first)
+        raise DatasetError(f"{folder / odd}: shape {shape} differs from {entries[0][0]} {first}; "
+                           "all brackets must have the same size")
+    times = np.array([s for _, s in entries], dtype=np.float64)
+    return images, times, [name for name, _ in entries]
+
+
+__all__ = ["METHODS", "DEFAULT_LAMBDA", "DEFAULT_SAMPLES", "HAT_WEIGHTS", "fit_response", "fit_response_debevec",
+           "fit_response_opencv_debevec", "fit_response_robertson", "select_samples", "blue_fill_mask",
+           "merge_radiance", "prediction_rms", "read_times_file", "find_times_file", "load_brackets"]

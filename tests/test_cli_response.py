@@ -1,0 +1,167 @@
+"""``radiomap response`` on the embedded sample: outputs, summary, --force, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mapping.cli import cli
+from radiometry.formats import load_response
+from radiometry.response import CameraResponse
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "data_samples" / "brackets"
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(cli, ["response", *map(str, args)])
+
+
+def one_line_error(result) -> str:
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    lines = [line for line in result.output.splitlines() if line.startswith("radiomap: error:")]
+    assert len(lines) == 1, result.output
+    return lines[0]
+
+
+@pytest.fixture
+def sample_copy(tmp_path):
+    folder = tmp_path / "brackets"
+    shutil.copytree(SAMPLE, folder)
+    return folder
+
+
+def test_sample_is_up_to_date():
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_samples.py"), "--check"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_response_on_the_sample(tmp_path):
+    out = tmp_path / "out" / "crf.npz"
+    result = invoke(SAMPLE, "-o", out)
+    assert result.exit_code == 0, result.output
+    for word in ("method", "debevec", "channels", "images", "samples", "fit RMS", "monotone", "time", "wrote"):
+        assert word in result.output
+    response = CameraResponse.load(out)
+    truth = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
+    assert response.channels == 3 and response.meta["method"] == "debevec"
+    # measured: 0.39% of the range (levels 5..250, normalised f^-1(255) = 1)
+    levels = np.arange(5, 251)
+    assert np.abs(response.inverse_table[levels] - truth.inverse_table[levels]).max() < 0.01
+    assert response.meta["prediction_rms_levels"] < 1.5  # measured 0.94 (the true response: 0.77)
+    png = out.with_suffix(".png").read_bytes()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 10_000
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["command"] == "response" and record["summary"]["method"] == "debevec"
+    assert record["response"]["images_used"] == [f"exposure_{k}.png" for k in range(5)]
+
+
+def test_overwrite_needs_force(tmp_path):
+    out = tmp_path / "crf.npz"
+    assert invoke(SAMPLE, "-o", out, "--samples", "10").exit_code == 0
+    first = out.read_bytes()
+    line = one_line_error(invoke(SAMPLE, "-o", out))
+    assert line == f"radiomap: error: {out} exists; pass --force to overwrite it or choose another name"
+    assert out.read_bytes() == first
+    assert invoke(SAMPLE, "-o", out, "--force").exit_code == 0
+    assert out.read_bytes() != first and CameraResponse.load(out).meta["samples_per_level"] == 50
+
+
+@pytest.mark.parametrize("suffix, method, extra, channels", [
+    (".crf", "debevec", [], 3),
+    (".txt", "debevec", ["--channel", "G"], 1),
+    (".npz", "opencv-debevec", ["--samples", "100", "--lambda", "5"], 3),
+    (".npz", "robertson", [], 3),
+])
+def test_formats_and_methods(tmp_path, suffix, method, extra, channels):
+    out = tmp_path / f"response{suffix}"
+    result = invoke(SAMPLE, "-o", out, "--method", method, *extra)
+    assert result.exit_code == 0, result.output
+    response = load_response(out)
+    assert response.channels == channels and np.all(np.diff(response.inverse_table, axis=0) > 0)
+    assert out.with_suffix(".png").is_file()
+
+
+def test_pcalib_of_colour_images_warns(tmp_path):
+    result = invoke(SAMPLE, "-o", tmp_path / "pcalib.txt")
+    assert result.exit_code == 0 and "writing the mean of R, G and B" in result.output
+
+
+@pytest.mark.parametrize("times_text, match", [
+    ("exposure_0.png 0.001\nexposure_1.png fast\n", r"times.txt:2: exposure time 'fast' is not a number"),
+    ("exposure_0.png 0.001\nexposure_9.png 0.004\n", r"lists exposure_9.png but .* has no such image"),
+    ("exposure_0.png 1000\nexposure_1.png 250\nexposure_2.png 62.5\nexposure_3.png 15.625\n"
+     "exposure_4.png 3.90625\n", r"times are inverted"),
+])
+def test_bad_times_file_is_one_line(sample_copy, tmp_path, times_text, match):
+    (sample_copy / "times.txt").write_text(times_text)
+    line = one_line_error(invoke(sample_copy, "-o", tmp_path / "crf.npz"))
+    assert re.search(match, line), line
+    assert not (tmp_path / "crf.npz").exists()
+
+
+def test_other_known_errors(tmp_path, sample_copy):
+    line = one_line_error(invoke(SAMPLE, "-o", tmp_path / "crf.json"))
+    assert "unknown response format '.json'" in line
+    line = one_line_error(invoke(tmp_path / "missing", "-o", tmp_path / "crf.npz"))
+    assert "no such folder" in line
+    (sample_copy / "times.txt").unlink()
+    line = one_line_error(invoke(sample_copy, "-o", tmp_path / "crf.npz"))
+    assert "no times.txt or image_list.txt" in line
+    (sample_copy / "exposure_2.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    line = one_line_error(invoke(sample_copy, "--times", SAMPLE / "times.txt", "-o", tmp_path / "crf.npz"))
+    assert "exposure_2.png: cannot decode the image" in line
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--method", "robertson", "--lambda", "3"], "apply to debevec and opencv-debevec, not robertson"),
+    (["--method", "opencv-debevec", "--mask-blue"], "--mask-blue needs --method debevec"),
+    (["--channel", "R"], "--channel applies to a .txt"),
+    (["--method", "svd"], "'svd' is not one of"),
+    (["--samples", "0"], "0 is not in the range x>=1"),
+    (["--lambda", "0"], "0.0 is not in the range x>0"),
+])
+def test_usage_errors(tmp_path, args, message):
+    result = invoke(SAMPLE, "-o", tmp_path / "crf.npz", *args)
+    assert result.exit_code == 2 and message in result.output
+
+
+def test_mask_blue_is_reported(tmp_path):
+    result = invoke(SAMPLE, "-o", tmp_path / "crf.npz", "--mask-blue")
+    assert result.exit_code == 0 and "masked 0.0% of the pixels" in result.output
+
+
+def test_console_entry_point(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "mapping.cli", "response", str(SAMPLE), "-o",
+                          str(tmp_path / "crf.crf")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "debevec" in out.stdout and (tmp_path / "crf.crf").is_file()
+
+
+def test_plot_response_is_axis_first(tmp_path):
+    from matplotlib.colors import to_hex
+
+    from radiometry.plots import CHANNEL_COLOURS, new_figure, plot_response, response_figure, save_figure
+
+    fig, ax = new_figure()
+    rgb = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
+    lines = plot_response(ax, rgb, label="truth", linestyle="--")
+    assert [to_hex(line.get_color()) for line in lines] == list(CHANNEL_COLOURS[3])
+    assert [line.get_label() for line in lines] == ["truth R", "truth G", "truth B"]
+    assert np.array_equal(lines[2].get_ydata(), rgb.inverse_table[:, 2]) and lines[0].get_linestyle() == "--"
+    gray = CameraResponse.linear(channels=1)  # f^-1(0) = 0: hidden, not -inf, on a log axis
+    (line,) = plot_response(ax, gray, log=True)
+    assert ax.get_yscale() == "log" and np.isnan(line.get_ydata()[0]) and line.get_ydata()[255] == 1.0
+    path = save_figure(response_figure(rgb, title="sample"), tmp_path / "curves.png")
+    assert path.read_bytes().startswith(b"\x89PNG")
