@@ -14,8 +14,10 @@ import contextlib
 import errno
 import json
 import os
+import struct
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -154,9 +156,12 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, zlib.error, NotImplementedError,
+            RuntimeError, struct.error, UnicodeDecodeError, OverflowError) as exc:
+        # everything a corrupt, truncated or foreign .npz raises while its members are decompressed
         raise CalibrationFileError(
-            f"{path}: not a radiomap {kind} file ({type(exc).__name__}); re-create it with radiomap") from None
+            f"{path}: not a radiomap {kind} file or corrupt ({type(exc).__name__}); re-create it with radiomap"
+        ) from None
     if "meta" not in arrays:
         raise CalibrationFileError(f"{path}: no 'meta' entry, not a radiomap {kind} file; re-create it")
     try:

@@ -1,0 +1,148 @@
+"""``radiomap vignetting``: calibrate vignetting from a white-paper sweep."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+MODEL_CHOICES = ("lut", "poly", "poly-fixed-center")
+EPILOG = """\b
+Record the sweep with exposure and white balance FIXED: move the camera over an evenly lit
+white sheet (on a darker background) so that every part of the image sees the sheet many times,
+corners included. The sheet must not be clipped (keep its brightest part below 250).
+
+\b
+Examples:
+  radiomap vignetting paper_seq/rgb --response crf.npz -o vignetting.npz
+  radiomap vignetting sweep.mp4 --response crf.npz -o xtion.vgn --model poly
+  radiomap vignetting 0 --response crf.npz -o vignette.png --min-samples 30 --stop-when-covered
+      (camera index 0; '.vgn' writes radical's format, '.png' DSO's 16-bit vignette.png)
+"""
+
+
+def _centre_of(model, c: int) -> tuple[float, float]:
+    import numpy as np
+
+    from radiometry.vignetting import PolynomialVignetting
+
+    if isinstance(model, PolynomialVignetting):
+        cx, cy = model.centres[min(c, model.channels - 1)]
+        return float(cx), float(cy)
+    import cv2
+
+    v = model.evaluate()[:, :, min(c, model.channels - 1)].astype(np.float32)
+    w, h = model.resolution
+    smooth = cv2.GaussianBlur(v, (0, 0), 0.02 * float(np.hypot(w, h)))
+    y, x = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
+    return float(x), float(y)
+
+
+def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]:
+    """Per-channel rows (centre, corner/centre ratio, fit RMS) and the run's facts."""
+    import numpy as np
+
+    from radiometry.vignetting_calibration import flat_rms_levels
+
+    v = model.evaluate()
+    rms = flat_rms_levels(model, acc, response)
+    names = ("R", "G", "B") if model.channels == 3 else ("grey",)
+    rows = []
+    for c in range(model.channels):
+        cx, cy = _centre_of(model, c)
+        vc = v[:, :, c]
+        corners = float(np.mean([vc[0, 0], vc[0, -1], vc[-1, 0], vc[-1, -1]]))
+        row = int(round(np.clip(cy, 0, vc.shape[0] - 1)))
+        col = int(round(np.clip(cx, 0, vc.shape[1] - 1)))
+        centre_value = float(vc[row, col])
+        rows.append({"channel": names[c], "centre_x": round(cx, 2), "centre_y": round(cy, 2),
+                     "corner/centre": round(corners / centre_value, 4),
+                     "fit_rms_levels": round(float(rms[min(c, len(rms) - 1)]), 3)})
+    report = acc.coverage_report(min_samples)
+    facts = {"frames_used": acc.frames_used, "frames_skipped": acc.frames_skipped, "skipped": acc.skipped,
+             "coverage": str(report), "fraction_below_min_samples": report.fraction_below,
+             "thin_regions": report.thin_regions(), "channels": rows}
+    return rows, facts
+
+
+@click.command("vignetting", epilog=EPILOG)
+@click.argument("frames", metavar="FRAMES")
+@click.option("-r", "--response", "response_path", required=True, type=click.Path(dir_okay=False),
+              help="Camera response: radiomap .npz, radical .crf or DSO pcalib.txt.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Model file: .npz (radiomap), .vgn (radical) or .png (DSO 16-bit vignette, channel mean).")
+@click.option("--model", "model_name", type=click.Choice(MODEL_CHOICES), default="lut", show_default=True,
+              help="LUT per pixel, or polynomial with free / fixed centre.")
+@click.option("--min-samples", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Samples per pixel wanted; coverage below it is reported.")
+@click.option("--stop-when-covered", is_flag=True, help="Stop reading frames once every pixel has --min-samples.")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Read at most this many frames.")
+@click.option("--no-drift-correction", is_flag=True,
+              help="Do not estimate per-frame brightness drift (plain average as in radical).")
+@click.option("--save-accumulation", type=click.Path(dir_okay=False), default=None,
+              help="Also save the fused data (.npz) for later fits or repeatability studies.")
+@click.option("--no-plots", is_flag=True, help="Skip the PNG figures (the coverage map is always written).")
+@click.option("--force", is_flag=True, help="Overwrite existing output files.")
+def command(frames: str, response_path: str, output: str, model_name: str, min_samples: int,
+            stop_when_covered: bool, max_frames: int | None, no_drift_correction: bool,
+            save_accumulation: str | None, no_plots: bool, force: bool) -> None:
+    """Calibrate vignetting from a white-paper sweep FRAMES (folder, video file or camera index).
+
+    Writes the model, a coverage map (<OUT stem>_coverage.png), figures (V per channel, radial
+    profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
+    """
+    from radiometry.errors import OutputError
+    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite
+    from radiometry.formats import load_response
+    from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
+    from mapping.cli._common import format_table, run_manifest
+
+    out = Path(output)
+    suffix = out.suffix.lower()
+    if suffix not in (".npz", ".vgn", ".png"):
+        raise OutputError(f"{out}: unknown model format {out.suffix!r}; use .npz (radiomap), .vgn (radical) "
+                          "or .png (DSO vignette)")
+    check_overwrite(out, force=force)
+    if save_accumulation:
+        check_overwrite(save_accumulation, force=force)
+    response = load_response(response_path)
+    acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
+                             max_frames=max_frames, progress=True)
+    model = fit_vignetting(acc, model=model_name, joint_scale=not no_drift_correction)
+    if suffix == ".vgn":
+        from radiometry.formats.vgn import write_radical_vgn
+
+        write_radical_vgn(model, out)
+    elif suffix == ".png":
+        from radiometry.formats.dso_vignette import write_dso_vignette
+
+        write_dso_vignette(model, out)
+    else:
+        model.save(out)
+    if save_accumulation:
+        acc.save(save_accumulation)
+    prefix = out.with_name(out.stem)
+    if no_plots:
+        figures = {"coverage": save_coverage_png(prefix.with_name(prefix.name + "_coverage.png"),
+                                                 acc.coverage(), min_samples)}
+    else:
+        figures = save_calibration_figures(prefix, acc, model, min_samples=min_samples)
+    rows, facts = summarise(model, acc, response, min_samples)
+    skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
+    text = "\n".join([
+        f"vignetting model ({model_name}) -> {out}",
+        f"frames used: {acc.frames_used}, skipped: {acc.frames_skipped} ({skipped})",
+        str(acc.coverage_report(min_samples)),
+        format_table(rows),
+    ])
+    click.echo(text)
+    atomic_write_text(prefix.with_name(prefix.name + "_summary.txt"), text + "\n")
+    atomic_write_json(prefix.with_name(prefix.name + "_summary.json"),
+                      {**facts, "model": model_name, "output": str(out), "figures": figures,
+                       "run": run_manifest("vignetting", {"frames": frames, "response": response_path,
+                                                          "output": output, "model": model_name,
+                                                          "min_samples": min_samples,
+                                                          "stop_when_covered": stop_when_covered,
+                                                          "max_frames": max_frames,
+                                                          "drift_correction": not no_drift_correction})})

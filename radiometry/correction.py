@@ -1,0 +1,318 @@
+"""Undo vignetting through the camera response: ``I' = f(scale * f^-1(I) / V(x))`` per channel.
+
+:class:`Corrector` holds a :class:`~radiometry.response.CameraResponse` and (optionally) a
+:class:`~radiometry.vignetting.VignettingModel` and offers
+
+- :meth:`Corrector.irradiance`: ``f^-1(I) / V(x)``, float32, for fusion (exact up to float32 rounding);
+- :meth:`Corrector.correct`: the corrected image. uint8 in -> uint8 out through a fast path (below);
+  float (levels 0..255) or uint16 (0..65535, treated as 8-bit levels times 257) in -> float32 levels
+  out by the exact formula.
+
+``scale`` is an explicit brightness factor. With ``scale = 1`` the centre keeps its brightness and the
+corners are brightened by ``1 / V``, so bright corner pixels clip at 255; ``scale < 1`` darkens the
+result so that they do not (``scale = min V`` keeps every unsaturated input unsaturated).
+:meth:`Corrector.suggest_scale` proposes the scale that keeps a given percentile of real images
+unclipped.
+
+uint8 fast path. Per pixel and channel the output depends only on the input level ``I`` and the gain
+``g(x) = scale / V(x)``. The gains of an image size are quantised to ``gain_levels`` (default 2048)
+log-spaced values spanning ``[min g, max g]``; a table ``T[c, level, I]`` (uint8) is computed once per
+(size, scale) with the exact formula, and a Numba kernel gathers ``T[c, q(x), I(x)]``. The quantisation
+changes a gain by at most half a step, a relative ``log(max g / min g) / (2 (gain_levels - 1))``
+(``< 4e-4`` for V down to 0.2), which moves the unrounded output by far less than a level; the rounded
+output differs from the exactly rounded formula by at most 1 level, and only for values within that
+tiny margin of a .5 boundary (``tests/test_correction.py`` checks both). Tables and gain maps are
+cached per size (a few entries).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from typing import Iterable
+
+import numpy as np
+
+from radiometry.errors import ModelMismatchError
+from radiometry.response import CameraResponse
+from radiometry.vignetting import VignettingModel
+
+log = logging.getLogger(__name__)
+
+_LEVELS = np.arange(256, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------------------------------
+# Numba kernels (compiled on first use, cached on disk)
+# --------------------------------------------------------------------------------------------------
+def _kernels():
+    """Compile (or load from Numba's cache) the gather kernels. Indices are computed in unsigned 32-bit
+    arithmetic: signed indices make Numba emit wrap-around checks that halve the throughput."""
+    global _KERNELS
+    if _KERNELS is None:
+        from numba import njit
+
+        @njit(cache=True, nogil=True, boundscheck=False)
+        def gather_rgb(img, q, table, out, n_levels):  # pragma: no cover - compiled
+            # img, out: flat (N * 3) uint8; q: flat (N * 3) uint16; table: flat (3 * L * 256) uint8
+            lv = np.uint32(n_levels)
+            eight = np.uint32(8)
+            for p in range(img.size // 3):
+                b = 3 * p
+                out[b] = table[(np.uint32(q[b]) << eight) | np.uint32(img[b])]
+                out[b + 1] = table[((lv + np.uint32(q[b + 1])) << eight) | np.uint32(img[b + 1])]
+                out[b + 2] = table[((lv + lv + np.uint32(q[b + 2])) << eight) | np.uint32(img[b + 2])]
+
+        @njit(cache=True, nogil=True, boundscheck=False)
+        def gather_shared(img, q, table, out, n_levels, channels):  # pragma: no cover - compiled
+            # one gain per pixel for every channel: q flat (N,); img/out flat (N * C)
+            lv = np.uint32(n_levels)
+            eight = np.uint32(8)
+            for p in range(q.size):
+                level = np.uint32(q[p])
+                b = p * channels
+                for c in range(channels):
+                    out[b + c] = table[((np.uint32(c) * lv + level) << eight) | np.uint32(img[b + c])]
+
+        @njit(cache=True, nogil=True, boundscheck=False)
+        def irradiance_kernel(img, lut, gain, out):  # pragma: no cover - compiled
+            # img (N, C) uint8; lut (C, 256) float32; gain (N, Cg) float32, Cg in {1, C}; out (N, C) float32
+            n, ch = img.shape
+            shared = gain.shape[1] == 1
+            for p in range(n):
+                for c in range(ch):
+                    g = gain[p, 0] if shared else gain[p, c]
+                    out[p, c] = lut[c, np.uint32(img[p, c])] * g
+
+        _KERNELS = (gather_rgb, gather_shared, irradiance_kernel)
+    return _KERNELS
+
+
+_KERNELS = None
+
+
+# --------------------------------------------------------------------------------------------------
+# input normalisation
+# --------------------------------------------------------------------------------------------------
+def _as_hwc(image: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``(H, W, C)`` view of an image and whether it was 2-D."""
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        return arr[:, :, None], True
+    if arr.ndim == 3 and arr.shape[2] in (1, 3):
+        return arr, False
+    raise ValueError(f"image must have shape (H, W), (H, W, 1) or (H, W, 3), got {arr.shape}")
+
+
+def _float_levels(arr: np.ndarray) -> np.ndarray:
+    if arr.dtype == np.uint16:
+        return arr.astype(np.float32) / np.float32(257.0)
+    if np.issubdtype(arr.dtype, np.floating):
+        return arr.astype(np.float32, copy=False)
+    if np.issubdtype(arr.dtype, np.integer):
+        if arr.size and (arr.min() < 0 or arr.max() > 255):
+            raise ValueError(f"integer images must be uint8 or uint16 levels, got {arr.dtype} values in "
+                             f"[{arr.min()}, {arr.max()}]")
+        return arr.astype(np.float32)
+    raise TypeError(f"image must be uint8, uint16 or float (levels 0..255), got dtype {arr.dtype}")
+
+
+class Corrector:
+    """Apply a response and a vignetting model to images (see the module doc).
+
+    Parameters
+    ----------
+    response : the camera's :class:`CameraResponse` (1 or 3 channels).
+    vignetting : a :class:`VignettingModel`, or ``None`` for no vignetting (``V = 1``). A 1-channel
+        model (DSO) serves all channels of a colour image.
+    gain_levels : number of quantised gains of the uint8 fast path (2..65535).
+    """
+
+    def __init__(self, response: CameraResponse, vignetting: VignettingModel | None = None, *,
+                 gain_levels: int = 2048, cache_size: int = 4) -> None:
+        if not isinstance(response, CameraResponse):
+            raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
+        if vignetting is not None and not isinstance(vignetting, VignettingModel):
+            raise TypeError(f"vignetting must be a VignettingModel or None, got {type(vignetting).__name__}")
+        if not (isinstance(gain_levels, (int, np.integer)) and 2 <= gain_levels <= 65535):
+            raise ValueError(f"gain_levels must be an integer in 2..65535, got {gain_levels!r}")
+        if cache_size < 1:
+            raise ValueError(f"cache_size must be at least 1, got {cache_size}")
+        self.response = response
+        self.vignetting = vignetting
+        self.gain_levels = int(gain_levels)
+        self._cache_size = int(cache_size)
+        self._gains: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._tables: OrderedDict[tuple[int, int, int, float], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+
+    def __repr__(self) -> str:
+        return f"Corrector({self.response!r}, {self.vignetting!r})"
+
+    # ---------------------------------------------------------------- cached per-size data
+    def _remember(self, cache: OrderedDict, key, value):
+        cache[key] = value
+        cache.move_to_end(key)
+        while len(cache) > self._cache_size:
+            cache.popitem(last=False)
+        return value
+
+    def _check_channels(self, channels: int) -> None:
+        if self.vignetting is not None and self.vignetting.channels not in (1, channels):
+            raise ModelMismatchError(
+                f"the vignetting model has {self.vignetting.channels} channels but the image has {channels}; "
+                "use a 1-channel model for grayscale images (or convert the images to RGB)")
+        self.response.channel_tables(channels)  # raises ModelMismatchError when incompatible
+
+    def gain_map(self, height: int, width: int) -> np.ndarray:
+        """``1 / V`` at ``height x width``, float32 ``(H, W, Cv)``, cached (read-only)."""
+        key = (int(height), int(width))
+        hit = self._gains.get(key)
+        if hit is not None:
+            self._gains.move_to_end(key)
+            return hit
+        if self.vignetting is None:
+            gain = np.ones((height, width, 1), dtype=np.float32)
+        else:
+            v = self.vignetting.evaluate(int(height), int(width)).astype(np.float64)
+            gain = (1.0 / v).astype(np.float32)
+        gain.setflags(write=False)
+        return self._remember(self._gains, key, gain)
+
+    def _fast_tables(self, height: int, width: int, channels: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (int(height), int(width), int(channels), float(scale))
+        hit = self._tables.get(key)
+        if hit is not None:
+            self._tables.move_to_end(key)
+            return hit
+        gain = self.gain_map(height, width).astype(np.float64) * scale
+        log_g = np.log(gain)
+        lo, hi = float(log_g.min()), float(log_g.max())
+        n_levels = self.gain_levels if hi - lo > 1e-12 else 1
+        step = (hi - lo) / (n_levels - 1) if n_levels > 1 else 1.0
+        q = np.rint((log_g - lo) / step).astype(np.uint16) if n_levels > 1 else np.zeros(gain.shape, np.uint16)
+        level_gains = np.exp(lo + step * np.arange(n_levels)) if n_levels > 1 else np.exp([lo])
+        inv = self.response.channel_tables(channels).astype(np.float64)  # (256, C)
+        fwd = self.response.channel_tables(channels)
+        table = np.empty((channels, n_levels, 256), dtype=np.uint8)
+        for c in range(channels):
+            e = level_gains[:, None] * inv[None, :, c]
+            out = np.interp(e, fwd[:, c].astype(np.float64), _LEVELS.astype(np.float64))
+            table[c] = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        q = np.ascontiguousarray(q.reshape(-1, q.shape[2]))
+        q.setflags(write=False)
+        table.setflags(write=False)
+        return self._remember(self._tables, key, (q, table))
+
+    # ---------------------------------------------------------------- public API
+    def irradiance(self, image: np.ndarray) -> np.ndarray:
+        """``f^-1(I) / V(x)`` as float32 of the image's shape (``(H, W)`` stays ``(H, W)``).
+
+        uint8 images use a table look-up; float (levels) and uint16 images interpolate ``f^-1``.
+        """
+        arr, flat = _as_hwc(image)
+        h, w, ch = arr.shape
+        self._check_channels(ch)
+        gain = self.gain_map(h, w)
+        if arr.dtype == np.uint8:
+            lut = np.ascontiguousarray(self.response.channel_tables(ch).T)  # (C, 256) float32
+            out = np.empty((h * w, ch), dtype=np.float32)
+            _kernels()[2](np.ascontiguousarray(arr).reshape(-1, ch), lut, gain.reshape(-1, gain.shape[2]), out)
+            out = out.reshape(h, w, ch)
+        else:
+            e = self.response.inverse(_float_levels(arr))
+            out = (e * gain).astype(np.float32, copy=False)
+        return out[:, :, 0] if flat else out
+
+    def correct(self, image: np.ndarray, *, scale: float = 1.0) -> np.ndarray:
+        """``f(scale * f^-1(I) / V(x))``: uint8 -> uint8 (fast path), float/uint16 -> float32 levels."""
+        scale = self._check_scale(scale)
+        arr, flat = _as_hwc(image)
+        h, w, ch = arr.shape
+        self._check_channels(ch)
+        if arr.dtype != np.uint8:
+            out = self.correct_exact(arr, scale=scale)
+        else:
+            q, table = self._fast_tables(h, w, ch, scale)
+            src = np.ascontiguousarray(arr).reshape(-1)
+            out = np.empty_like(src)
+            gather_rgb, gather_shared, _ = _kernels()
+            if q.shape[1] == ch == 3:
+                gather_rgb(src, q.reshape(-1), table.reshape(-1), out, table.shape[1])
+            else:
+                gather_shared(src, q.reshape(-1), table.reshape(-1), out, table.shape[1], ch)
+            out = out.reshape(h, w, ch)
+        return out[:, :, 0] if flat else out
+
+    def correct_exact(self, image: np.ndarray, *, scale: float = 1.0) -> np.ndarray:
+        """The exact float formula ``f(scale * f^-1(I) / V(x))`` in float32 levels (not rounded).
+
+        The reference for :meth:`correct`; slower (no tables).
+        """
+        scale = self._check_scale(scale)
+        arr, flat = _as_hwc(image)
+        h, w, ch = arr.shape
+        self._check_channels(ch)
+        levels = arr if arr.dtype == np.uint8 else _float_levels(arr)
+        e = self.response.inverse(levels).astype(np.float64) * (self.gain_map(h, w).astype(np.float64) * scale)
+        out = self.response.forward(e.astype(np.float32))
+        return out[:, :, 0] if flat else out
+
+    def suggest_scale(self, images: np.ndarray | Iterable[np.ndarray] | None = None, *,
+                      percentile: float = 99.0, height: int | None = None, width: int | None = None) -> float:
+        """A ``scale`` for :meth:`correct` that keeps ``percentile`` % of corrected values unclipped.
+
+        With ``images`` (one image or an iterable of images of the scene), the scale is
+        ``1 / P(f^-1(I) / V)`` over all their pixels and channels, with ``P`` the percentile. Without
+        images it is the worst case of a white object seen everywhere: the ``100 - percentile``
+        percentile of ``V`` at ``height x width`` (default: the calibration resolution). Values above 1
+        brighten; the result is never clipped below by anything but the data.
+        """
+        if not (0 < percentile <= 100):
+            raise ValueError(f"percentile must be in (0, 100], got {percentile}")
+        if images is None:
+            if self.vignetting is None:
+                return 1.0
+            if height is None or width is None:
+                width, height = self.vignetting.resolution
+            v = self.vignetting.evaluate(int(height), int(width))
+            return float(np.percentile(v, 100.0 - percentile))
+        if isinstance(images, np.ndarray):
+            images = [images]
+        values = [self.irradiance(img).ravel() for img in images]
+        if not values:
+            raise ValueError("images is empty; pass at least one image or None")
+        high = float(np.percentile(np.concatenate(values), percentile))
+        if not high > 0:
+            raise ValueError("the images are black (irradiance percentile is 0); cannot suggest a scale")
+        return 1.0 / high
+
+    @staticmethod
+    def _check_scale(scale: float) -> float:
+        try:
+            value = float(scale)
+        except (TypeError, ValueError):
+            raise TypeError(f"scale must be a number, got {scale!r}") from None
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"scale must be a positive finite number, got {scale!r}; use e.g. 0.8 to avoid "
+                             "clipping at the corners")
+        return value
+
+
+def correct_reference_numpy(image: np.ndarray, response: CameraResponse, vignetting_map: np.ndarray, *,
+                            scale: float = 1.0) -> np.ndarray:
+    """The straightforward NumPy implementation of ``f(scale * f^-1(I) / V)`` for uint8 RGB images.
+
+    The peer the benchmark (``scripts/bench_correction.py``) compares :meth:`Corrector.correct` with:
+    a table look-up for ``f^-1``, a float division by the precomputed ``V`` map, ``np.interp`` for
+    ``f``, rounding. ``vignetting_map`` is float32 ``(H, W, C)``.
+    """
+    channels = image.shape[2]
+    tables = response.channel_tables(channels)
+    out = np.empty(image.shape, dtype=np.uint8)
+    for c in range(channels):
+        e = tables[:, c][image[:, :, c]] * scale / vignetting_map[:, :, min(c, vignetting_map.shape[2] - 1)]
+        out[:, :, c] = np.clip(np.rint(np.interp(e, tables[:, c], _LEVELS)), 0, 255)
+    return out
+
+
+__all__ = ["Corrector", "correct_reference_numpy"]

@@ -1,0 +1,160 @@
+"""Smoke tests of ``radiomap vignetting`` and ``radiomap correct`` on a small simulated sweep."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import shared_path
+from mapping.cli import cli
+from radiometry.correction import Corrector
+from radiometry.formats import load_vignetting
+from radiometry.response import CameraResponse
+from radiometry.vignetting import LUTVignetting, PolynomialVignetting
+from radiometry.vignetting_calibration import vignetting_error_levels
+
+W, H = 96, 72
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    from mapping.simulation.sequences import simulate_paper
+
+    out = simulate_paper(tmp_path_factory.mktemp("cli") / "paper", camera="xtion", seed=5, n_frames=120, width=W,
+                         height=H, progress=False, write_depth_images=False)
+    return {"rgb": out / "rgb", "response": out / "truth" / "response.npz",
+            "truth": np.load(out / "truth" / "vignetting.npy")}
+
+
+def invoke(*args: str):
+    result = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+    return result
+
+
+def one_line_error(result) -> str:
+    """The error is one line (the progress bar, which clears itself on a terminal, may precede it)."""
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    assert result.stderr.count("radiomap: error: ") == 1, result.stderr
+    line = result.stderr[result.stderr.index("radiomap: error: "):]
+    assert line.endswith("\n") and "\n" not in line[:-1], result.stderr
+    return line.strip()
+
+
+def test_vignetting_lut_writes_model_coverage_plots_and_summary(sweep, tmp_path):
+    out = tmp_path / "vig.npz"
+    result = invoke("vignetting", sweep["rgb"], "--response", sweep["response"], "-o", out, "--min-samples", "10")
+    assert result.exit_code == 0, result.output
+    for suffix in ("_coverage.png", "_vignetting.png", "_profiles.png", "_residuals.png"):
+        assert cv2.imread(str(tmp_path / f"vig{suffix}")) is not None, suffix
+    import re
+
+    used, skipped = (int(v) for v in re.search(r"frames used: (\d+), skipped: (\d+)", result.stdout).groups())
+    assert used + skipped == 120 and used >= 110
+    assert "coverage:" in result.stdout and "corner/centre" in result.stdout and "fit_rms_levels" in result.stdout
+    assert (tmp_path / "vig_summary.txt").read_text().strip() == result.stdout.strip()
+    import json
+
+    summary = json.loads((tmp_path / "vig_summary.json").read_text())
+    assert summary["frames_used"] == used and len(summary["channels"]) == 3
+    assert all(0.3 < row["corner/centre"] < 0.7 for row in summary["channels"])
+    assert all(row["fit_rms_levels"] < 1.0 for row in summary["channels"])
+    model = load_vignetting(out)
+    assert isinstance(model, LUTVignetting)
+    response = CameraResponse.load(sweep["response"])
+    assert np.all(vignetting_error_levels(model, sweep["truth"], response) < 1.0)
+    # a calibration is never overwritten without --force
+    line = one_line_error(invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out))
+    assert "exists; pass --force" in line
+    assert invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--force", "--no-plots",
+                  "--max-frames", "60").exit_code == 0
+
+
+@pytest.mark.parametrize("name, model, cls", [("xtion.vgn", "poly", PolynomialVignetting),
+                                              ("vignette.png", "poly-fixed-center", LUTVignetting)])
+def test_vignetting_foreign_formats(sweep, tmp_path, name, model, cls):
+    out = tmp_path / name
+    result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--model", model, "--no-plots")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / f"{out.stem}_coverage.png").is_file()
+    assert not (tmp_path / f"{out.stem}_profiles.png").exists()
+    loaded = load_vignetting(out)
+    assert isinstance(loaded, cls) and loaded.resolution == (W, H)
+
+
+def test_vignetting_errors(sweep, tmp_path):
+    clipped = shared_path("vignetting", "flatfield_clipped_usbcam", "white_background_500us.jpg")
+    line = one_line_error(invoke("vignetting", clipped, "-r", sweep["response"], "-o", tmp_path / "v.npz"))
+    assert "saturated" in line and "lower the exposure" in line
+    assert not (tmp_path / "v.npz").exists()
+    line = one_line_error(invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.txt"))
+    assert "unknown model format '.txt'" in line
+    line = one_line_error(invoke("vignetting", sweep["rgb"], "-r", tmp_path / "none.npz", "-o", tmp_path / "v.npz"))
+    assert "none.npz: no such file" in line
+    line = one_line_error(invoke("vignetting", tmp_path / "nothing", "-r", sweep["response"], "-o", tmp_path / "v.npz"))
+    assert "no such folder, video or image" in line
+    result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.npz", "--model", "spline")
+    assert result.exit_code == 2 and "'spline' is not one of 'lut', 'poly', 'poly-fixed-center'" in result.output
+
+
+@pytest.fixture(scope="module")
+def model_file(sweep, tmp_path_factory):
+    path = tmp_path_factory.mktemp("model") / "v.npz"
+    assert invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", path, "--no-plots",
+                  "--max-frames", "80").exit_code == 0
+    return path
+
+
+def test_correct_folder_and_irradiance(sweep, model_file, tmp_path):
+    frames = sorted(sweep["rgb"].iterdir())[:3]
+    src = tmp_path / "in"
+    src.mkdir()
+    for f in frames:
+        (src / f.name).write_bytes(f.read_bytes())
+    result = invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "out", "--scale", "0.9")
+    assert result.exit_code == 0, result.output
+    assert "wrote 3 corrected images" in result.stdout and "scale 0.9" in result.stdout
+    cor = Corrector(CameraResponse.load(sweep["response"]), load_vignetting(model_file))
+    rgb = cv2.cvtColor(cv2.imread(str(frames[0])), cv2.COLOR_BGR2RGB)
+    written = cv2.cvtColor(cv2.imread(str(tmp_path / "out" / frames[0].name)), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(written, cor.correct(rgb, scale=0.9))
+    result = invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "irr", "--irradiance")
+    assert result.exit_code == 0 and "wrote 3 irradiance maps" in result.stdout
+    irr = np.load(tmp_path / "irr" / (frames[0].stem + ".npy"))
+    assert irr.dtype == np.float32
+    np.testing.assert_array_equal(irr, cor.irradiance(rgb))
+    result = invoke("correct", frames[1], "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "tif",
+                    "--irradiance", "--format", "tiff")
+    assert result.exit_code == 0, result.output
+    tif = cv2.imread(str(tmp_path / "tif" / (frames[1].stem + ".tiff")), cv2.IMREAD_UNCHANGED)
+    rgb1 = cv2.cvtColor(cv2.imread(str(frames[1])), cv2.COLOR_BGR2RGB)
+    np.testing.assert_allclose(tif[:, :, ::-1], cor.irradiance(rgb1), rtol=1e-6)
+    # outputs are not overwritten silently
+    line = one_line_error(invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "out"))
+    assert "exists; pass --force" in line
+
+
+def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
+    if not writer.isOpened():
+        pytest.skip("OpenCV has no MJPG writer here")
+    for f in sorted(sweep["rgb"].iterdir())[:4]:
+        writer.write(cv2.imread(str(f)))
+    writer.release()
+    result = invoke("correct", video, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "v",
+                    "--scale", "auto")
+    assert result.exit_code == 0, result.output
+    assert "--scale auto:" in result.stdout and "wrote 4 corrected images" in result.stdout
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [f"frame_{i:06d}.png" for i in range(4)]
+    result = invoke("correct", video, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "w", "--scale", "-2")
+    assert result.exit_code == 2 and "must be positive" in result.output
+
+
+def test_correct_resolution_mismatch(sweep, model_file, tmp_path):
+    img = tmp_path / "square.png"
+    cv2.imwrite(str(img), np.full((64, 64, 3), 100, np.uint8))
+    line = one_line_error(invoke("correct", img, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "o"))
+    assert "calibrated at 96x72" in line and "64x64" in line
