@@ -16,6 +16,7 @@ import json
 import os
 import struct
 import tempfile
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping
@@ -157,8 +158,10 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, zlib.error, NotImplementedError,
-            RuntimeError, struct.error, UnicodeDecodeError, OverflowError) as exc:
-        # everything a corrupt, truncated or foreign .npz raises while its members are decompressed
+            RuntimeError, struct.error, UnicodeDecodeError, OverflowError, tokenize.TokenError, SyntaxError,
+            MemoryError) as exc:
+        # everything a corrupt, truncated or foreign .npz raises while its members are decompressed (a
+        # mangled .npy header fails to tokenize, or claims an array too large to allocate)
         raise CalibrationFileError(
             f"{path}: not a radiomap {kind} file or corrupt ({type(exc).__name__}); re-create it with radiomap"
         ) from None
@@ -168,6 +171,8 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
         meta = json.loads(str(arrays.pop("meta")))
     except (json.JSONDecodeError, TypeError) as exc:
         raise CalibrationFileError(f"{path}: corrupt 'meta' entry ({exc}); re-create the file") from None
+    except RecursionError:
+        raise CalibrationFileError(f"{path}: corrupt 'meta' entry (nested too deeply); re-create the file") from None
     if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
         raise CalibrationFileError(f"{path}: not a radiomap model file; re-create it with radiomap")
     if meta.get("kind") != kind:
@@ -190,6 +195,103 @@ def _cv2():
     return cv2
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_MAX_PIXELS = 100_000_000
+# deflate cannot compress better than ~1032:1, so a PNG much smaller than raw/1100 is lying about its size
+_MAX_DEFLATE_RATIO = 1100
+
+
+def png_defect(raw: np.ndarray | bytes) -> str | None:
+    """Why a PNG cannot hold what its header claims (None when it can, or when the data is no PNG).
+
+    Checked before decoding: a corrupt IHDR size or chunk length makes the decoder allocate and scan
+    gigabytes for seconds on a file of a few bytes."""
+    head = bytes(raw[:33])
+    if not head.startswith(_PNG_SIGNATURE) or len(head) < 33 or head[12:16] != b"IHDR":
+        return None
+    size = len(raw)
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    bit_depth = max(head[24], 1)
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(head[25], 4)
+    raw_bytes = width * height * channels * bit_depth / 8
+    if width == 0 or height == 0 or width * height > _MAX_PIXELS or raw_bytes > size * _MAX_DEFLATE_RATIO:
+        return (f"the PNG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
+                "(corrupt or truncated)")
+    pos = 8
+    data = raw if isinstance(raw, bytes) else raw.tobytes()
+    while pos + 8 <= size:
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        if length > 2**31 - 1 or pos + 12 + length > size:
+            return (f"cannot decode the PNG: chunk {data[pos + 4:pos + 8]!r} at byte {pos} claims {length} bytes "
+                    f"past the end of the {size}-byte file (corrupt or truncated)")
+        if data[pos + 4:pos + 8] == b"IEND":
+            break
+        pos += 12 + length
+    return None
+
+
+# Huffman-coded JPEG needs at least one bit per 8x8 block: real encoders stay below ~600:1 on flat images
+_MAX_JPEG_RATIO = 4096
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def jpeg_defect(raw: np.ndarray | bytes) -> str | None:
+    """Why a JPEG cannot hold the image its start-of-frame claims (None when it can, or for no JPEG):
+    the decoder would fill gigabytes of a made-up size for a file of a few bytes."""
+    data = bytes(raw[:65536])
+    size = len(raw)
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return None  # not a marker: let the decoder report the corruption
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):
+            pos += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before it
+            return None
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker in _JPEG_SOF and pos + 10 <= len(data):
+            height = int.from_bytes(data[pos + 5:pos + 7], "big")
+            width = int.from_bytes(data[pos + 7:pos + 9], "big")
+            components = max(data[pos + 9], 1)
+            if width * height > _MAX_PIXELS or width * height * components > size * _MAX_JPEG_RATIO:
+                return (f"the JPEG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
+                        "(corrupt or truncated)")
+            return None
+        pos += 2 + length
+    return None
+
+
+def _read_encoded(path: Path, what: str) -> np.ndarray:
+    """Decode an image file (OpenCV, BGR, any depth) or raise :class:`ImageError` naming it."""
+    cv2 = _cv2()
+    try:
+        if not path.is_file():
+            raise ImageError(f"{path}: no such {what}; check the path")
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot read the {what} ({exc.strerror or exc}); check the path and "
+                         "its permissions") from None
+    if data.size == 0:
+        raise ImageError(f"{path}: empty file; replace it with a valid image")
+    defect = png_defect(data) or jpeg_defect(data)
+    if defect is not None:
+        raise ImageError(f"{path}: {defect}; replace it")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    if img is None:
+        raise ImageError(f"{path}: cannot decode the {what} (corrupt, truncated or not an image); replace it")
+    return img
+
+
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
     """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
 
@@ -198,14 +300,7 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     """
     cv2 = _cv2()
     path = Path(path)
-    if not path.is_file():
-        raise ImageError(f"{path}: no such image; check the path")
-    data = np.fromfile(path, dtype=np.uint8)
-    if data.size == 0:
-        raise ImageError(f"{path}: empty file; replace it with a valid image")
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ImageError(f"{path}: cannot decode the image (corrupt, truncated or not an image); replace it")
+    img = _read_encoded(path, "image")
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     elif img.dtype != np.uint8:
@@ -224,16 +319,10 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
 def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
     """Read a 16-bit depth image and return float32 metres (``raw / scale``; 0 stays 0 = invalid)."""
-    cv2 = _cv2()
     path = Path(path)
     if scale <= 0 or not np.isfinite(scale):
         raise ValueError(f"depth scale must be a positive number, got {scale}")
-    if not path.is_file():
-        raise ImageError(f"{path}: no such depth image; check the path")
-    data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise ImageError(f"{path}: cannot decode the depth image (corrupt, truncated or not an image); replace it")
+    img = _read_encoded(path, "depth image")
     if img.ndim == 3:
         raise ImageError(f"{path}: depth image has {img.shape[2]} channels; expected a single-channel 16-bit PNG")
     if img.dtype not in (np.uint16, np.float32):

@@ -605,6 +605,13 @@ def find_times_file(folder: str | os.PathLike) -> Path:
                        "'image_name seconds' or pass --times FILE")
 
 
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except OSError:  # a name too long for the file system, or one it cannot represent
+        return False
+
+
 def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | None = None
                   ) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
     """Read a bracket folder: ``(images, times, names)`` in the order of the times file.
@@ -622,7 +629,7 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
     tfile = Path(times_file) if times_file is not None else find_times_file(folder)
     entries = read_times_file(tfile)
     present = {p.name: p for p in list_images(folder)}
-    missing = [name for name, _ in entries if name not in present and not (folder / name).is_file()]
+    missing = [name for name, _ in entries if name not in present and not _is_file(folder / name)]
     if missing:
         raise DatasetError(f"{tfile}: lists {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
                            f"but {folder} has no such image; fix the names or remove those lines")

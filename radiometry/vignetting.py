@@ -34,6 +34,8 @@ from radiometry.fileio import load_model_file, save_model_file
 KIND = "vignetting"
 # V above this is not vignetting but corrupt data (a gain of 1/V would also be meaningless)
 MAX_V = 1000.0
+# V below this is a numerical accident, not a lens (1/V overflows the correction; DSO's 16-bit files reach 1.5e-5)
+MIN_V = 1e-6
 
 
 def read_model_file(path: str | os.PathLike, kind: str) -> tuple[dict, dict[str, np.ndarray]]:
@@ -44,7 +46,7 @@ def read_model_file(path: str | os.PathLike, kind: str) -> tuple[dict, dict[str,
 def _as_resolution(resolution: Any) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in resolution)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError(f"resolution must be (width, height), got {resolution!r}") from None
     if width < 1 or height < 1:
         raise ValueError(f"resolution must be positive (width, height), got {resolution!r}")
@@ -199,6 +201,9 @@ class LUTVignetting(VignettingModel):
             raise ValueError("lut contains NaN or infinite values; fill unobserved pixels before building the model")
         if np.any(arr <= 0):
             raise ValueError(f"lut must be strictly positive (V > 0), got a minimum of {float(arr.min()):.4g}")
+        if float(arr.min()) < MIN_V:
+            raise ValueError(f"lut falls to {float(arr.min()):.4g}; a vignetting factor below {MIN_V:g} is not "
+                             "plausible (corrupt data?)")
         if float(arr.max()) > MAX_V:
             raise ValueError(f"lut reaches {float(arr.max()):.4g}; a vignetting factor above {MAX_V:g} is not "
                              "plausible (corrupt data?)")
@@ -297,6 +302,9 @@ class PolynomialVignetting(VignettingModel):
                 raise ValueError(
                     f"channel {c}: V = {sc[c]:.4g} (1 + {coeffs[c, 0]:.4g} r^2 + {coeffs[c, 1]:.4g} r^4 + "
                     f"{coeffs[c, 2]:.4g} r^6) reaches {float(v.min()):.4g} <= 0 inside the image (r <= {r_max:.3f})")
+            if float(v.min()) < MIN_V:
+                raise ValueError(f"channel {c}: V falls to {float(v.min()):.4g} inside the image; a vignetting factor "
+                                 f"below {MIN_V:g} is not plausible (corrupt coefficients or scale?)")
 
     @property
     def coefficients(self) -> np.ndarray:

@@ -52,7 +52,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationError, CalibrationFileError, ImageError
 from radiometry.fileio import IMAGE_EXTENSIONS, list_images, read_rgb, save_model_file
-from radiometry.response import CameraResponse
+from radiometry.response import CameraResponse, validate_inverse_table
 from radiometry.vignetting import (LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal,
                                    read_model_file)
 
@@ -657,10 +657,25 @@ class VignettingAccumulation:
                       frame_indices=arrays.get("frame_indices"),
                       skipped={str(k): int(v) for k, v in dict(meta.get("skipped", {})).items()},
                       source=str(meta.get("source", "")), response_table=arrays.get("response_table"))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:
             raise CalibrationFileError(f"{path}: inconsistent array shapes; re-collect the accumulation")
+        h, w, ch = acc.count.shape
+        grid = (-(-h // acc.block), -(-w // acc.block)) if 1 <= acc.block <= 255 else None
+        frames = acc.cell_sums.shape[0] if acc.cell_sums.ndim == 4 else -1
+        try:
+            indices = acc.indices()
+        except (TypeError, ValueError, OverflowError):
+            indices = None
+        if (ch not in (1, 3) or grid is None or acc.cell_sums.shape != (frames, *grid, ch)
+                or acc.cell_counts.shape != acc.cell_sums.shape or indices is None or indices.shape != (frames,)
+                or np.any(acc.count < 0) or not np.all(np.isfinite(acc.sum)) or not np.all(np.isfinite(acc.sumsq))
+                or not np.all(np.isfinite(acc.cell_sums))):
+            raise CalibrationFileError(f"{path}: inconsistent or non-finite accumulation arrays (block {acc.block}, "
+                                       f"count {acc.count.shape}, cells {acc.cell_sums.shape}); re-collect it")
+        if acc.response_table is not None:
+            validate_inverse_table(acc.response_table, source=str(path))
         return acc
 
 

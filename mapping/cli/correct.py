@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -62,6 +63,18 @@ def _write_float(path: Path, data, fmt: str) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
+@contextlib.contextmanager
+def _models_must_fit(what, response_path: str, vignetting_path: str):
+    """Name the image and both model files when the models do not fit an image (size, aspect, channels)."""
+    from radiometry.errors import ModelMismatchError
+
+    try:
+        yield
+    except ModelMismatchError as exc:
+        raise ModelMismatchError(f"{what} does not fit the models ({response_path}, {vignetting_path}): {exc}") \
+            from None
+
+
 @click.command("correct", epilog=EPILOG)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
 @click.option("-r", "--response", "response_path", required=True, type=click.Path(dir_okay=False),
@@ -112,7 +125,8 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     frames = iter(source)
     if scale_value == "auto" and not irradiance:
         head = list(itertools.islice(frames, 10))
-        scale_value = corrector.suggest_scale(head, percentile=99.5) if head else 1.0
+        with _models_must_fit(input_path, response_path, vignetting_path):
+            scale_value = corrector.suggest_scale(head, percentile=99.5) if head else 1.0
         frames = itertools.chain(head, frames)
         click.echo(f"--scale auto: {scale_value:.4f} keeps 99.5% of the first {len(head)} frames unclipped")
     elif scale_value == "auto":
@@ -125,10 +139,14 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                                                    else Path(input_path).stem)
         target = out / f"{name}{ext}"
         check_overwrite(target, force=force)
+        source_name = source.paths[i] if names is not None else f"{input_path} ({name})"
         if irradiance:
-            _write_float(target, corrector.irradiance(frame), fmt)
+            with _models_must_fit(source_name, response_path, vignetting_path):
+                irr = corrector.irradiance(frame)
+            _write_float(target, irr, fmt)
         else:
-            result = corrector.correct(frame, scale=float(scale_value))
+            with _models_must_fit(source_name, response_path, vignetting_path):
+                result = corrector.correct(frame, scale=float(scale_value))
             clipped += int(np.count_nonzero((result == 255) & (np.asarray(frame) < 255)))
             total += result.size
             write_image(target, result)

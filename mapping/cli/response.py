@@ -54,8 +54,8 @@ def command(folder: Path, times_file: Path | None, output: Path, method: str, la
     import numpy as np
 
     from mapping.cli._common import format_table, run_manifest
-    from radiometry.errors import DatasetError, OutputError
-    from radiometry.fileio import atomic_write_json, check_overwrite
+    from radiometry.errors import CalibrationError, DatasetError, OutputError
+    from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir
     from radiometry.response_fit import (blue_fill_mask, find_times_file, fit_response, load_brackets,
                                          prediction_rms)
 
@@ -77,6 +77,7 @@ def command(folder: Path, times_file: Path | None, output: Path, method: str, la
     if samples is not None:
         kwargs["samples"] = samples
     check_overwrite(output, force=force)
+    ensure_dir(output.parent)  # an unwritable output fails now, not after the fit
 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
@@ -93,8 +94,13 @@ def command(folder: Path, times_file: Path | None, output: Path, method: str, la
         response = fit_response(images, times, method=method, **kwargs)
     except ValueError as exc:  # the images or times of this folder are unusable
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
+    except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
+        raise CalibrationError(f"{folder}: {exc}") from None
     fit_seconds = time.perf_counter() - start
-    rms = prediction_rms(images, times, response, mask=kwargs.get("mask"))
+    try:
+        rms = prediction_rms(images, times, response, mask=kwargs.get("mask"))
+    except CalibrationError as exc:
+        raise CalibrationError(f"{folder}: {exc}") from None
     meta = response.meta
     meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names,
                  "prediction_rms_levels": rms})

@@ -92,7 +92,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
     """
     from radiometry.errors import OutputError
-    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite
+    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir
     from radiometry.formats import load_response
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
@@ -106,6 +106,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     check_overwrite(out, force=force)
     if save_accumulation:
         check_overwrite(save_accumulation, force=force)
+    ensure_dir(out.parent)  # an unwritable output fails now, not after reading every frame
     response = load_response(response_path)
     acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
                              max_frames=max_frames, progress=True)

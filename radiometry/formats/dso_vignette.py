@@ -22,32 +22,20 @@ from pathlib import Path
 import numpy as np
 
 from radiometry.errors import CalibrationFileError, OutputError
-from radiometry.fileio import atomic_write_bytes
+from radiometry.fileio import atomic_write_bytes, png_defect
 from radiometry.vignetting import LUTVignetting, VignettingModel
 
 log = logging.getLogger(__name__)
 
 _CHANNEL_NAMES = {"R": 0, "G": 1, "B": 2}
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_MAX_PIXELS = 100_000_000
-# deflate cannot compress better than ~1032:1, so a PNG much smaller than raw/1100 is lying about its size
-_MAX_DEFLATE_RATIO = 1100
 
 
 def _check_png_header(path: Path, raw: np.ndarray) -> None:
-    """Reject a PNG whose header promises an implausible image before decoding it: a corrupt header can
-    make the decoder allocate and scan gigabytes for seconds."""
-    head = raw[:33].tobytes()
-    if not head.startswith(_PNG_SIGNATURE) or len(head) < 33 or head[12:16] != b"IHDR":
-        return
-    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    bit_depth = max(head[24], 1)
-    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(head[25], 4)
-    raw_bytes = width * height * channels * bit_depth / 8
-    if width == 0 or height == 0 or width * height > _MAX_PIXELS or raw_bytes > raw.size * _MAX_DEFLATE_RATIO:
-        raise CalibrationFileError(f"{path}: the PNG header claims {width}x{height} pixels, which this "
-                                   f"{raw.size}-byte file cannot hold (corrupt or truncated); "
-                                   "re-export the DSO vignette")
+    """Reject a PNG whose header or chunks promise more than the file holds before decoding it: a corrupt
+    header can make the decoder allocate and scan gigabytes for seconds."""
+    defect = png_defect(raw)
+    if defect is not None:
+        raise CalibrationFileError(f"{path}: {defect}; re-export the DSO vignette")
 
 
 def read_dso_vignette(path: str | os.PathLike) -> LUTVignetting:
@@ -55,9 +43,12 @@ def read_dso_vignette(path: str | os.PathLike) -> LUTVignetting:
     import cv2
 
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file; check the path of the vignetting image")
-    raw = np.fromfile(path, dtype=np.uint8)
+    try:
+        if not path.is_file():
+            raise CalibrationFileError(f"{path}: no such file; check the path of the vignetting image")
+        raw = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc}); check its permissions") from None
     _check_png_header(path, raw)
     img = None
     if raw.size:

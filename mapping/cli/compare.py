@@ -1,0 +1,164 @@
+"""``radiomap compare``: fuse one sequence with several radiometric corrections at identical poses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from mapping.cli._common import FrameRange
+
+EPILOG = """\b
+Examples:
+  radiomap compare room_seq --response crf.npz --vignetting-lut lut.npz --vignetting-poly poly.npz \\
+      --poses gt -o cmp
+      no correction vs polynomial vs LUT vignetting on a simulated room (the colour error against the true
+      radiance is added because the sequence has ground truth)
+  radiomap compare room_seq -r crf.npz --vignetting-lut lut.npz --vignetting-poly poly.npz \\
+      --exposure-compensation -o cmp_ec
+      the same, each corrected method also with exposure compensation
+  radiomap compare redkitchen/seq-01 -r gamma.npz --vignetting-lut lut.npz --vignetting-poly poly.npz \\
+      --poses icp --frames 0:200:2 -o kitchen_cmp
+      real data: tracked once (ICP), every method fused at the same estimated poses
+\b
+OUT/report.html holds everything (figures embedded); OUT/compare.csv/.json/.txt the table;
+OUT/histograms.png the histograms (Fig. 9 of Alexandrov et al.); OUT/renders.jpg the meshes side by
+side; OUT/<method>/ one results folder per method (mesh.ply [and .glb with --glb], mesh_colours.npz
+with the map-unit colours, histogram, trajectory, metrics).
+"""
+
+
+def _positive(ctx, param, value):
+    if value is not None and not value > 0:
+        raise click.BadParameter(f"must be positive, got {value}")
+    return value
+
+
+def _methods(ctx, param, value):
+    if value is None:
+        return None
+    from mapping.compare import METHOD_NAMES
+
+    names = [v.strip() for v in value.split(",") if v.strip()]
+    bad = [n for n in names if n not in METHOD_NAMES]
+    if bad or not names:
+        raise click.BadParameter(f"unknown method(s) {', '.join(bad) or '(none given)'}; choose among "
+                                 f"{', '.join(METHOD_NAMES)}")
+    return names
+
+
+@click.command("compare", epilog=EPILOG)
+@click.argument("sequence", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("-r", "--response", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True,
+              help="Camera response (radiomap .npz, radical .crf, DSO pcalib.txt).")
+@click.option("--vignetting-lut", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="LUT vignetting model (radiomap .npz, radical .vgn, DSO vignette.png, or a V array .npy).")
+@click.option("--vignetting-poly", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Polynomial vignetting model (radiomap .npz, radical .vgn).")
+@click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for the comparison (created).")
+@click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
+              help="Fusion backend.")
+@click.option("--exposure-compensation", is_flag=True,
+              help="Also run every corrected method with exposure compensation.")
+@click.option("--methods", callback=_methods, default=None, metavar="LIST",
+              help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
+                   "response, poly, lut, and response+ec, poly+ec, lut+ec.")
+@click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
+              help="Ground-truth poses, or ICP tracked once and reused by every method.")
+@click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2).")
+@click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=_positive,
+              help="TSDF voxel size in metres.")
+@click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
+              help="Depth beyond this many metres is neither tracked nor fused.")
+@click.option("--brightness", type=click.Choice(["mean", "calibrated"]), default="mean", show_default=True,
+              help="mean: compare the corrections at equal brightness (each V rescaled to an image mean of 1); "
+                   "calibrated: V = 1 at the optical centre as calibrated.")
+@click.option("--depth-scale", type=float, default=None, callback=_positive,
+              help="Raw depth units per metre [format default].")
+@click.option("--intrinsics", type=str, default=None, help="fx,fy,cx,cy or a file [default: the sequence's own].")
+@click.option("--format", "fmt", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
+              help="Sequence layout [default: detected].")
+@click.option("--views", type=click.IntRange(0, 6), default=3, show_default=True,
+              help="Viewpoints of the side-by-side renders (0: none).")
+@click.option("--render-width", type=click.IntRange(32, 1920), default=320, show_default=True,
+              help="Width of each render in pixels.")
+@click.option("--glb", is_flag=True, help="Also write each mesh as binary glTF (mesh.glb) for web viewers.")
+@click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None, output: Path,
+            backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, frames: slice | None,
+            voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
+            fmt: str | None, views: int, render_width: int, glb: bool, force: bool, no_progress: bool) -> None:
+    """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
+    optionally with exposure compensation) at identical poses, and compare the colour disagreement
+    histograms, the meshes and (for simulated sequences) the colours against the true radiance."""
+    from mapping.cli._common import run_manifest
+    from mapping.compare import compare, make_methods
+    from mapping.datasets import open_dataset
+    from mapping.pipeline import load_vignetting_option
+    from radiometry.fileio import atomic_write_json
+    from radiometry.formats import load_response
+
+    if methods is not None and exposure_compensation:
+        raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
+    dataset = open_dataset(sequence, format=fmt, depth_scale=depth_scale, intrinsics=intrinsics,
+                           frames=frames or slice(None))
+    resp = load_response(response)
+    lut = load_vignetting_option(vignetting_lut) if vignetting_lut is not None else None
+    poly = load_vignetting_option(vignetting_poly) if vignetting_poly is not None else None
+    try:
+        method_list = make_methods(resp, vignetting_poly=_as_model(poly), vignetting_lut=_as_model(lut),
+                                   exposure_compensation=exposure_compensation, names=methods)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+    scene = _scene_of(sequence, dataset)
+    result = compare(dataset, method_list, output=output, backend=backend, poses=poses, voxel_size=voxel_size,
+                     depth_max=depth_max, brightness=brightness, scene=scene, views=views,
+                     render_width=render_width, progress=not no_progress, force=force,
+                     title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",))
+    atomic_write_json(output / "config.json", run_manifest("compare", {
+        "sequence": sequence, "response": response, "vignetting_lut": vignetting_lut,
+        "vignetting_poly": vignetting_poly, "output": output, "backend": backend,
+        "exposure_compensation": exposure_compensation, "methods": [m.name for m in method_list], "poses": poses,
+        "frames": frames, "voxel_size": voxel_size, "depth_max": depth_max, "brightness": brightness,
+        "depth_scale": depth_scale, "intrinsics": intrinsics, "format": fmt, "views": views,
+        "render_width": render_width, "glb": glb}))
+    click.echo(result.table_text())
+    if result.ate is not None:
+        click.echo(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
+    if scene is None:
+        click.echo("(no ground truth: colour error not measured)")
+    click.echo(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+    click.echo(f"report: {result.files['report']}")
+
+
+def _as_model(vignetting):
+    """``load_vignetting_option`` returns a model or an array V; models pass, arrays become LUTs."""
+    if vignetting is None:
+        return None
+    from mapping.colour import as_vignetting_model
+
+    return as_vignetting_model(vignetting)
+
+
+def _scene_of(sequence: Path, dataset):
+    """The simulated room of a simulated sequence (for the colour error), else None."""
+    room_file = Path(sequence) / "truth" / "room.json"
+    if getattr(dataset, "format_name", "") != "simulated" or not room_file.is_file():
+        return None
+    light = Path(sequence) / "truth" / "light_scale.txt"
+    if light.is_file():
+        import numpy as np
+
+        try:
+            scales = np.loadtxt(light, ndmin=2)[:, 1]
+        except (OSError, ValueError, IndexError):
+            scales = np.ones(1)
+        if scales.size and np.ptp(scales) > 1e-6:
+            click.echo(f"note: the light changes during {sequence.name} ({scales.min():.2f}..{scales.max():.2f}); the "
+                       "colour error compares with the radiance at the nominal light, so it also counts the change",
+                       err=True)
+    from mapping.simulation import load_room
+
+    return load_room(room_file)

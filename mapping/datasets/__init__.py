@@ -1,0 +1,68 @@
+"""RGB-D sequence loaders, one file per format, behind one contract (:mod:`mapping.datasets.base`).
+
+>>> ds = open_dataset("redkitchen/seq-01", frames=slice(0, 100, 2))   # doctest: +SKIP
+>>> frame = ds[0]        # RGBDFrame: rgb uint8 (H, W, 3), depth float32 metres, K, pose or None
+
+Formats are detected from the folder's content (``detect``, in the order of :data:`FORMATS`: the most
+specific first) or named with ``format=``. Frames are read lazily, one at a time.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from mapping.datasets.base import RGBDDataset, RGBDFrame
+from mapping.datasets.redwood import RedwoodDataset
+from mapping.datasets.sevenscenes import SevenScenesDataset
+from mapping.datasets.simulated import SimulatedDataset
+from mapping.datasets.tum import TUMDataset
+from radiometry.errors import DatasetError
+
+#: format name -> loader class; detection tries them in this order (simulated before its parent, TUM)
+FORMATS: dict[str, type] = {
+    "simulated": SimulatedDataset,
+    "tum": TUMDataset,
+    "7scenes": SevenScenesDataset,
+    "redwood": RedwoodDataset,
+}
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """The name of the first format in :data:`FORMATS` that recognises the folder."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such sequence folder; check the path")
+    if not path.is_dir():
+        raise DatasetError(f"{path}: is a file; pass the sequence folder")
+    for name, cls in FORMATS.items():
+        if cls.detect(path):
+            return name
+    raise DatasetError(
+        f"{path}: unknown RGB-D layout; expected TUM (rgb.txt, depth.txt), 7-Scenes (frame-NNNNNN.color.*), "
+        "Redwood (color/, depth/) or a radiomap simulation (radiomap_sequence.json); or pass --format "
+        f"({', '.join(FORMATS)})")
+
+
+def open_dataset(path: str | os.PathLike, *, format: str | None = None, depth_scale: float | None = None,
+                 intrinsics=None, frames: slice | Sequence[int] | None = slice(None)) -> RGBDDataset:
+    """Open an RGB-D sequence.
+
+    path:        the sequence folder.
+    format:      one of :data:`FORMATS`, or None to detect it.
+    depth_scale: raw depth units per metre (default: the format's, e.g. 5000 TUM, 1000 7-Scenes/Redwood).
+    intrinsics:  None (the format's file or default), a file (3 x 3, 'fx fy cx cy' or Open3D camera JSON),
+                 ``"fx,fy,cx,cy"``, four numbers or a (3, 3) matrix.
+    frames:      a slice (range and stride, e.g. ``slice(0, 100, 2)``) or explicit frame positions.
+    """
+    if format is None:
+        format = detect_format(path)
+    cls = FORMATS.get(format)
+    if cls is None:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {format!r}")
+    return cls(path, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames)
+
+
+__all__ = ["FORMATS", "RGBDDataset", "RGBDFrame", "RedwoodDataset", "SevenScenesDataset", "SimulatedDataset",
+           "TUMDataset", "detect_format", "open_dataset"]

@@ -1,0 +1,350 @@
+"""Shared pieces of the dataset loaders: the lazy frame list, intrinsics, frame selection, checks.
+
+Every loader resolves its files once (cheap: text files and directory listings), then reads images only in
+``__getitem__``, so a sequence of any length costs a few kilobytes until frames are asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapping.datasets.base import RGBDFrame
+from radiometry.errors import DatasetError, ImageError
+from radiometry.fileio import read_depth, read_rgb
+
+log = logging.getLogger(__name__)
+
+#: a depth map whose median valid depth is outside this range (metres) means a wrong depth scale
+PLAUSIBLE_MEDIAN_DEPTH = (0.05, 20.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# intrinsics
+# --------------------------------------------------------------------------------------------------
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """The (3, 3) float64 pinhole matrix of ``fx, fy, cx, cy``."""
+    values = np.array([fx, fy, cx, cy], dtype=np.float64)
+    if not np.all(np.isfinite(values)) or fx <= 0 or fy <= 0:
+        raise ValueError(f"intrinsics must be finite with positive focal lengths, got fx={fx}, fy={fy}, "
+                         f"cx={cx}, cy={cy}")
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _check_matrix(K: np.ndarray, source: str) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 \
+            or not np.allclose(K[2], [0, 0, 1]):
+        raise DatasetError(f"{source}: not a pinhole intrinsics matrix (3 x 3 with fx, fy > 0 and last row "
+                           f"0 0 1), got {np.array2string(K, precision=4)}; fix the file or pass "
+                           "--intrinsics fx,fy,cx,cy")
+    return K
+
+
+def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
+    """Read intrinsics from a file: a 3 x 3 matrix (text, whitespace or commas), one line ``fx fy cx cy``,
+    or an Open3D camera JSON (``intrinsic_matrix`` column-major, as ``camera_primesense.json``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such intrinsics file; check the path or pass --intrinsics fx,fy,cx,cy")
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise DatasetError(f"{path}: invalid JSON at line {exc.lineno} ({exc.msg}); fix the camera file") \
+                from None
+        if isinstance(doc, dict) and "intrinsic_matrix" in doc:
+            values = np.asarray(doc["intrinsic_matrix"], dtype=np.float64)
+            if values.size != 9:
+                raise DatasetError(f"{path}: 'intrinsic_matrix' must have 9 values, got {values.size}")
+            return _check_matrix(values.reshape(3, 3).T, str(path))  # Open3D stores it column-major
+        if isinstance(doc, dict) and "K" in doc:
+            return _check_matrix(np.asarray(doc["K"], dtype=np.float64).reshape(3, 3), str(path))
+        if isinstance(doc, dict) and all(k in doc for k in ("fx", "fy", "cx", "cy")):
+            return intrinsics_matrix(doc["fx"], doc["fy"], doc["cx"], doc["cy"])
+        raise DatasetError(f"{path}: JSON without 'intrinsic_matrix', 'K' or fx/fy/cx/cy; "
+                           "pass --intrinsics fx,fy,cx,cy")
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            rows.append([float(v) for v in re.split(r"[\s,]+", line) if v])
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: not numbers: {line!r}; expected a 3 x 3 matrix or "
+                               "'fx fy cx cy'") from None
+    flat = [v for r in rows for v in r]
+    if len(flat) == 9:
+        return _check_matrix(np.array(flat).reshape(3, 3), str(path))
+    if len(flat) == 4:
+        return intrinsics_matrix(*flat)
+    raise DatasetError(f"{path}: expected a 3 x 3 matrix (9 numbers) or 'fx fy cx cy' (4 numbers), "
+                       f"got {len(flat)} numbers")
+
+
+def parse_intrinsics(value) -> np.ndarray | None:
+    """Turn the user's ``intrinsics`` option into a (3, 3) matrix.
+
+    Accepts None, a (3, 3) array, four numbers ``(fx, fy, cx, cy)``, a string ``"fx,fy,cx,cy"``, or the path
+    of a file understood by :func:`read_intrinsics_file`.
+    """
+    if value is None:
+        return None
+    if isinstance(value, np.ndarray) and value.shape == (3, 3):
+        return _check_matrix(value, "intrinsics")
+    if isinstance(value, (str, os.PathLike)):
+        text = str(value)
+        parts = [p for p in re.split(r"[\s,]+", text.strip()) if p]
+        if len(parts) == 4 and not Path(text).exists():
+            try:
+                numbers = [float(p) for p in parts]
+            except ValueError:
+                numbers = None
+            if numbers is not None:
+                return intrinsics_matrix(*numbers)
+        return read_intrinsics_file(text)
+    values = np.asarray(value, dtype=np.float64)
+    if values.shape == (4,):
+        return intrinsics_matrix(*values)
+    if values.shape == (3, 3):
+        return _check_matrix(values, "intrinsics")
+    raise ValueError(f"intrinsics must be a 3x3 matrix, four numbers fx,fy,cx,cy or a file path, got {value!r}")
+
+
+# --------------------------------------------------------------------------------------------------
+# frame selection and poses
+# --------------------------------------------------------------------------------------------------
+def select(n: int, frames: slice | Sequence[int] | None) -> list[int]:
+    """Indices of a sequence of ``n`` frames picked by ``frames`` (a slice, or explicit indices)."""
+    if frames is None:
+        return list(range(n))
+    if isinstance(frames, slice):
+        if frames.step is not None and frames.step <= 0:
+            raise ValueError(f"frames step must be positive, got {frames.step}")
+        return list(range(n))[frames]
+    idx = [int(i) for i in frames]
+    bad = [i for i in idx if not -n <= i < n]
+    if bad:
+        raise ValueError(f"frames {bad[:5]} are out of range for a sequence of {n} frames")
+    return [i % n for i in idx]
+
+
+def check_pose(pose: np.ndarray, source: str) -> np.ndarray | None:
+    """A camera-to-world pose read from a file: None if it is non-finite (7-Scenes marks lost frames with
+    inf), DatasetError if it is not a rigid transform."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if not np.all(np.isfinite(pose)):
+        return None
+    R = pose[:3, :3]
+    if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+        raise DatasetError(f"{source}: not a rigid camera-to-world transform (rotation not orthonormal or last "
+                           "row not 0 0 0 1); fix or remove the pose")
+    return pose
+
+
+# --------------------------------------------------------------------------------------------------
+# the lazy frame list every loader shares
+# --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FrameFiles:
+    """Where one frame lives: resolved at open time, read only on access."""
+
+    index: int            # position in the full sequence (before frame selection)
+    timestamp: float      # seconds
+    rgb: Path
+    depth: Path
+    pose: np.ndarray | None = None       # camera-to-world, when known up front
+    pose_file: Path | None = None        # or read lazily from this file (7-Scenes)
+    name: str = ""                       # a short name for logs (default: the colour file's stem)
+
+
+class FileSequence:
+    """A dataset whose frames are image files: lazy loading, checks, frame selection and ground truth.
+
+    Subclasses resolve the files (``FrameFiles``) and the intrinsics; this class reads them on demand.
+    ``len(ds)`` and ``ds[i]`` see only the selected frames (``frames=`` range and stride applied);
+    ``RGBDFrame.index`` is the frame's position in the *full* sequence, so logs and results name the
+    original frame whatever the stride.
+    """
+
+    format_name = "files"
+
+    def __init__(self, root: Path, files: list[FrameFiles], K: np.ndarray, *, depth_scale: float,
+                 frames: slice | Sequence[int] | None = None, name: str | None = None,
+                 invalid_raw_depth: int | None = None) -> None:
+        if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale)
+                and depth_scale > 0):
+            raise ValueError(f"depth_scale must be a positive number, got {depth_scale!r}")
+        self.root = Path(root)
+        self.name = name or self.root.name
+        self.depth_scale = float(depth_scale)
+        self._invalid_raw_depth = invalid_raw_depth
+        self._all_files = files
+        if not files:
+            raise DatasetError(f"{self.root}: the {self.format_name} sequence has no frames; check the folder")
+        picked = select(len(files), frames)
+        if not picked:
+            raise DatasetError(f"{self.root}: the frame selection {frames} leaves no frames out of "
+                               f"{len(files)}; widen --frames")
+        self._files = [files[i] for i in picked]
+        self.K = np.asarray(K, dtype=np.float64)
+        first = self._read(self._files[0])
+        self.height, self.width = first.rgb.shape[:2]
+        self._check_intrinsics(first)
+
+    # ---------------------------------------------------------------- protocol
+    def __len__(self) -> int:
+        return len(self._files)
+
+    def __getitem__(self, index: int) -> RGBDFrame:
+        n = len(self._files)
+        if not isinstance(index, (int, np.integer)):
+            raise TypeError(f"dataset index must be an integer, got {type(index).__name__}")
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} is out of range for {n} frames")
+        frame = self._read(self._files[index % n])
+        if (frame.height, frame.width) != (self.height, self.width):
+            raise DatasetError(f"{self._files[index % n].rgb}: {frame.width}x{frame.height} pixels while the "
+                               f"sequence starts at {self.width}x{self.height}; all frames must have one size")
+        return frame
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        stamps, poses = [], []
+        for f in self._files:
+            pose = self._pose_of(f)
+            if pose is not None:
+                stamps.append(f.timestamp)
+                poses.append(pose)
+        if not poses:
+            return None
+        return np.asarray(stamps, dtype=np.float64), np.stack(poses)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.array([f.timestamp for f in self._files])
+
+    @property
+    def frame_files(self) -> list[FrameFiles]:
+        """The selected frames' files (nothing is read)."""
+        return list(self._files)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({str(self.root)!r}, frames={len(self)}, {self.width}x{self.height}, "
+                f"depth_scale={self.depth_scale:g})")
+
+    # ---------------------------------------------------------------- reading
+    def _pose_of(self, f: FrameFiles) -> np.ndarray | None:
+        if f.pose is not None:
+            return f.pose
+        if f.pose_file is not None:
+            return read_pose_matrix_file(f.pose_file)
+        return None
+
+    def _read(self, f: FrameFiles) -> RGBDFrame:
+        try:
+            rgb = read_rgb(f.rgb)
+            depth = read_depth(f.depth, self.depth_scale)
+        except ImageError as exc:
+            raise DatasetError(f"{exc} (frame {f.index} of {self.root})") from None
+        if rgb.ndim == 2:
+            rgb = np.repeat(rgb[:, :, None], 3, axis=2)
+        if self._invalid_raw_depth is not None:
+            depth[depth >= np.float32(self._invalid_raw_depth / self.depth_scale) - 1e-6] = 0.0
+        if rgb.shape[:2] != depth.shape:
+            raise DatasetError(
+                f"{f.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but its depth {f.depth} is "
+                f"{depth.shape[1]}x{depth.shape[0]}; colour and depth must be registered at one resolution "
+                "(resize or register them first)")
+        self._check_depth_range(depth, f.depth)
+        return RGBDFrame(index=f.index, timestamp=f.timestamp, rgb=rgb, depth=depth, K=self.K,
+                         pose=self._pose_of(f), name=f.name or f.rgb.stem)
+
+    def _check_depth_range(self, depth: np.ndarray, path: Path) -> None:
+        sample = depth[::4, ::4]
+        valid = sample[sample > 0]
+        if valid.size < 16:
+            return  # an empty frame (lens covered, all out of range) is for tracking to reject, not the loader
+        median = float(np.median(valid))
+        lo, hi = PLAUSIBLE_MEDIAN_DEPTH
+        if not lo <= median <= hi:
+            raw = median * self.depth_scale
+            # the usual scale that puts the median nearest to a typical indoor 2 m
+            suggestion = min((1000.0, 5000.0, 1.0, 100.0, 10000.0), key=lambda s: abs(np.log(raw / s / 2.0)))
+            raise DatasetError(
+                f"{path}: median depth {median:.3g} m with depth scale {self.depth_scale:g} is implausible for an "
+                f"RGB-D camera (expected {lo:g}..{hi:g} m); pass the right --depth-scale "
+                f"(raw units per metre, e.g. --depth-scale {suggestion:g})")
+
+    def _check_intrinsics(self, frame: RGBDFrame) -> None:
+        cx, cy = self.K[0, 2], self.K[1, 2]
+        if not (0 < cx < self.width and 0 < cy < self.height):
+            raise DatasetError(
+                f"{self.root}: the principal point ({cx:g}, {cy:g}) lies outside the {self.width}x{self.height} "
+                "images; the intrinsics belong to another resolution, pass the right --intrinsics")
+
+
+# --------------------------------------------------------------------------------------------------
+# small text-file readers that report file and line
+# --------------------------------------------------------------------------------------------------
+def read_pose_matrix_file(path: Path) -> np.ndarray | None:
+    """A 4 x 4 camera-to-world matrix in a text file (7-Scenes ``frame-NNNNNN.pose.txt``)."""
+    rows = []
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read the pose ({exc.strerror}); check the file") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = [float(v) for v in line.split()]
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: not numbers: {line.strip()!r}; a pose file holds a 4 x 4 "
+                               "matrix") from None
+        if len(row) != 4:
+            raise DatasetError(f"{path}:{lineno}: {len(row)} values; a pose file holds 4 rows of 4 numbers")
+        rows.append(row)
+    if len(rows) != 4:
+        raise DatasetError(f"{path}: {len(rows)} rows; a pose file holds a 4 x 4 matrix")
+    return check_pose(np.array(rows), str(path))
+
+
+def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
+    """TUM ``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line, ``#`` comments.
+
+    Returns ``(timestamp, filename, line number)`` tuples; malformed lines raise :class:`DatasetError`
+    with file and line."""
+    out = []
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror}); check the sequence folder") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise DatasetError(f"{path}:{lineno}: expected 'timestamp filename', got {len(parts)} entries "
+                               f"({line!r})")
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: timestamp {parts[0]!r} is not a number") from None
+        if not np.isfinite(stamp):
+            raise DatasetError(f"{path}:{lineno}: timestamp {parts[0]!r} is not finite")
+        out.append((stamp, parts[1], lineno))
+    return out

@@ -1,0 +1,160 @@
+"""Numba kernels of the TSDF backend (one pass over an image each; compiled on first use, cached on disk)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def colour_pairs(map_depth, depth, map_colour, colour, abs_tol, rel_tol, dmin, dmax, out_map,
+                 out_sample):  # pragma: no cover
+    """Gather (map colour, sample colour) where the rendered and measured depths agree; returns the count."""
+    n = 0
+    rows, cols = depth.shape
+    for y in range(rows):
+        for x in range(cols):
+            m = map_depth[y, x]
+            d = depth[y, x]
+            if m > 0 and d > dmin and d <= dmax:
+                tol = rel_tol * d
+                if tol < abs_tol:
+                    tol = abs_tol
+                if abs(m - d) <= tol:
+                    for c in range(3):
+                        out_map[n, c] = map_colour[y, x, c]
+                        out_sample[n, c] = colour[y, x, c]
+                    n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def finish_view(vertex, normal, depth, c, half_voxel, debias):  # pragma: no cover
+    """Per pixel of a ray-cast view: zero vertex and normal where there is no surface (0 normal also where the
+    normal is undefined, next to holes), orient normals towards the camera and, with ``debias``, move the
+    point along its ray by the mean displacement of Open3D's floored voxel reads,
+    ``lambda = (n . h) z / (n . v)`` (``h = half_voxel * c``, ``c`` the grid diagonal in the camera frame)."""
+    rows, cols = depth.shape
+    limit = 2.0 * half_voxel
+    for y in range(rows):
+        for x in range(cols):
+            z = depth[y, x]
+            if not z > 0:
+                for k in range(3):
+                    vertex[y, x, k] = 0.0
+                    normal[y, x, k] = 0.0
+                continue
+            n0 = normal[y, x, 0]
+            n1 = normal[y, x, 1]
+            n2 = normal[y, x, 2]
+            if not (n0 == n0 and n1 == n1 and n2 == n2):
+                normal[y, x, 0] = 0.0
+                normal[y, x, 1] = 0.0
+                normal[y, x, 2] = 0.0
+                continue
+            nv = n0 * vertex[y, x, 0] + n1 * vertex[y, x, 1] + n2 * vertex[y, x, 2]
+            if nv > 0:
+                normal[y, x, 0] = -n0
+                normal[y, x, 1] = -n1
+                normal[y, x, 2] = -n2
+            if not debias or abs(nv) < 1e-6:
+                continue
+            lam = half_voxel * (n0 * c[0] + n1 * c[1] + n2 * c[2]) * z / nv
+            if lam > limit:
+                lam = limit
+            elif lam < -limit:
+                lam = -limit
+            s = 1.0 - lam / z
+            vertex[y, x, 0] *= s
+            vertex[y, x, 1] *= s
+            vertex[y, x, 2] *= s
+            depth[y, x] = z * s
+    return depth
+
+
+# --------------------------------------------------------------------------------------------------
+# surface refinement: voxel look-ups without the hash map (a dense table of buffer indices per block)
+# --------------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True, inline="always")
+def _voxel(vx, vy, vz, shift, mask, res, index, lo):  # pragma: no cover
+    """Linear index of voxel (vx, vy, vz) in the grid's attribute buffers, or -1 when its block is absent.
+    Blocks are ``res = 2**shift`` voxels a side; ``index[bx - lo0, by - lo1, bz - lo2]`` is a block's buffer
+    slot; inside a block, voxels are stored z-major (Open3D's layout ``[slot, z, y, x]``)."""
+    jx = (vx >> shift) - lo[0]
+    jy = (vy >> shift) - lo[1]
+    jz = (vz >> shift) - lo[2]
+    if jx < 0 or jy < 0 or jz < 0 or jx >= index.shape[0] or jy >= index.shape[1] or jz >= index.shape[2]:
+        return -1
+    slot = index[jx, jy, jz]
+    if slot < 0:
+        return -1
+    return ((slot * res + (vz & mask)) * res + (vy & mask)) * res + (vx & mask)
+
+
+@njit(cache=True, nogil=True)
+def _tsdf_at(px, py, pz, inv_vs, shift, tsdf, weight, index, lo):  # pragma: no cover
+    """Trilinear TSDF at a world point (voxel i sits at i * voxel_size); NaN next to unobserved voxels."""
+    res = 1 << shift
+    mask = res - 1
+    gx, gy, gz = px * inv_vs, py * inv_vs, pz * inv_vs
+    fx0, fy0, fz0 = np.floor(gx), np.floor(gy), np.floor(gz)
+    ix, iy, iz = int(fx0), int(fy0), int(fz0)
+    fx, fy, fz = gx - fx0, gy - fy0, gz - fz0
+    base = _voxel(ix, iy, iz, shift, mask, res, index, lo)
+    if base < 0:
+        return np.nan
+    inside = (ix & mask) < mask and (iy & mask) < mask and (iz & mask) < mask  # all 8 corners in one block
+    acc = 0.0
+    for k in range(8):
+        dx, dy, dz = k & 1, (k >> 1) & 1, (k >> 2) & 1
+        if inside:
+            li = base + dx + dy * res + dz * res * res
+        else:
+            li = _voxel(ix + dx, iy + dy, iz + dz, shift, mask, res, index, lo)
+            if li < 0:
+                return np.nan
+        if weight[li] <= 0:
+            return np.nan
+        acc += (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy) * (fz if dz else 1.0 - fz) * tsdf[li]
+    return acc
+
+
+@njit(cache=True, nogil=True)
+def refine(depth, vertex, fx, fy, cx, cy, R, o, tsdf, weight, index, lo, shift, vs):  # pragma: no cover
+    """Move each rendered point to the zero crossing of the trilinear TSDF along its ray: bracket the
+    current depth by +-1 voxel, one regula-falsi step, one secant step. Pixels whose bracket does not change
+    sign (or touches unobserved voxels) keep their depth. Returns the number of refined pixels."""
+    rows, cols = depth.shape
+    inv_vs = 1.0 / vs
+    n = 0
+    for v in range(rows):
+        yc = (v - cy) / fy
+        for u in range(cols):
+            t0 = depth[v, u]
+            if not t0 > 0:
+                continue
+            xc = (u - cx) / fx
+            wx = R[0, 0] * xc + R[0, 1] * yc + R[0, 2]
+            wy = R[1, 0] * xc + R[1, 1] * yc + R[1, 2]
+            wz = R[2, 0] * xc + R[2, 1] * yc + R[2, 2]
+            a, b = t0 - vs, t0 + vs
+            fa = _tsdf_at(o[0] + a * wx, o[1] + a * wy, o[2] + a * wz, inv_vs, shift, tsdf, weight, index, lo)
+            if not fa > 0:
+                continue
+            fb = _tsdf_at(o[0] + b * wx, o[1] + b * wy, o[2] + b * wz, inv_vs, shift, tsdf, weight, index, lo)
+            if not fb < 0:
+                continue
+            t = a - fa * (b - a) / (fb - fa)
+            ft = _tsdf_at(o[0] + t * wx, o[1] + t * wy, o[2] + t * wz, inv_vs, shift, tsdf, weight, index, lo)
+            if ft == ft:
+                if ft > 0:
+                    a, fa = t, ft
+                else:
+                    b, fb = t, ft
+                t = a - fa * (b - a) / (fb - fa)
+            depth[v, u] = t
+            vertex[v, u, 0] = t * xc
+            vertex[v, u, 1] = t * yc
+            vertex[v, u, 2] = t
+            n += 1
+    return n

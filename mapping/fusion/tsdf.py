@@ -1,0 +1,364 @@
+"""TSDF fusion of irradiance in Open3D's sparse voxel block grid (``o3d.t.geometry.VoxelBlockGrid``).
+
+Voxels hold ``tsdf`` (float32), ``weight`` (float32, +1 per observation) and ``color`` (3 x float32 in map
+units: irradiance above 1 and below 1/255 survive, unlike Open3D's 8/16-bit SLAM model). Integration is
+KinectFusion's running average; the map is rendered by ray casting the zero crossing, colours by trilinear
+interpolation of the eight voxels around the surface point.
+
+Ray casts and block lists. :meth:`TSDFBackend.render_for_frame` computes the voxel blocks the frame's depth
+touches at its pose (the same list integration needs), ray casts the map within them, and keeps the list so
+that :meth:`TSDFBackend.integrate` of the same frame reuses it: one block search and one ray cast per frame,
+as Open3D's own dense SLAM loop. :meth:`TSDFBackend.render` (the generic interface) casts within the blocks
+of the last integrated frame. The cast renders depth and colour; the view's vertex map is the depth
+back-projected and its normals those of the bilaterally smoothed vertex map (Open3D's tracking recipe: the
+TSDF-gradient normals of a fine, noisy grid make worse ICP targets, and cost 10% more casting time).
+
+Colour pairs for the disagreement histogram: a pixel is compared when the map's ray-cast depth agrees with the
+measured depth within ``max(agreement_voxels * voxel_size, agreement_relative * depth)`` and the depth is in
+the fused range; the pair is (map colour at that pixel, the incoming colour) in map units.
+
+Corrections of Open3D's kernels (measured in ``tests/test_tsdf.py``):
+
+- Integration looks a voxel up at pixel ``int(u)`` (truncation) while every other kernel puts pixel centres
+  at integers: the principal point is shifted by half a pixel for integration (``pixel_centre_fix``; 4 mm
+  on a plane tilted 30 degrees at 2 m).
+- The ray marcher reads the voxel at ``floor(p / voxel_size)``, i.e. the TSDF of a point ``delta`` behind
+  ``p`` (``delta`` in ``[0, voxel)^3``, half a voxel along (1, 1, 1) on average), so the zero crossing lies
+  ``delta`` off the surface: rendered walls are ~half a voxel too far (1 cm at 2 cm voxels) and frame-to-model
+  tracking drifts by about that much per frame. ``surface="debias"`` (default, ~2 ms per frame) removes the
+  mean displacement along each ray, ``lambda = (n . h) z / (n . v)`` with ``h = voxel/2 (1, 1, 1)`` in the
+  camera frame; ``surface="refine"`` then solves for the zero crossing of the trilinearly interpolated TSDF
+  along each ray (secant steps on voxels read straight from the grid's buffers): exact, but 20-40 ms per
+  640x480 frame. Colours (interpolated at the crossing, which lies on the right ray) are unaffected.
+- The cast's range map is built at 1/8 resolution and read out of bounds unless both image sides are
+  multiples of 8 (hangs or empty views): odd sizes are cast padded and cropped.
+- The range map's fragment buffer grows lazily, and the cast that triggers the growth comes back incomplete:
+  the buffer is reserved once per camera for the whole viewing frustum.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapping._open3d import o3d
+from mapping.fusion.base import ColourPairs, ModelView
+
+log = logging.getLogger(__name__)
+
+_NAN = float("nan")
+_RANGE_FACTOR = 8
+_ATTRS = ("tsdf", "weight", "color")
+SURFACES = ("debias", "refine", "open3d")
+_BYTES_PER_VOXEL = 4 + 4 + 12
+
+
+@dataclass
+class MeshData:
+    """A triangle mesh extracted from the map (colours in map units)."""
+
+    vertices: np.ndarray   # (N, 3) float32 world
+    triangles: np.ndarray  # (M, 3) int32
+    colours: np.ndarray    # (N, 3) float32 map units
+    normals: np.ndarray    # (N, 3) float32
+
+
+def _tensor(array: np.ndarray, dtype=np.float32):
+    return o3d.core.Tensor.from_numpy(np.ascontiguousarray(array, dtype=dtype))
+
+
+def _kernels():
+    """The Numba kernels (compiled on first use, cached on disk)."""
+    from mapping.fusion import _tsdf_kernels
+
+    return _tsdf_kernels
+
+
+def _quiet():
+    return o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error)
+
+
+class TSDFBackend:
+    """A TSDF map of float colours in an Open3D voxel block grid (implements ``FusionBackend``).
+
+    voxel_size:             metres (0.01 for room-scale Kinect data).
+    block_resolution:       voxels per block edge (16).
+    block_count:            initial hash-map capacity in blocks; it doubles when full.
+    trunc_voxel_multiplier: truncation distance in voxels (Open3D's default 8).
+    depth_min, depth_max:   metres; depth outside is not fused nor rendered.
+    weight_threshold:       voxels with less weight are not rendered (capped by the number of fused frames,
+                            so the first frames render as in Open3D's loop).
+    agreement_voxels, agreement_relative: the depth-agreement test for colour pairs.
+    pixel_centre_fix:       integrate with the nearest pixel rather than Open3D's truncated pixel index.
+    surface:                how the rendered surface is located (module doc): "debias" (default), "refine" or
+                            "open3d" (Open3D's ray cast as it is).
+    device:                 Open3D device ("CPU:0"; "CUDA:0" where Open3D has CUDA).
+    """
+
+
+    name = "tsdf"
+
+    def __init__(self, *, voxel_size: float = 0.01, block_resolution: int = 16, block_count: int = 2000,
+                 trunc_voxel_multiplier: float = 8.0, depth_min: float = 0.1, depth_max: float = 3.0,
+                 weight_threshold: float = 3.0, agreement_voxels: float = 3.0, agreement_relative: float = 0.02,
+                 pixel_centre_fix: bool = True, surface: str = "debias", device: str = "CPU:0") -> None:
+        for name, value in (("voxel_size", voxel_size), ("trunc_voxel_multiplier", trunc_voxel_multiplier),
+                            ("depth_max", depth_max), ("agreement_voxels", agreement_voxels)):
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not 0 <= depth_min < depth_max:
+            raise ValueError(f"depth_min must be in [0, depth_max), got {depth_min}")
+        if int(block_resolution) < 2 or int(block_count) < 1:
+            raise ValueError(f"block_resolution must be >= 2 and block_count >= 1, got {block_resolution}, "
+                             f"{block_count}")
+        self.voxel_size = float(voxel_size)
+        self.block_resolution = int(block_resolution)
+        self.trunc_voxel_multiplier = float(trunc_voxel_multiplier)
+        self.depth_min = float(depth_min)
+        self.depth_max = float(depth_max)
+        self.weight_threshold = float(weight_threshold)
+        self.agreement_voxels = float(agreement_voxels)
+        self.agreement_relative = float(agreement_relative)
+        self.pixel_centre_fix = bool(pixel_centre_fix)
+        if surface not in SURFACES:
+            raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
+        if surface == "refine" and block_resolution & (block_resolution - 1):
+            raise ValueError(f"surface='refine' needs a power-of-two block_resolution, got {block_resolution}")
+        self.surface = surface
+        self.device = o3d.core.Device(device)
+        self.grid = o3d.t.geometry.VoxelBlockGrid(
+            list(_ATTRS), [o3d.core.float32] * 3, [[1], [1], [3]], voxel_size=self.voxel_size,
+            block_resolution=self.block_resolution, block_count=int(block_count), device=self.device)
+        self.frames_integrated = 0
+        self._last_blocks = None          # block coordinates of the last fused frame (for render())
+        self._pending = None              # (depth array, pose, K, blocks, depth image) from render_for_frame
+        self.ray_casts = 0
+        self._range_reserved: set = set()
+
+    def _integration_intrinsics(self, K: np.ndarray) -> np.ndarray:
+        """Open3D's integration kernel looks a voxel up at pixel ``int(u)`` (truncation) while every other
+        kernel (and this project) puts pixel centres at integer coordinates; shifting the principal point
+        by half a pixel makes it the nearest pixel, ``int(u + 0.5)``. Without it the surface and its colours
+        are displaced by half a pixel (4 mm on a plane tilted 30 degrees at 2 m, 320x240)."""
+        K = np.asarray(K, dtype=np.float64).copy()
+        if self.pixel_centre_fix:
+            K[0, 2] += 0.5
+            K[1, 2] += 0.5
+        return K
+
+    @property
+    def truncation(self) -> float:
+        return self.voxel_size * self.trunc_voxel_multiplier
+
+    # ---------------------------------------------------------------- rendering
+    def _extrinsic(self, pose: np.ndarray):
+        return o3d.core.Tensor(np.linalg.inv(np.asarray(pose, dtype=np.float64)))
+
+    def _ray_cast(self, blocks, K: np.ndarray, pose: np.ndarray, height: int, width: int) -> ModelView:
+        """Depth and colour from Open3D's ray cast; vertex and normal maps from the depth (normals of the
+        bilaterally smoothed vertex map, Open3D's own tracking recipe: the TSDF-gradient normals of a fine,
+        noisy grid make worse ICP targets and cost 10% more ray-casting time); the surface bias removed."""
+        weight = min(self.weight_threshold, float(max(self.frames_integrated, 1)))
+        Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
+        # Open3D's ray cast builds its range map at 1/8 resolution and reads it out of bounds (hanging or
+        # returning nothing) unless both sides are multiples of 8: cast a padded image and crop it
+        hp, wp = -(-int(height) // _RANGE_FACTOR) * _RANGE_FACTOR, -(-int(width) // _RANGE_FACTOR) * _RANGE_FACTOR
+        self._reserve_range_fragments(K, hp, wp)
+        with _quiet():  # Open3D reports growing its range-map buffer as a warning on stdout
+            result = self.grid.ray_cast(blocks, Kt, self._extrinsic(pose), wp, hp, ["depth", "color"], 1.0,
+                                        self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
+                                        _RANGE_FACTOR)
+        self.ray_casts += 1
+        depth = result["depth"].numpy()[:, :, 0]
+        colour = result["color"].numpy()
+        if (hp, wp) != (height, width):
+            depth = np.ascontiguousarray(depth[:height, :width])
+            colour = np.ascontiguousarray(colour[:height, :width])
+        depth_nan = o3d.t.geometry.Image(_tensor(np.where(depth > 0, depth, np.float32(np.nan))))
+        vertex = depth_nan.create_vertex_map(Kt, _NAN).as_tensor().numpy()
+        normal = depth_nan.filter_bilateral(5, 5.0, 10.0).create_vertex_map(Kt, _NAN) \
+            .create_normal_map(_NAN).as_tensor().numpy()
+        pose = np.asarray(pose, dtype=np.float64)
+        c = pose[:3, :3].T @ np.ones(3)  # the grid diagonal (1, 1, 1) in the camera frame
+        _kernels().finish_view(vertex, normal, depth, c.astype(np.float32), np.float32(0.5 * self.voxel_size),
+                               self.surface != "open3d")
+        if self.surface == "refine":
+            self._refine(blocks, K, pose, depth, vertex)
+        return ModelView(depth=depth, colour=colour, vertex=vertex, normal=normal)
+
+    def _reserve_range_fragments(self, K: np.ndarray, height: int, width: int) -> None:
+        """Open3D sizes the ray cast's range-map buffer lazily: a cast that needs more fragments than allocated
+        returns an incomplete range map (parts of the view silently empty) and only then grows the buffer.
+        Once per camera, cast against every block of the whole viewing frustum (depth_min..depth_max) at the
+        origin, a superset of any frame's blocks, so that the buffer never has to grow during the run."""
+        key = (int(height), int(width), tuple(np.round(np.asarray(K, dtype=np.float64).ravel(), 6)))
+        if key in self._range_reserved:
+            return
+        block = self.voxel_size * self.block_resolution
+        Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
+        corners = np.array([[0, 0, 1], [width, 0, 1], [0, height, 1], [width, height, 1]], float) @ Kinv.T
+        far = self.depth_max + 2 * block
+        xs = corners[:, 0] * far
+        ys = corners[:, 1] * far
+        bx = np.arange(np.floor(min(xs.min(), 0) / block) - 1, np.ceil(max(xs.max(), 0) / block) + 2)
+        by = np.arange(np.floor(min(ys.min(), 0) / block) - 1, np.ceil(max(ys.max(), 0) / block) + 2)
+        bz = np.arange(-1, np.ceil(far / block) + 2)
+        grid = np.stack(np.meshgrid(bx, by, bz, indexing="ij"), -1).reshape(-1, 3)
+        centre = (grid + 0.5) * block
+        z = np.maximum(centre[:, 2], 1e-6)
+        u = (K[0, 0] * centre[:, 0] + K[0, 1] * centre[:, 1]) / z + K[0, 2]
+        v = K[1, 1] * centre[:, 1] / z + K[1, 2]
+        margin = np.asarray(K, dtype=np.float64)[0, 0] * block / z
+        keep = (centre[:, 2] > -block) & (u > -margin) & (u < width + margin) & (v > -margin) & (v < height + margin)
+        blocks = o3d.core.Tensor(grid[keep].astype(np.int32))
+        with _quiet():
+            self.grid.ray_cast(blocks, o3d.core.Tensor(np.asarray(K, dtype=np.float64)), o3d.core.Tensor(np.eye(4)),
+                               int(width), int(height), ["depth"], 1.0, self.depth_min, self.depth_max, 1e9,
+                               self.trunc_voxel_multiplier, _RANGE_FACTOR)
+        self._range_reserved.add(key)
+
+    def _block_index(self, blocks) -> tuple[np.ndarray, np.ndarray]:
+        """A dense (X, Y, Z) table of hash-map buffer indices (-1 = unallocated) over the given blocks and their
+        26 neighbours, and its lowest block coordinate: voxel look-ups without the hash map."""
+        b = blocks.numpy().astype(np.int64)
+        lo = b.min(axis=0) - 1
+        dims = b.max(axis=0) + 1 - lo + 1
+        dense = np.zeros(dims, bool)
+        rel = b - lo
+        for ox in (-1, 0, 1):
+            for oy in (-1, 0, 1):
+                for oz in (-1, 0, 1):
+                    dense[rel[:, 0] + ox, rel[:, 1] + oy, rel[:, 2] + oz] = True
+        cells = np.argwhere(dense)
+        buf, found = self.grid.hashmap().find(o3d.core.Tensor((cells + lo).astype(np.int32)))
+        found = found.numpy()
+        index = np.full(dims, -1, np.int32)
+        index[tuple(cells[found].T)] = buf.numpy()[found]
+        return index, lo
+
+    def _refine(self, blocks, K: np.ndarray, pose: np.ndarray, depth: np.ndarray, vertex: np.ndarray) -> int:
+        index, lo = self._block_index(blocks)
+        tsdf = self.grid.attribute("tsdf").numpy().reshape(-1)
+        weight = self.grid.attribute("weight").numpy().reshape(-1)
+        K = np.asarray(K, dtype=np.float64)
+        return _kernels().refine(depth, vertex, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                                 np.ascontiguousarray(pose[:3, :3]), pose[:3, 3].copy(), tsdf, weight, index, lo,
+                                 int(self.block_resolution).bit_length() - 1, self.voxel_size)
+
+    def _empty_view(self, height: int, width: int) -> ModelView:
+        return ModelView(depth=np.zeros((height, width), np.float32), colour=np.zeros((height, width, 3), np.float32),
+                         vertex=np.zeros((height, width, 3), np.float32),
+                         normal=np.zeros((height, width, 3), np.float32))
+
+    def render(self, pose: np.ndarray, K: np.ndarray, height: int, width: int) -> ModelView:
+        """The map seen from ``pose``, ray cast within the blocks of the last fused frame (all zero if empty)."""
+        if self.frames_integrated == 0 or self._last_blocks is None:
+            return self._empty_view(height, width)
+        return self._ray_cast(self._last_blocks, K, pose, height, width)
+
+    def _prepare(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray):
+        """The blocks ``depth`` touches at ``pose`` (cached for the next call with the same depth and pose)."""
+        pose = np.asarray(pose, dtype=np.float64)
+        pending = self._pending
+        if pending is not None and pending[0] is depth and np.array_equal(pending[1], pose):
+            return pending
+        extrinsic = self._extrinsic(pose)
+        depth_image = o3d.t.geometry.Image(_tensor(depth))
+        Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
+        blocks = self.grid.compute_unique_block_coordinates(depth_image, Kt, extrinsic, 1.0, self.depth_max,
+                                                            self.trunc_voxel_multiplier)
+        self._pending = (depth, pose.copy(), blocks, depth_image, extrinsic)
+        return self._pending
+
+    def render_for_frame(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> ModelView:
+        """The map seen from ``pose`` within the blocks ``depth`` touches there; :meth:`integrate` of the same
+        ``depth`` array at the same ``pose`` reuses the block list."""
+        height, width = depth.shape
+        blocks = self._prepare(depth, K, pose)[2]
+        if self.frames_integrated == 0:
+            return self._empty_view(height, width)
+        return self._ray_cast(blocks, K, pose, height, width)
+
+    # ---------------------------------------------------------------- fusion
+    def colour_pairs(self, depth: np.ndarray, colour: np.ndarray, view: ModelView) -> ColourPairs:
+        """Pixels where the rendered map and the measured depth agree: (map colour, incoming colour)."""
+        n_pix = depth.size
+        out_map = np.empty((n_pix, 3), np.float32)
+        out_sample = np.empty((n_pix, 3), np.float32)
+        f32 = np.float32
+        n = _kernels().colour_pairs(np.ascontiguousarray(view.depth, f32), np.ascontiguousarray(depth, f32),
+                                    np.ascontiguousarray(view.colour, f32), np.ascontiguousarray(colour, f32),
+                                    f32(self.agreement_voxels * self.voxel_size), f32(self.agreement_relative),
+                                    f32(self.depth_min), f32(self.depth_max), out_map, out_sample)
+        return ColourPairs(map_colour=out_map[:n], sample_colour=out_sample[:n])
+
+    def integrate(self, depth: np.ndarray, colour: np.ndarray, K: np.ndarray, pose: np.ndarray, *,
+                  view: ModelView | None = None, frame_index: int = 0) -> ColourPairs | None:
+        """Fuse one frame (depth float32 metres, colour (H, W, 3) float32 map units) at ``pose``; returns the
+        colour pairs compared against ``view`` (rendered here first when not given)."""
+        depth = np.asarray(depth)
+        if depth.dtype != np.float32 or depth.ndim != 2:
+            raise ValueError(f"depth must be float32 (H, W) metres, got {depth.dtype} {depth.shape}")
+        colour = np.asarray(colour)
+        if colour.shape != depth.shape + (3,):
+            raise ValueError(f"colour must be (H, W, 3) matching depth {depth.shape}, got {colour.shape}")
+        _, _, blocks, depth_image, extrinsic = self._prepare(depth, K, pose)
+        self._pending = None
+        pairs = None
+        if self.frames_integrated:
+            if view is None:
+                view = self._ray_cast(blocks, K, pose, depth.shape[0], depth.shape[1])
+            pairs = self.colour_pairs(depth, colour, view)
+        colour_image = o3d.t.geometry.Image(_tensor(colour))
+        Kt = o3d.core.Tensor(self._integration_intrinsics(K))
+        self.grid.integrate(blocks, depth_image, colour_image, Kt, extrinsic, 1.0, self.depth_max,
+                            self.trunc_voxel_multiplier)
+        self._last_blocks = blocks
+        self.frames_integrated += 1
+        return pairs
+
+    # ---------------------------------------------------------------- output
+    def extract_mesh(self, weight_threshold: float | None = None) -> MeshData:
+        """Marching cubes over the grid (voxels with at least ``weight_threshold`` observations)."""
+        w = self.weight_threshold if weight_threshold is None else float(weight_threshold)
+        w = min(w, float(max(self.frames_integrated, 1)))
+        w -= 0.5  # Open3D keeps voxels with weight > threshold; weights are whole observation counts
+        if self.frames_integrated == 0:
+            return MeshData(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
+                            np.zeros((0, 3), np.float32))
+        with _quiet():
+            mesh = self.grid.extract_triangle_mesh(w)
+        n = mesh.vertex.positions.shape[0] if "positions" in mesh.vertex else 0
+        if n == 0:
+            return MeshData(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
+                            np.zeros((0, 3), np.float32))
+        return MeshData(vertices=mesh.vertex.positions.numpy().copy(),
+                        triangles=mesh.triangle.indices.numpy().astype(np.int32),
+                        colours=mesh.vertex.colors.numpy().copy(),
+                        normals=mesh.vertex.normals.numpy().copy() if "normals" in mesh.vertex
+                        else np.zeros((n, 3), np.float32))
+
+    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray]) -> dict[str, Path]:
+        """Write ``mesh.ply`` and ``mesh.glb`` (display colours) and ``mesh_colours.npz`` (vertices, triangles and
+        map-unit colours, for evaluation)."""
+        from mapping.export import write_mesh
+
+        mesh = self.extract_mesh()
+        return write_mesh(Path(folder), mesh.vertices, mesh.triangles, mesh.colours, to_display,
+                          normals=mesh.normals)
+
+    def stats(self) -> dict:
+        hashmap = self.grid.hashmap()
+        blocks = int(hashmap.size())
+        capacity = int(hashmap.capacity())
+        voxels_per_block = self.block_resolution ** 3
+        return {"backend": self.name, "voxel_size": self.voxel_size, "block_resolution": self.block_resolution,
+                "truncation_m": self.truncation, "blocks": blocks, "block_capacity": capacity,
+                "voxels": blocks * voxels_per_block,
+                "allocated_mb": capacity * voxels_per_block * _BYTES_PER_VOXEL / 2 ** 20,
+                "used_mb": blocks * voxels_per_block * _BYTES_PER_VOXEL / 2 ** 20,
+                "frames_integrated": self.frames_integrated, "ray_casts": self.ray_casts}

@@ -1,0 +1,219 @@
+#!/usr/bin/env python
+"""Benchmark radiomap's mapping pipeline against Open3D's own dense SLAM loop, in one run.
+
+Both methods get the same frames, voxel size, block resolution, initial block count, truncation and depth
+range, on the same device, each in a fresh process (so that peak memory, ``ru_maxrss``, is per method), in
+alternating order, ``--repeats`` times; the table reports medians.
+
+- open3d:   ``o3d.t.pipelines.slam.Model`` (``track_frame_to_model``, ``integrate``,
+            ``synthesize_model_frame``), frames read with ``o3d.t.io.read_image`` (Open3D's example loop
+            ``examples/python/t_reconstruction_system/dense_slam.py``); uint16 colour, no correction.
+- radiomap: :func:`mapping.pipeline.reconstruct`: loading through the dataset loader, radiometric
+            correction to float irradiance (a gamma-2.2 response and a polynomial vignetting model),
+            frame-to-model ICP, TSDF fusion of float colour, the colour-disagreement histogram.
+
+Reported: ms per frame, frames/s, the time ratio (ours / Open3D; target <= 1.15), ATE RMSE after Horn
+alignment against the dataset's ground truth (target < 5 cm and <= 1.2x Open3D's), peak RSS.
+
+    python scripts/bench_pipeline.py                       # 7-Scenes sample, every frame, 1 cm voxels
+    python scripts/bench_pipeline.py --frames 0:100:2 --voxel-size 0.02 --repeats 3 --json bench.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
+METHODS = ("open3d", "radiomap")
+
+
+def parse_frames(text: str) -> slice:
+    parts = [int(p) if p.strip() else None for p in text.split(":")]
+    parts += [None] * (3 - len(parts))
+    return slice(*parts[:3])
+
+
+def _ate(stamps, poses, dataset) -> float | None:
+    from mapping.metrics import absolute_trajectory_error
+
+    gt = dataset.ground_truth()
+    if gt is None or len(stamps) < 3:
+        return None
+    return absolute_trajectory_error(stamps, poses, gt[0], gt[1]).rmse
+
+
+def _peak_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def worker_open3d(args) -> dict:
+    import numpy as np
+
+    from mapping._open3d import o3d
+    from mapping.datasets import open_dataset
+
+    ds = open_dataset(args.sequence, frames=parse_frames(args.frames))
+    files = ds.frame_files
+    device = o3d.core.Device(args.device)
+    K = o3d.core.Tensor(ds.K)
+    first = ds[0]
+    T = o3d.core.Tensor(first.pose if first.pose is not None else np.eye(4))
+    model = o3d.t.pipelines.slam.Model(args.voxel_size, args.block_resolution, args.block_count, T, device)
+    input_frame = o3d.t.pipelines.slam.Frame(ds.height, ds.width, K, device)
+    raycast_frame = o3d.t.pipelines.slam.Frame(ds.height, ds.width, K, device)
+    stamps, poses = [], []
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        t0 = time.perf_counter()
+        for i, f in enumerate(files):
+            depth = o3d.t.io.read_image(str(f.depth)).to(device)
+            color = o3d.t.io.read_image(str(f.rgb)).to(device)
+            input_frame.set_data_from_image("depth", depth)
+            input_frame.set_data_from_image("color", color)
+            if i > 0:
+                result = model.track_frame_to_model(input_frame, raycast_frame, ds.depth_scale, args.depth_max,
+                                                    args.depth_diff)
+                T = T @ result.transformation
+            poses.append(T.cpu().numpy())
+            stamps.append(f.timestamp)
+            model.update_frame_pose(i, T)
+            model.integrate(input_frame, ds.depth_scale, args.depth_max, args.trunc)
+            model.synthesize_model_frame(raycast_frame, ds.depth_scale, 0.1, args.depth_max, args.trunc, False)
+        seconds = time.perf_counter() - t0
+    return {"method": "open3d", "frames": len(files), "fused": len(files), "seconds": seconds,
+            "ate_m": _ate(np.array(stamps), np.array(poses), ds), "peak_rss_mb": _peak_mb(),
+            "blocks": int(model.get_hashmap().size())}
+
+
+def worker_radiomap(args) -> dict:
+    import gc
+
+    import numpy as np
+
+    from mapping.colour import IrradianceColour
+    from mapping.datasets import open_dataset
+    from mapping.datasets.synthetic import ArrayDataset
+    from mapping.pipeline import make_backend, make_tracker, reconstruct
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import PolynomialVignetting
+
+    ds = open_dataset(args.sequence, frames=parse_frames(args.frames))
+    w, h = ds.width, ds.height
+    vignetting = PolynomialVignetting(np.tile([-0.3, 0.05, -0.02], (3, 1)),
+                                      np.tile([w / 2 - 0.5, h / 2 - 0.5], (3, 1)), (w, h))
+    colour = IrradianceColour(CameraResponse.gamma(2.2), vignetting)
+    # load the Numba kernels (compiled and cached on disk) outside the timed loop, as Open3D's C++ is: a
+    # throw-away run over the first three frames, freed before the measured run starts
+    reconstruct(ArrayDataset([ds[0], ds[1], ds[2]]),
+                colour_model=IrradianceColour(CameraResponse.gamma(2.2), vignetting),
+                backend=make_backend("tsdf", voxel_size=0.05, depth_max=args.depth_max, block_count=64),
+                tracker=make_tracker(depth_max=args.depth_max), progress=False)
+    gc.collect()
+    backend = make_backend("tsdf", voxel_size=args.voxel_size, depth_max=args.depth_max,
+                           block_resolution=args.block_resolution, trunc_voxel_multiplier=args.trunc,
+                           block_count=args.block_count, device=args.device)
+    tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
+    run = reconstruct(ds, colour_model=colour, backend=backend, tracker=tracker, progress=False)
+    stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
+    return {"method": "radiomap", "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
+            "ate_m": None if run.ate is None else run.ate.rmse, "peak_rss_mb": _peak_mb(),
+            "blocks": run.map_stats.get("blocks"), "stage_ms": stages,
+            "histogram_mean": run.histogram.mean()}
+
+
+def run_worker(method: str, args) -> dict:
+    cmd = [sys.executable, __file__, "--worker", method, "--sequence", str(args.sequence), "--frames", args.frames,
+           "--voxel-size", str(args.voxel_size), "--block-resolution", str(args.block_resolution),
+           "--block-count", str(args.block_count), "--trunc", str(args.trunc), "--depth-max", str(args.depth_max),
+           "--depth-diff", str(args.depth_diff), "--device", args.device, "--motion-model", args.motion_model]
+    out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    if out.returncode != 0:
+        raise SystemExit(f"{method} worker failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
+    p.add_argument("--frames", default="0:100:1", help="A:B:S of the sequence (default every frame of 0..99)")
+    p.add_argument("--voxel-size", type=float, default=0.01)
+    p.add_argument("--block-resolution", type=int, default=16)
+    p.add_argument("--block-count", type=int, default=4000, help="initial hash-map capacity (both grow)")
+    p.add_argument("--trunc", type=float, default=8.0, help="truncation in voxels")
+    p.add_argument("--depth-max", type=float, default=3.0)
+    p.add_argument("--depth-diff", type=float, default=0.07, help="ICP association threshold (m)")
+    p.add_argument("--motion-model", default="constant_velocity", choices=("constant_velocity", "previous"))
+    p.add_argument("--device", default="CPU:0")
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--json", type=Path, help="also write the results here")
+    p.add_argument("--worker", choices=METHODS, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+
+    if args.worker:
+        result = (worker_open3d if args.worker == "open3d" else worker_radiomap)(args)
+        print(json.dumps(result))
+        return 0
+
+    if not args.sequence.exists():
+        print(f"bench_pipeline: {args.sequence} is absent (the shared data lives beside the checkout)", file=sys.stderr)
+        return 1
+    runs: dict[str, list[dict]] = {m: [] for m in METHODS}
+    for rep in range(args.repeats):
+        order = METHODS if rep % 2 == 0 else METHODS[::-1]
+        for method in order:
+            r = run_worker(method, args)
+            runs[method].append(r)
+            print(f"  run {rep + 1} {method:9s} {1000 * r['seconds'] / r['frames']:7.1f} ms/frame  "
+                  f"ATE {100 * r['ate_m'] if r['ate_m'] is not None else float('nan'):5.2f} cm  "
+                  f"peak {r['peak_rss_mb']:6.0f} MB", file=sys.stderr)
+
+    def med(method, key):
+        vals = [r[key] for r in runs[method] if r.get(key) is not None]
+        return statistics.median(vals) if vals else None
+
+    summary = {}
+    for m in METHODS:
+        ms = statistics.median(1000 * r["seconds"] / r["frames"] for r in runs[m])
+        summary[m] = {"ms_per_frame": ms, "fps": 1000.0 / ms, "ate_cm": None if med(m, "ate_m") is None
+                      else 100 * med(m, "ate_m"), "peak_rss_mb": med(m, "peak_rss_mb"), "blocks": med(m, "blocks")}
+    stages = {}
+    for r in runs["radiomap"]:
+        for k, v in r.get("stage_ms", {}).items():
+            stages.setdefault(k, []).append(v)
+    # the machine's load drifts between runs: the ratio of each back-to-back pair, then their median
+    pair_ratios = [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
+                   for r, o in zip(runs["radiomap"], runs["open3d"])]
+    ratio = statistics.median(pair_ratios)
+    a, b = summary["radiomap"]["ate_cm"], summary["open3d"]["ate_cm"]
+    ate_ratio = a / b if (a is not None and b) else None
+    from mapping.cli._common import format_table
+
+    rows = [{"method": m, "ms/frame": s["ms_per_frame"], "frames/s": s["fps"],
+             "ATE cm": "-" if s["ate_cm"] is None else round(s["ate_cm"], 2), "peak MB": round(s["peak_rss_mb"]),
+             "blocks": s["blocks"]} for m, s in summary.items()]
+    print(f"sequence {args.sequence.name}, frames {args.frames}, voxel {args.voxel_size} m, block resolution "
+          f"{args.block_resolution}, trunc {args.trunc} voxels, depth max {args.depth_max} m, {args.device}, "
+          f"{args.repeats} repeats (medians)")
+    print(format_table(rows))
+    print(f"time ratio radiomap / open3d: {ratio:.3f} (median of back-to-back pairs "
+          f"{', '.join(f'{x:.3f}' for x in pair_ratios)}; target <= 1.15)")
+    if ate_ratio is not None:
+        print(f"ATE ratio radiomap / open3d: {ate_ratio:.3f} (target <= 1.2; radiomap ATE {a:.2f} cm, target < 5)")
+    print("radiomap stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages.items()))
+    if args.json:
+        args.json.write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
+                                         "time_ratio": ratio, "pair_ratios": pair_ratios, "ate_ratio": ate_ratio, "runs": runs}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
