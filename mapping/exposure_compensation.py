@@ -41,10 +41,11 @@ depth (the first frames, the camera entering unmapped space) and recorded as a c
 or jumps by more than ``max_jump`` (or less than ``1 / max_jump``) against the last accepted estimate in
 any channel, FALLS BACK: its ``k`` is the last accepted one, it is counted
 (:attr:`ExposureEstimator.fallbacks`) and, by default (``fuse_fallback=False``), its colour is not fused
-at all (:attr:`CompensatedColour.last_valid_mask` is all False; the pipeline then skips the frame), because a frame 4x over-exposed and
-divided by the previous ``k`` would brighten the map fourfold where it is not clipped. A jump that persists
-for ``confirm_frames`` consecutive frames, consistent within ``confirm_tolerance``, is a real change of
-exposure and is accepted.
+at all (:attr:`CompensatedColour.last_valid_mask` is all False; the pipeline then skips the frame), because
+a frame 4x over-exposed and divided by the previous ``k`` would brighten the map fourfold where it is not
+clipped. The limit is per processed frame: with a frame stride a real auto-exposure ramp can exceed it, so
+a jump that lasts (``confirm_frames`` consecutive implausible estimates, each within ``confirm_tolerance``
+of the one before) is accepted as a real change of exposure; an isolated glitch never is.
 
 Clipped pixels
 --------------
@@ -281,6 +282,24 @@ def resolve_reference(kind: str | float | Sequence[float], estimates: np.ndarray
     return np.broadcast_to(values, (3,)).copy()
 
 
+def parse_reference(text: str | float | Sequence[float]) -> str | float | list[float]:
+    """The ``--exposure-reference`` option: ``"median"``, ``"first"``, ``"0.8"`` or ``"0.8,1,1.2"`` (R, G, B);
+    validated with :func:`resolve_reference`."""
+    if isinstance(text, str):
+        value = text.strip().lower()
+        if value not in EXPORT_REFERENCES:
+            try:
+                numbers = [float(v) for v in value.split(",")]
+            except ValueError:
+                raise ValueError(f"the exposure reference must be median, first, a number or r,g,b numbers, got "
+                                 f"{text!r}") from None
+            value = numbers[0] if len(numbers) == 1 else numbers
+        resolve_reference(value)
+        return value
+    resolve_reference(text)
+    return text
+
+
 # --------------------------------------------------------------------------------------------------
 # the estimator
 # --------------------------------------------------------------------------------------------------
@@ -311,8 +330,9 @@ class ExposureEstimator:
                         of the frame's usable depth.
     max_jump:           an estimate outside ``[1 / max_jump, max_jump]`` times the last accepted one (any
                         channel) is implausible and falls back.
-    confirm_frames, confirm_tolerance: a jump seen in this many consecutive frames that agree within this
-                        relative tolerance is accepted (None: never).
+    confirm_frames, confirm_tolerance: an implausible estimate is accepted when it is the last of this many
+                        consecutive implausible ones each within this relative tolerance of the one before
+                        (a lasting change, e.g. an exposure ramp seen with a frame stride; None: never).
     depth_abs_tol, depth_rel_tol: map/frame (and frame/frame) depth agreement, metres and fraction of depth.
     edge_relative, edge_absolute, edge_dilation: :func:`depth_edges` parameters.
     smoothing_radius:   both sides of a ratio are local means over ``(2 r + 1)^2`` windows of the same usable
@@ -329,7 +349,7 @@ class ExposureEstimator:
 
     def __init__(self, response: CameraResponse, vignetting=None, *, low: float = 12, high: float = 245,
                  min_correspondences: int = 200, min_map_coverage: float = 0.3, max_jump: float = 2.0,
-                 confirm_frames: int | None = 3, confirm_tolerance: float = 0.1, depth_abs_tol: float = 0.02,
+                 confirm_frames: int | None = 3, confirm_tolerance: float = 0.2, depth_abs_tol: float = 0.02,
                  depth_rel_tol: float = 0.03, edge_relative: float = 0.04, edge_absolute: float = 0.01,
                  edge_dilation: int = 2, smoothing_radius: int | None = None, min_fill: float = 0.6,
                  frame_to_frame: bool = True, max_samples: int = 20000, fuse_fallback: bool = False) -> None:
@@ -505,9 +525,11 @@ class ExposureEstimator:
             self._jumps.append(candidate.copy())
             worst = float(jump[np.argmax(np.abs(np.log(jump)))])
             recent = self._jumps[-self.confirm_frames:] if self.confirm_frames else []
+            # a change that lasts: the last confirm_frames candidates form a smooth run (each within
+            # confirm_tolerance of the one before; an auto-exposure ramp), unlike isolated glitches
             confirmed = (self.confirm_frames is not None and len(recent) == self.confirm_frames
-                         and all(np.all(np.abs(np.log(r / candidate)) <= math.log1p(self.confirm_tolerance))
-                                 for r in recent))
+                         and all(np.all(np.abs(np.log(b / a)) <= math.log1p(self.confirm_tolerance))
+                                 for a, b in zip(recent[:-1], recent[1:])))
             if not confirmed:
                 return self._store(self._fallback(
                     record, f"implausible jump (x{worst:.3g} against the last accepted estimate; limit "
@@ -801,7 +823,9 @@ class CompensatedColour:
                       for :meth:`export_display`.
 
     After each :meth:`to_map`, :attr:`last_valid_mask` is None (every pixel may be fused) or bool (H, W):
-    the pipeline zeroes the depth where it is False.
+    the pipeline zeroes the depth where it is False, and skips the frame with :attr:`last_reject_reason` when
+    nothing is left. After the run the pipeline exports the mesh through :meth:`export_display` and calls
+    :meth:`save_results` (``exposures.txt``, ``exposures.json``).
     """
 
     def __init__(self, base, estimator: ExposureEstimator | None = None, *, compensate: bool = True,
@@ -832,6 +856,7 @@ class CompensatedColour:
         suffix = "+exposure" if self.compensate else "+clip-mask"
         self.name = f"{base.name}{suffix}"
         self.last_valid_mask: np.ndarray | None = None
+        self.last_reject_reason: str | None = None
         self.last_record: ExposureRecord | None = None
 
     @property
@@ -855,16 +880,24 @@ class CompensatedColour:
         self.last_record = record
         if record is not None and not record.fuse_colour:
             self.last_valid_mask = np.zeros(colour.shape[:2], dtype=bool)
+            self.last_reject_reason = "colour rejected: the exposure estimate fell back"
         elif self.mask_clipped:
             clipped = clipped_pixels(frame.rgb, high=self.clip_high, dark=self.dark_level)
             self.last_valid_mask = ~clipped if clipped.any() else None
+            self.last_reject_reason = "colour rejected: every pixel clipped or black"
         else:
-            self.last_valid_mask = None
+            self.last_valid_mask = self.last_reject_reason = None
         return colour
 
     def to_display(self, colour: np.ndarray) -> np.ndarray:
         """Display levels at the fixed reference (the histogram's units during the run)."""
         return self.base.to_display(colour)
+
+    def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
+        """Display-unit L1 distances of (N, 3) map-unit pairs (the base model's, at the fixed reference)."""
+        from mapping.colour import display_l1
+
+        return display_l1(self.base, map_colour, sample_colour)
 
     def export_reference_k(self) -> np.ndarray:
         """The export reference exposure (3,) relative to the first frame (resolved from the estimates)."""
@@ -895,7 +928,7 @@ class CompensatedColour:
                                "settings": self.estimator.settings(), "summary": self.estimator.summary()}
         return doc
 
-    def save(self, folder: str | os.PathLike) -> dict[str, Path]:
+    def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
         """Write the per-frame estimates (``exposures.txt``, ``exposures.json``); nothing without compensation."""
         if self.estimator is None:
             return {}
@@ -916,4 +949,5 @@ def make_compensated_colour(response: CameraResponse, vignetting=None, *, compen
 
 
 __all__ = ["CompensatedColour", "ExposureEstimator", "ExposureRecord", "SOURCES", "clipped_pixels", "depth_edges",
-           "exposure_errors", "make_compensated_colour", "read_exposures", "resolve_reference"]
+           "exposure_errors", "local_mean", "local_sums", "make_compensated_colour", "parse_reference",
+           "read_exposures", "resolve_reference"]

@@ -29,7 +29,7 @@ import math
 import resource
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,7 @@ from mapping.datasets.base import RGBDDataset
 from mapping.fusion.base import FusionBackend
 from mapping.histogram import DisagreementHistogram
 from mapping.metrics import ATEResult, absolute_trajectory_error, format_tum_trajectory
-from radiometry.errors import RadiomapError, TrackingError
+from radiometry.errors import ModelMismatchError, RadiomapError, TrackingError
 
 log = logging.getLogger(__name__)
 
@@ -234,8 +234,13 @@ class _Loop:
         if pose is None:
             return
         view = self._timed("render", self._render, frame, pose)
+        if view is not None:
+            view.pose = pose  # the pose the view was rendered at (exposure compensation re-projects with it)
         colour = self._timed("colour", self.colour_model.to_map, frame, view)
-        pairs = self._timed("fuse", self.backend.integrate, frame.depth, colour, frame.K, pose, view=view,
+        depth = self._colour_valid_depth(frame, record)
+        if depth is None:
+            return
+        pairs = self._timed("fuse", self.backend.integrate, depth, colour, frame.K, pose, view=view,
                             frame_index=frame.index)
         self._timed("histogram", self._measure, pairs, record)
         record.fused = True
@@ -249,9 +254,12 @@ class _Loop:
         if self.poses == "gt":
             if frame.pose is None:
                 record.reason = "no ground-truth pose"
+            elif self._fusable_depth(frame) == 0:  # nothing to fuse (Open3D would abort the integration)
+                record.reason = "no depth within the fusion range"
+                return None
             return frame.pose
         if self.tracker.last_pose is None:  # the first frame with depth founds the map
-            if np.count_nonzero(frame.depth > 0) < 1000:
+            if self._fusable_depth(frame) < 1000:
                 record.reason = "no depth to start the map"
                 return None
             pose = _initial_pose(frame, self.initial_pose)
@@ -272,6 +280,25 @@ class _Loop:
                 f"{result.reason}); check --depth-scale and --intrinsics, use a smaller --frames stride, or fuse "
                 "with --poses gt")
         return None
+
+    def _fusable_depth(self, frame) -> int:
+        """Depth pixels within the backend's range (a frame of only far or no depth has nothing to fuse)."""
+        low = getattr(self.backend, "depth_min", 0.0)
+        high = getattr(self.backend, "depth_max", getattr(self.backend, "max_depth", np.inf))
+        return int(np.count_nonzero((frame.depth > low) & (frame.depth < high)))
+
+    def _colour_valid_depth(self, frame, record: FrameRecord) -> np.ndarray | None:
+        """The frame's depth without the pixels whose colour the model rejects (``last_valid_mask``, e.g.
+        clipped pixels or a frame whose exposure estimate fell back): zero depth fuses neither colour nor
+        geometry there. None (the frame skipped, with the model's reason) when nothing is left to fuse."""
+        valid = getattr(self.colour_model, "last_valid_mask", None)
+        if valid is None:
+            return frame.depth
+        depth = np.where(valid, frame.depth, np.float32(0))
+        if self._fusable_depth(replace(frame, depth=depth)) == 0:
+            record.reason = getattr(self.colour_model, "last_reject_reason", None) or "colour rejected"
+            return None
+        return depth
 
     def _render(self, frame, pose: np.ndarray):
         """The map before this frame, at its pose (one ray cast, reused by fusion and by the next tracking)."""
@@ -398,7 +425,11 @@ def _write_results(run: RunResult, dataset, colour_model, backend, tracker, outp
                               title="colour disagreement before fusion")
         files["histogram_png"] = output.file("histogram.png")
     if write_mesh:
-        files.update(backend.export(output.path, colour_model.to_display))
+        export_display = getattr(colour_model, "export_display", None)  # e.g. the sequence's median exposure
+        files.update(backend.export(output.path, export_display() if export_display else colour_model.to_display))
+    save_results = getattr(colour_model, "save_results", None)      # e.g. per-frame exposure estimates
+    if save_results is not None:
+        files.update(save_results(output.path))
     run.files = files
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()
@@ -434,6 +465,8 @@ class ReconstructConfig:
     trunc_voxel_multiplier: float = 8.0
     motion_model: str = "constant_velocity"
     reference_exposure: float = 1.0
+    exposure_compensation: bool | None = None   # None: on when a response is given
+    exposure_reference: str = "median"          # mesh colours: median | first | k | r,g,b (first frame = 1)
     force: bool = False
     progress: bool = True
 
@@ -471,12 +504,13 @@ def load_vignetting_option(path: Path):
     path = Path(path)
     if path.suffix.lower() == ".npy":
         from radiometry.errors import CalibrationFileError
+        from radiometry.vignetting import LUTVignetting
 
         try:
-            return np.load(path, allow_pickle=False).astype(np.float32)
-        except (OSError, ValueError) as exc:
-            raise CalibrationFileError(f"{path}: cannot read the vignetting array ({exc}); pass a float "
-                                       "(H, W[, C]) .npy") from None
+            return LUTVignetting(np.load(path, allow_pickle=False), info={"source": str(path)})
+        except (OSError, ValueError, TypeError, EOFError) as exc:
+            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); pass a float "
+                                       "(H, W[, C]) .npy with finite V > 0") from None
     from radiometry.formats import load_vignetting
 
     return load_vignetting(path)
@@ -492,7 +526,19 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
                            intrinsics=config.intrinsics, frames=config.frames)
     response = load_response(config.response) if config.response is not None else None
     vignetting = load_vignetting_option(config.vignetting) if config.vignetting is not None else None
+    if vignetting is not None:  # refuse a model of another aspect ratio now, before any result is written
+        try:
+            vignetting.check_size(dataset.height, dataset.width)
+        except ModelMismatchError as exc:
+            raise ModelMismatchError(f"{config.vignetting}: {exc}") from None
     colour_model = make_colour_model(response, vignetting, reference_exposure=config.reference_exposure)
+    if config.exposure_compensation or (config.exposure_compensation is None and response is not None):
+        if response is None:
+            raise ValueError("exposure compensation needs a response (it acts on irradiance); pass --response, "
+                             "or --no-exposure-compensation")
+        from mapping.exposure_compensation import CompensatedColour, parse_reference
+
+        colour_model = CompensatedColour(colour_model, export_reference=parse_reference(config.exposure_reference))
     backend = make_backend(config.backend, voxel_size=config.voxel_size, depth_max=config.depth_max,
                            block_resolution=config.block_resolution,
                            trunc_voxel_multiplier=config.trunc_voxel_multiplier)

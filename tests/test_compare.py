@@ -12,7 +12,7 @@ import pytest
 from mapping.compare import (FixedPoses, Method, colour_error, compare, equal_brightness, linear_colours,
                              make_methods, surfel_discs, MapGeometry)
 from mapping.colour import IrradianceColour, RawIntensity
-from radiometry.errors import OutputError, RadiomapError
+from radiometry.errors import OutputError
 from radiometry.response import CameraResponse
 from radiometry.vignetting import LUTVignetting, PolynomialVignetting
 

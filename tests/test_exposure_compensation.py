@@ -370,7 +370,7 @@ def test_compensated_colour_options_and_errors():
         CompensatedColour(IrradianceColour(GAMMA), export_reference="mean")
     masked_only = CompensatedColour(IrradianceColour(GAMMA), compensate=False, export_reference="first")
     assert masked_only.estimator is None and masked_only.name == "response+clip-mask"
-    assert masked_only.save("unused") == {}
+    assert masked_only.save_results("unused") == {}
     f = plane_frame(0, pose_at(), [30, 30, 30])              # saturated: masked, not compensated
     E = masked_only.to_map(f, None)
     np.testing.assert_allclose(E, masked_only.base.irradiance(f.rgb))
@@ -514,19 +514,23 @@ def test_over_and_under_exposed_frames_do_not_corrupt_the_map(ae_awb_sequence):
 # real data: the 7-Scenes kitchen, auto exposure and white balance on, response unknown
 # --------------------------------------------------------------------------------------------------
 def test_real_kitchen_disagreement_drops_with_compensation():
-    """Every 4th of the 100 frames, ground-truth poses (only colour differs), 2 cm voxels. The response is
+    """Every 5th of the 100 frames, ground-truth poses (only colour differs), 2 cm voxels. The response is
     unknown: the documented assumption is gamma 2.2 (sRGB-like); no vignetting model.
     scripts/bench_exposure_redkitchen.py gives the figures for all 100 frames."""
     from mapping.colour import IrradianceColour
     from mapping.datasets import open_dataset
 
-    ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, 100, 4))
+    ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, 100, 5))
     base_run, _ = _run(ds, IrradianceColour(GAMMA), voxel_size=0.02)
     model = CompensatedColour(IrradianceColour(GAMMA))
     run, _ = _run(ds, model, voxel_size=0.02)
     est = model.estimator
     s = est.summary()
-    assert s["fallbacks"] == 0 and s["sources"]["map"] == len(ds) - 1
+    # At this stride the auto white balance doubles blue between two sampled frames (60 -> 65): that frame and
+    # at most the next are rejected as implausible jumps, then the lasting change is accepted (measured: 65, 70).
+    assert s["fallbacks"] <= 2 and set(s["fallback_reasons"]) <= {"implausible jump"}
+    assert all(60 < i < 80 for i in s["fallback_frames"])
+    assert s["sources"]["map"] == len(ds) - 1 - s["fallbacks"]
     # the camera's auto exposure / white balance roughly doubled k over the sequence (per channel 2.1-2.5x)
     assert min(s["k_max"]) > 1.8 and max(s["k_min"]) < 1.01
     # map-anchored and frame-to-frame estimates agree (measured median 0.6 %)

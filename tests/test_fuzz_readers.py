@@ -700,11 +700,6 @@ CAMERA_JSON = json.dumps({"width": 640, "height": 480,
                           "intrinsic_matrix": [525.0, 0, 0, 0, 525.0, 0, 319.5, 239.5, 1]})
 
 
-PENDING_COMMON = pytest.mark.xfail(strict=True, reason="mapping/datasets/_common.py read_intrinsics_file lets "
-                                   "ValueError/TypeError/OverflowError/RecursionError escape and prints K over several "
-                                   "lines; fixed once the pipeline files are free")
-
-
 def text_input(rng: random.Random, seed_text: str, columns: list[int], max_rows: int = 12) -> bytes | str:
     which = rng.random()
     if which < 0.6:
@@ -752,7 +747,6 @@ TUM_FILES = {"rgb.txt": TUM_LIST, "depth.txt": TUM_LIST.replace("rgb/", "depth/"
              "intrinsics.txt": "60.0 60.0 31.5 23.5\n"}
 
 
-@PENDING_COMMON
 @fuzz(800)
 @given(seed=SEEDS, which=st.sampled_from(sorted(TUM_FILES)))
 def test_tum_folder_with_one_mutated_file(tum_folder, seed, which):
@@ -821,7 +815,6 @@ def camera_json(rng: random.Random) -> str:
     return json.dumps(doc, allow_nan=True)
 
 
-@PENDING_COMMON
 @fuzz(1000)
 @given(seed=SEEDS)
 def test_camera_intrinsics_json(workdir, seed):
@@ -834,7 +827,6 @@ def test_camera_intrinsics_json(workdir, seed):
         assert K.shape == (3, 3) and np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0
 
 
-@PENDING_COMMON
 @fuzz(1000)
 @given(seed=SEEDS)
 def test_camera_intrinsics_txt(workdir, seed):
@@ -851,8 +843,6 @@ MANIFEST = json.dumps({"format": "radiomap-sim", "version": 1, "kind": "room", "
                        "K": [[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], "depth_scale": 5000.0, "n_frames": 3})
 
 
-@pytest.mark.xfail(strict=True, reason="mapping/datasets/simulated.py trusts the manifest's K, depth_scale, "
-                   "width/height and n_frames types; fixed once the pipeline files are free")
 @fuzz(500)
 @given(seed=SEEDS)
 def test_simulated_manifest(tum_folder, seed):

@@ -134,4 +134,4 @@ def test_correction_lowers_disagreement_under_strong_vignetting():
     assert raw["count"] > 50000 and corrected["count"] == pytest.approx(raw["count"], rel=0.02)
     assert corrected["mean"] < 0.35 * raw["mean"]
     assert corrected["p90"] < raw["p90"]
-    assert raw["mean"] > 8.0 and corrected["mean"] < 4.0
+    assert raw["mean"] > 8.0 and corrected["mean"] < 4.0     # measured: 14.9 and 1.5 (p90 30 and 3)

@@ -49,9 +49,9 @@ class DemoSize:
 #: The room is walked briskly (``speed`` 2-4: 4-8 cm and 2-4 degrees between fused frames, as when every 2nd-4th
 #: frame of a 30 Hz recording is fused): vignetting shows in the disagreement only when a surface point is seen
 #: at different image positions, which a slow 0.5 s walk hardly does.
-DEFAULT = DemoSize(width=320, height=240, room_frames=60, paper_frames=150, voxel_size=0.01, depth_max=4.0,
+DEFAULT = DemoSize(width=320, height=240, room_frames=60, paper_frames=150, voxel_size=0.01, depth_max=3.5,
                    render_width=320, speed=2.0)
-QUICK = DemoSize(width=160, height=120, room_frames=15, paper_frames=60, voxel_size=0.02, depth_max=4.0,
+QUICK = DemoSize(width=160, height=120, room_frames=15, paper_frames=60, voxel_size=0.02, depth_max=3.5,
                  render_width=160, speed=4.0)
 
 EPILOG = """\b

@@ -13,15 +13,17 @@ Examples:
   radiomap reconstruct room_seq -o run_raw --poses gt
       fuse raw intensities (no correction) with the ground-truth poses
   radiomap reconstruct room_seq --response crf.npz --vignetting vignetting.npz -o run_corrected
-      fuse irradiance f^-1(I)/V with ICP tracking; compare the two runs' histogram.json
+      fuse irradiance f^-1(I)/V/k with ICP tracking, k the exposure and white balance estimated per frame
+      (on by default with --response; --no-exposure-compensation fuses f^-1(I)/V); compare histogram.json
   radiomap reconstruct redkitchen/seq-01 --frames 0:300:2 --voxel-size 0.01 -o kitchen
       a 7-Scenes sequence, every second of the first 300 frames
   radiomap reconstruct rgbd_dataset_freiburg1_desk --depth-scale 5000 --intrinsics 517.3,516.5,318.6,255.3 -o desk
 \b
 The results folder holds mesh.ply/.glb (colours through the response at --reference-exposure),
 trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9 of
-Alexandrov et al.), metrics.json, frames.csv, config.json and summary.txt. A RUNNING file marks a
-run that has not finished.
+Alexandrov et al.), metrics.json, frames.csv, config.json and summary.txt; with exposure compensation
+exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source map|frame|fallback) and
+mesh colours at --exposure-reference. A RUNNING file marks a run that has not finished.
 """
 
 
@@ -58,13 +60,20 @@ def _positive(ctx, param, value):
 @click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
               help="Depth beyond this many metres is neither tracked nor fused.")
 @click.option("--reference-exposure", type=float, default=1.0, show_default=True, callback=_positive,
-              help="Exposure k_ref at which map irradiance is shown (mesh colours, histogram units).")
+              help="Exposure k_ref at which map irradiance is shown (mesh colours, histogram units; with exposure "
+                   "compensation the histogram's, relative to the first frame).")
+@click.option("--exposure-compensation/--no-exposure-compensation", default=None,
+              help="Estimate every frame's exposure and white balance against the map and fuse f^-1(I)/V/k; "
+                   "writes exposures.txt/.json [default: on with --response, off without].")
+@click.option("--exposure-reference", default="median", show_default=True,
+              help="With exposure compensation: the exposure of the mesh colours, relative to the first frame: "
+                   "median (of the sequence's estimates), first, a number or r,g,b.")
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
-            backend: str, fmt: str | None, depth_max: float, reference_exposure: float, force: bool,
-            no_progress: bool) -> None:
+            backend: str, fmt: str | None, depth_max: float, reference_exposure: float,
+            exposure_compensation: bool | None, exposure_reference: str, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample."""
     from mapping.cli._common import format_table, run_manifest
@@ -73,11 +82,20 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
 
     if vignetting is not None and response is None:
         raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
+    if exposure_compensation and response is None:
+        raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
+    from mapping.exposure_compensation import parse_reference
+
+    try:
+        parse_reference(exposure_reference)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--exposure-reference") from None
     config = ReconstructConfig(sequence=sequence, output=output, response=response, vignetting=vignetting,
                                poses=poses, voxel_size=voxel_size, frames=frames or slice(None),
                                depth_scale=depth_scale, intrinsics=intrinsics, backend=backend, format=fmt,
-                               depth_max=depth_max, reference_exposure=reference_exposure, force=force,
-                               progress=not no_progress)
+                               depth_max=depth_max, reference_exposure=reference_exposure,
+                               exposure_compensation=exposure_compensation, exposure_reference=exposure_reference,
+                               force=force, progress=not no_progress)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
     dataset = kwargs["dataset"]
     folder = ResultsFolder(output, force=force)
@@ -94,5 +112,6 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     click.echo(table)
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
-        click.echo(f"skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}")
+        click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
+                   err=True)
     click.echo(f"results in {output}")

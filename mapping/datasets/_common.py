@@ -43,7 +43,7 @@ def _check_matrix(K: np.ndarray, source: str) -> np.ndarray:
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 \
             or not np.allclose(K[2], [0, 0, 1]):
         raise DatasetError(f"{source}: not a pinhole intrinsics matrix (3 x 3 with fx, fy > 0 and last row "
-                           f"0 0 1), got {np.array2string(K, precision=4)}; fix the file or pass "
+                           f"0 0 1), got {np.round(K, 4).tolist()}; fix the file or pass "
                            "--intrinsics fx,fy,cx,cy")
     return K
 
@@ -61,15 +61,20 @@ def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
         except json.JSONDecodeError as exc:
             raise DatasetError(f"{path}: invalid JSON at line {exc.lineno} ({exc.msg}); fix the camera file") \
                 from None
-        if isinstance(doc, dict) and "intrinsic_matrix" in doc:
-            values = np.asarray(doc["intrinsic_matrix"], dtype=np.float64)
+        except RecursionError:
+            raise DatasetError(f"{path}: invalid JSON (nested too deeply); fix the camera file") from None
+        key = next((k for k in ("intrinsic_matrix", "K") if isinstance(doc, dict) and k in doc), None)
+        if key is not None:
+            values = _numbers(doc[key], f"{path}: '{key}'")
             if values.size != 9:
-                raise DatasetError(f"{path}: 'intrinsic_matrix' must have 9 values, got {values.size}")
-            return _check_matrix(values.reshape(3, 3).T, str(path))  # Open3D stores it column-major
-        if isinstance(doc, dict) and "K" in doc:
-            return _check_matrix(np.asarray(doc["K"], dtype=np.float64).reshape(3, 3), str(path))
+                raise DatasetError(f"{path}: '{key}' must have 9 values, got {values.size}; fix the camera file "
+                                   "or pass --intrinsics fx,fy,cx,cy")
+            # Open3D stores intrinsic_matrix column-major
+            return _check_matrix(values.reshape(3, 3).T if key == "intrinsic_matrix" else values.reshape(3, 3),
+                                 str(path))
         if isinstance(doc, dict) and all(k in doc for k in ("fx", "fy", "cx", "cy")):
-            return intrinsics_matrix(doc["fx"], doc["fy"], doc["cx"], doc["cy"])
+            values = _numbers([doc[k] for k in ("fx", "fy", "cx", "cy")], f"{path}: fx, fy, cx, cy")
+            return _pinhole(values, str(path))
         raise DatasetError(f"{path}: JSON without 'intrinsic_matrix', 'K' or fx/fy/cx/cy; "
                            "pass --intrinsics fx,fy,cx,cy")
     rows = []
@@ -86,9 +91,27 @@ def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
     if len(flat) == 9:
         return _check_matrix(np.array(flat).reshape(3, 3), str(path))
     if len(flat) == 4:
-        return intrinsics_matrix(*flat)
+        return _pinhole(np.array(flat), str(path))
     raise DatasetError(f"{path}: expected a 3 x 3 matrix (9 numbers) or 'fx fy cx cy' (4 numbers), "
                        f"got {len(flat)} numbers")
+
+
+def _numbers(value, source: str) -> np.ndarray:
+    """A file's list of numbers as a flat float64 array, or DatasetError naming the file (not ValueError)."""
+    try:
+        values = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{source} must be numbers, got {str(value)[:60]}; fix the camera file or pass "
+                           "--intrinsics fx,fy,cx,cy") from None
+    return values
+
+
+def _pinhole(values: np.ndarray, source: str) -> np.ndarray:
+    """:func:`intrinsics_matrix` of ``fx fy cx cy`` read from a file: bad values name the file."""
+    try:
+        return intrinsics_matrix(*values)
+    except ValueError as exc:
+        raise DatasetError(f"{source}: {exc}; fix the file or pass --intrinsics fx,fy,cx,cy") from None
 
 
 def parse_intrinsics(value) -> np.ndarray | None:
@@ -136,6 +159,13 @@ def select(n: int, frames: slice | Sequence[int] | None) -> list[int]:
     if bad:
         raise ValueError(f"frames {bad[:5]} are out of range for a sequence of {n} frames")
     return [i % n for i in idx]
+
+
+def _frames_text(frames) -> str:
+    """A frame selection as the user typed it (``A:B:S``), not as Python prints a slice."""
+    if isinstance(frames, slice):
+        return ":".join("" if v is None else str(v) for v in (frames.start, frames.stop, frames.step)).rstrip(":")
+    return str(frames)
 
 
 def check_pose(pose: np.ndarray, source: str) -> np.ndarray | None:
@@ -193,7 +223,7 @@ class FileSequence:
             raise DatasetError(f"{self.root}: the {self.format_name} sequence has no frames; check the folder")
         picked = select(len(files), frames)
         if not picked:
-            raise DatasetError(f"{self.root}: the frame selection {frames} leaves no frames out of "
+            raise DatasetError(f"{self.root}: the frame selection {_frames_text(frames)} leaves no frames out of "
                                f"{len(files)}; widen --frames")
         self._files = [files[i] for i in picked]
         self.K = np.asarray(K, dtype=np.float64)

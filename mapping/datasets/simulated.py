@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapping.datasets._common import _check_matrix
 from mapping.datasets.tum import TUMDataset
 from radiometry.errors import DatasetError
 
@@ -37,6 +38,8 @@ def read_manifest(path: Path) -> dict:
         raise DatasetError(f"{path}: cannot read the sequence manifest ({exc.strerror})") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{path}:{exc.lineno}: invalid JSON ({exc.msg}); re-run the simulator") from None
+    except (RecursionError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: not a JSON text ({type(exc).__name__}); re-run the simulator") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise DatasetError(f"{path}: not a radiomap simulator manifest (format must be {FORMAT!r})")
     version = doc.get("version")
@@ -44,6 +47,26 @@ def read_manifest(path: Path) -> dict:
         raise DatasetError(f"{path}: manifest version {version!r} is not supported (up to {MAX_VERSION}); "
                            "upgrade radiomap or re-run the simulator")
     return doc
+
+
+def _manifest_value(manifest: dict, key: str, path: Path, convert):
+    """``convert(manifest[key])``, or DatasetError naming the manifest when the value is of the wrong kind."""
+    try:
+        return convert(manifest[key])
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{path}: {key!r} is {str(manifest[key])[:60]}, not what the simulator writes; "
+                           "re-run the simulator") from None
+
+
+def _matrix3(value) -> np.ndarray:
+    return np.asarray(value, dtype=np.float64).reshape(3, 3)
+
+
+def _positive(value) -> float:
+    number = float(value)
+    if not (np.isfinite(number) and number > 0):
+        raise ValueError(number)
+    return number
 
 
 class SimulatedDataset(TUMDataset):
@@ -61,21 +84,24 @@ class SimulatedDataset(TUMDataset):
         root = Path(path)
         if not (root / MANIFEST).is_file():
             raise DatasetError(f"{root}: no {MANIFEST}; not a simulated sequence (try --format tum)")
-        self.manifest = read_manifest(root / MANIFEST)
-        if intrinsics is None and "K" in self.manifest:
-            intrinsics = np.asarray(self.manifest["K"], dtype=np.float64).reshape(3, 3)
+        self.manifest = manifest = read_manifest(root / MANIFEST)
+        if intrinsics is None and "K" in manifest:
+            intrinsics = _check_matrix(_manifest_value(manifest, "K", root / MANIFEST, _matrix3), str(root / MANIFEST))
         if depth_scale is None:
-            depth_scale = float(self.manifest.get("depth_scale", 5000.0))
+            depth_scale = _manifest_value(manifest, "depth_scale", root / MANIFEST, _positive) \
+                if "depth_scale" in manifest else 5000.0
         super().__init__(root, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames,
                          max_difference=max_difference)
         if intrinsics is not None:
             self.intrinsics_source = "manifest" if "K" in self.manifest else "option"
         w, h = self.manifest.get("width"), self.manifest.get("height")
-        if w is not None and h is not None and (int(w), int(h)) != (self.width, self.height):
+        if w is not None and h is not None and (_manifest_value(manifest, "width", root / MANIFEST, int),
+                                                _manifest_value(manifest, "height", root / MANIFEST, int)) \
+                != (self.width, self.height):
             raise DatasetError(f"{root / MANIFEST}: says {w}x{h} but the images are {self.width}x{self.height}; "
                                "re-run the simulator")
         n = self.manifest.get("n_frames")
-        if n is not None and int(n) != len(self._all_files):
+        if n is not None and _manifest_value(manifest, "n_frames", root / MANIFEST, int) != len(self._all_files):
             raise DatasetError(f"{root}: the manifest lists {n} frames but rgb.txt/depth.txt pair "
                                f"{len(self._all_files)}; the sequence is incomplete, re-run the simulator")
 

@@ -193,32 +193,25 @@ class TSDFBackend:
     def _reserve_range_fragments(self, K: np.ndarray, height: int, width: int) -> None:
         """Open3D sizes the ray cast's range-map buffer lazily: a cast that needs more fragments than allocated
         returns an incomplete range map (parts of the view silently empty) and only then grows the buffer.
-        Once per camera, cast against every block of the whole viewing frustum (depth_min..depth_max) at the
-        origin, a superset of any frame's blocks, so that the buffer never has to grow during the run."""
+        Once per camera, cast against the blocks of fronto-parallel walls filling the viewing frustum from
+        ``depth_min`` to ``depth_max`` (as Open3D itself lists them), a superset of any frame's blocks, so that
+        the buffer never has to grow during the run."""
         key = (int(height), int(width), tuple(np.round(np.asarray(K, dtype=np.float64).ravel(), 6)))
         if key in self._range_reserved:
             return
-        block = self.voxel_size * self.block_resolution
-        Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
-        corners = np.array([[0, 0, 1], [width, 0, 1], [0, height, 1], [width, height, 1]], float) @ Kinv.T
-        far = self.depth_max + 2 * block
-        xs = corners[:, 0] * far
-        ys = corners[:, 1] * far
-        bx = np.arange(np.floor(min(xs.min(), 0) / block) - 1, np.ceil(max(xs.max(), 0) / block) + 2)
-        by = np.arange(np.floor(min(ys.min(), 0) / block) - 1, np.ceil(max(ys.max(), 0) / block) + 2)
-        bz = np.arange(-1, np.ceil(far / block) + 2)
-        grid = np.stack(np.meshgrid(bx, by, bz, indexing="ij"), -1).reshape(-1, 3)
-        centre = (grid + 0.5) * block
-        z = np.maximum(centre[:, 2], 1e-6)
-        u = (K[0, 0] * centre[:, 0] + K[0, 1] * centre[:, 1]) / z + K[0, 2]
-        v = K[1, 1] * centre[:, 1] / z + K[1, 2]
-        margin = np.asarray(K, dtype=np.float64)[0, 0] * block / z
-        keep = (centre[:, 2] > -block) & (u > -margin) & (u < width + margin) & (v > -margin) & (v < height + margin)
-        blocks = o3d.core.Tensor(grid[keep].astype(np.int32))
+        Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
+        eye = o3d.core.Tensor(np.eye(4))
+        step = max(self.truncation, self.voxel_size)  # walls 2 truncations apart: their bands touch
+        lists = []
         with _quiet():
-            self.grid.ray_cast(blocks, o3d.core.Tensor(np.asarray(K, dtype=np.float64)), o3d.core.Tensor(np.eye(4)),
-                               int(width), int(height), ["depth"], 1.0, self.depth_min, self.depth_max, 1e9,
-                               self.trunc_voxel_multiplier, _RANGE_FACTOR)
+            depths = np.arange(max(self.depth_min, step), self.depth_max + 1e-9, step).astype(np.float32)
+            for d in depths[depths < np.float32(self.depth_max)]:  # a wall at depth_max touches no block
+                wall = o3d.t.geometry.Image(o3d.core.Tensor(np.full((height, width), d, np.float32)))
+                lists.append(self.grid.compute_unique_block_coordinates(wall, Kt, eye, 1.0, self.depth_max,
+                                                                         self.trunc_voxel_multiplier).numpy())
+            blocks = np.unique(np.concatenate(lists), axis=0).astype(np.int32)
+            self.grid.ray_cast(o3d.core.Tensor(blocks), Kt, eye, int(width), int(height), ["depth"], 1.0,
+                               self.depth_min, self.depth_max, 1e9, self.trunc_voxel_multiplier, _RANGE_FACTOR)
         self._range_reserved.add(key)
 
     def _block_index(self, blocks) -> tuple[np.ndarray, np.ndarray]:
