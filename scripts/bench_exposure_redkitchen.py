@@ -25,7 +25,6 @@ the range of the estimates, fallbacks and the map-vs-frame-to-frame cross-check.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -79,6 +78,12 @@ def run_method(method: str, args) -> dict:
     return out
 
 
+def warm_up(args) -> None:
+    """Two frames through every stage, so that no method pays for Numba's first compilation."""
+    short = argparse.Namespace(**{**vars(args), "frames": "0:2", "no_progress": True})
+    run_method("compensated", short)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
@@ -94,6 +99,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 1
 
+    warm_up(args)   # compile the Numba kernels (colour, TSDF pairs) outside the timed runs
     results = {m: run_method(m, args) for m in METHODS}
     from mapping.cli._common import format_table
 
