@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import re
 
 from radiometry.errors import RadiomapError
 
@@ -45,6 +46,20 @@ def load_open3d():
             f"cannot import open3d ({exc}); reinstall with 'pip install radiomap' (it brings libusb-package), "
             "or install the system library with 'apt-get install libusb-1.0-0'") from None
     return open3d
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_TAG = re.compile(r"\[Open3D (?:Error|Warning)\]\s*")
+_SOURCE = re.compile(r"\S+\.(?:cpp|cc|h|cu|cuh):\d+:\s*")   # '/root/Open3D/cpp/.../File.cpp:220: '
+
+
+def open3d_message(exc: BaseException) -> str:
+    """Open3D's error text without terminal colour codes, the C++ signature and the source location:
+    ``'Singular 6x6 linear system detected, tracking failed.'``."""
+    text = " ".join(_ANSI.sub("", str(exc)).split())
+    source = list(_SOURCE.finditer(text))
+    short = text[source[-1].end():] if source else _TAG.sub("", text)
+    return short.strip() or text
 
 
 o3d = load_open3d()

@@ -81,6 +81,7 @@ class RunResult:
     peak_rss_mb: float
     status: str = "complete"
     files: dict[str, Path] = field(default_factory=dict)
+    depth_beyond_range: float = 0.0     # fraction of the valid depth pixels at or beyond the backend's depth_max
 
     @property
     def frames(self) -> int:
@@ -116,6 +117,7 @@ class RunResult:
                                               for k, v in self.stage_seconds.items()}},
             "histogram": _json_stats(self.histogram.stats()),
             "ate": None if self.ate is None else self.ate.to_dict(),
+            "depth_beyond_range": self.depth_beyond_range,
             "map": self.map_stats,
             "memory": {"peak_rss_mb": self.peak_rss_mb},
         }
@@ -216,6 +218,8 @@ class _Loop:
         self.render_for_frame = getattr(backend, "render_for_frame", None)
         self.track_view = None          # the map as the tracker sees it: (view, pose it was rendered at)
         self.failures = 0
+        self.depth_valid = 0            # valid depth pixels seen, and those at or beyond the depth range
+        self.depth_far = 0
         self.started = time.perf_counter()
 
     def _timed(self, stage: str, fn, *args, **kwargs):
@@ -230,6 +234,7 @@ class _Loop:
         frame = self._timed("load", self.dataset.__getitem__, i)
         record = FrameRecord(frame.index, float(frame.timestamp), False)
         self.records.append(record)
+        self._count_far_depth(frame)
         pose = self._pose(frame, record)
         if pose is None:
             return
@@ -281,6 +286,14 @@ class _Loop:
                 "with --poses gt")
         return None
 
+    def _count_far_depth(self, frame) -> None:
+        """Count the depth the range cuts away: a scene deeper than depth_max leaves ICP fewer surfaces (two
+        walls and a floor can become one wall and a floor, along which it slides)."""
+        high = getattr(self.backend, "depth_max", getattr(self.backend, "max_depth", np.inf))
+        valid = frame.depth > 0
+        self.depth_valid += int(np.count_nonzero(valid))
+        self.depth_far += int(np.count_nonzero(valid & (frame.depth >= high)))
+
     def _fusable_depth(self, frame) -> int:
         """Depth pixels within the backend's range (a frame of only far or no depth has nothing to fuse)."""
         low = getattr(self.backend, "depth_min", 0.0)
@@ -326,7 +339,7 @@ class _Loop:
         return RunResult(stamps=np.asarray(self.stamps), poses=np.asarray(self.est).reshape(-1, 4, 4),
                          histogram=self.histogram, records=self.records, seconds=time.perf_counter() - self.started,
                          stage_seconds=dict(self.timer), ate=None, map_stats={}, peak_rss_mb=peak_rss_mb(),
-                         status=status)
+                         status=status, depth_beyond_range=self.depth_far / max(self.depth_valid, 1))
 
 
 def _initial_pose(frame, initial_pose):

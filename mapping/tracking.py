@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping._open3d import o3d
+from mapping._open3d import o3d, open3d_message
 from mapping.fusion.base import ModelView
 from mapping.metrics import rotation_angle
 
@@ -302,7 +302,7 @@ class FrameToModelTracker:
                 depth_min=self.depth_min, depth_max=self.depth_max,
                 target_depth=view.depth)
         except RuntimeError as exc:  # Open3D raises when a step has no inlier
-            return TrackingResult(init, False, f"ICP found no correspondences ({str(exc).splitlines()[0][:80]})")
+            return TrackingResult(init, False, f"ICP found no correspondences ({open3d_message(exc)[:80]})")
         pose = view_pose @ T
         fitness = inliers / n_source
         motion = np.linalg.inv(self._last) @ pose

@@ -71,6 +71,19 @@ class LazyGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("radiomap: interrupted", err=True)
             ctx.exit(130)
+        except MemoryError:
+            click.echo("radiomap: error: out of memory; use a larger --voxel-size, a shorter --frames range or a "
+                       "smaller --depth-max", err=True)
+            ctx.exit(1)
+        except RuntimeError as exc:
+            if "[Open3D Error]" not in str(exc):
+                raise
+            from mapping._open3d import open3d_message  # open3d is loaded: it raised
+
+            logging.getLogger("radiomap").debug("Open3D error", exc_info=True)
+            click.echo(f"radiomap: error: Open3D failed: {open3d_message(exc)} (check the input and the options; "
+                       "-vv logs the details)", err=True)
+            ctx.exit(1)
 
 
 @click.group(cls=LazyGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"],

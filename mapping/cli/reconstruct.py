@@ -8,6 +8,8 @@ import click
 
 from mapping.cli._common import FrameRange
 
+FAR_DEPTH_WARNING = 0.2   # warn when more of the valid depth than this lies beyond --depth-max
+
 EPILOG = """\b
 Examples:
   radiomap reconstruct room_seq -o run_raw --poses gt
@@ -113,5 +115,9 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
         click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
+                   err=True)
+    if run.depth_beyond_range > FAR_DEPTH_WARNING:
+        click.echo(f"warning: {100 * run.depth_beyond_range:.0f} % of the valid depth lies beyond --depth-max "
+                   f"{depth_max:g} m and was neither fused nor tracked; raise --depth-max if the scene is deeper",
                    err=True)
     click.echo(f"results in {output}")
