@@ -226,7 +226,7 @@ def open_frames(source: Any, *, max_frames: int | None = None) -> FrameSource:
 @dataclass(frozen=True)
 class SheetDetection:
     """The sheet in one frame: ``status`` is ``"ok"`` or why the frame is skipped (``"saturated"``,
-    ``"too dark"``, ``"too small"``, ``"no sheet"``); ``mask`` (bool ``(H, W)``) and ``centre`` ``(x, y)``
+    ``"too dark"``, ``"too small"``, ``"no sheet"``, ``"textured"``); ``mask`` (bool ``(H, W)``) and ``centre`` ``(x, y)``
     are set when it is ``"ok"``."""
 
     status: str
@@ -286,7 +286,7 @@ def _find_seed(blurred: np.ndarray, seed: tuple[int, int], min_pixels: int, dark
 
 def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, saturation: int = 250,
                  dark: int = 20, min_area: float = 0.02, max_saturated: float = 0.2,
-                 noise_factor: float = 4.0, border: int | None = None) -> SheetDetection:
+                 noise_factor: float = 4.0, max_noise: float = 3.0, border: int | None = None) -> SheetDetection:
     """Segment the white sheet in one frame (see the module doc).
 
     Parameters
@@ -298,6 +298,9 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     min_area : the fewest pixels, as a fraction of the image, for a usable sheet.
     max_saturated : a sheet with more than this fraction of saturated pixels is "saturated".
     noise_factor : fill tolerance in units of the sheet's neighbour-difference noise.
+    max_noise : a seed region noisier than this (robust neighbour-difference spread of the slightly blurred
+        grey image, in levels) is no plain sheet but texture or random noise: ``"textured"``. Simulated
+        sweeps measure 0.2-0.9; Gaussian noise of 40 levels around 128 measures 4.4.
     border : pixels eroded from the sheet's edge; default 1% of the larger image side (at least 2).
     """
     import cv2
@@ -322,6 +325,8 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
         return SheetDetection("no sheet")
     sx, sy = found
     sigma = _robust_noise(blurred, sx, sy, half=max(8, min(h, w) // 20))
+    if sigma > max_noise:
+        return SheetDetection("textured", tolerance=sigma)
     tolerance = max(1.0, noise_factor * sigma) + 0.5  # + the vignetting gradient between neighbours
     fill_mask = np.zeros((h + 2, w + 2), np.uint8)
     flags = 4 | (255 << 8) | cv2.FLOODFILL_MASK_ONLY  # floating range: FLOODFILL_FIXED_RANGE not set
@@ -847,6 +852,9 @@ def _no_frames_message(name: str, n_seen: int, skipped: Counter, saturation: int
     if reason == "too dark":
         return (f"{name}: the sheet is too dark in {count} of {n_seen} frames; raise the exposure or the light "
                 "(the sheet's centre should be around 150-220) and record again")
+    if reason == "textured":
+        return (f"{name}: the view is textured or noisy, not a plain sheet, in {count} of {n_seen} frames; point "
+                "the camera at an evenly lit plain white sheet (matte paper, no print) and record again")
     if reason == "different size":
         return f"{name}: the frames have different sizes; record the sweep at one resolution"
     return (f"{name}: no white sheet found in any of the {n_seen} frames ({dict(skipped)}); point the camera at "

@@ -171,6 +171,22 @@ def test_detect_sheet_skips_unusable_frames(kwargs, status):
     assert det.status == status and det.mask is None and not det.ok
 
 
+def test_random_noise_is_not_a_sheet():
+    """Frames of random noise (a broken stream, a lens cap at high gain) or texture are rejected as
+    "textured", and a sweep of nothing else ends in a one-line error naming the file and the fix."""
+    rng = np.random.default_rng(0)
+    noise = np.clip(rng.normal(128, 40, (H, W, 3)), 0, 255).astype(np.uint8)
+    det = detect_sheet(noise)
+    assert det.status == "textured" and det.mask is None and det.tolerance > 3.0
+    uniform = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    assert not detect_sheet(uniform).ok
+    # a plain sheet with a strong but plausible sensor noise (8 levels) is still found
+    frame, inside = _frame(noise=8.0)
+    assert detect_sheet(frame).ok
+    with pytest.raises(CalibrationError, match=r"textured or noisy, not a plain sheet, in 3 of 3 frames"):
+        collect_vignetting([noise] * 3, CameraResponse.gamma(), progress=False)
+
+
 def test_detect_sheet_arguments():
     with pytest.raises(ValueError, match="image must be uint8"):
         detect_sheet(np.zeros((10, 10, 3), np.float32))
