@@ -534,9 +534,6 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     ate = run.ate
                 geometry = map_geometry(fusion)
                 files = dict(run.files)
-                if method.exposure_compensation and hasattr(colour_model, "save") \
-                        and not (folder.path / "exposures.json").exists():
-                    files.update(colour_model.save(folder.path))     # per-frame exposure estimates
                 if backend == "surfel" and hasattr(fusion, "export"):
                     files.update(fusion.export(folder.path, colour_model.to_display))
                 files.update(write_mesh(folder.path, geometry.vertices, geometry.triangles, geometry.colours,

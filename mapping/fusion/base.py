@@ -26,12 +26,15 @@ class ModelView:
     colour: (H, W, 3) float32 map units, 0 where no surface.
     vertex: (H, W, 3) float32 points in the camera frame (0 where none), for ICP; or None.
     normal: (H, W, 3) float32 unit normals in the camera frame (0 where none), for ICP; or None.
+    pose:   (4, 4) camera-to-world pose it was rendered at (set by the pipeline; exposure compensation
+            re-projects with it); or None.
     """
 
     depth: np.ndarray
     colour: np.ndarray
     vertex: np.ndarray | None = None
     normal: np.ndarray | None = None
+    pose: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
