@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from mapping.cli import cli
 from radiometry.fileio import read_rgb
 from radiometry.simulation import CameraSpec
-from tests.conftest import shared_path
+from conftest import shared_path
 
 TINY = ["--width", "64", "--height", "48", "--no-progress"]
 

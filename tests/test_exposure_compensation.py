@@ -18,7 +18,7 @@ from mapping.exposure_compensation import (CompensatedColour, ExposureEstimator,
 from mapping.fusion.base import ModelView
 from radiometry.errors import CalibrationFileError
 from radiometry.response import CameraResponse
-from tests.conftest import shared_path
+from conftest import shared_path
 
 GAMMA = CameraResponse.gamma(2.2)
 

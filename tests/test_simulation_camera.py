@@ -14,7 +14,7 @@ from radiometry.simulation import (CRF_PRESETS, AutoExposure, AutoWhiteBalance, 
                                    crf_spec_from_file, find_lensfun_vignetting, jpeg_roundtrip, make_crf,
                                    nonradial_field, polynomial_for_corner, polynomial_vignetting,
                                    read_pcalib_table, vignetting_preset)
-from tests.conftest import shared_path
+from conftest import shared_path
 
 W, H = 160, 120
 

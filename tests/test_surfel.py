@@ -11,7 +11,7 @@ import pytest
 
 from mapping.fusion.base import ColourPairs, ModelView
 from mapping.fusion.surfel import SurfelBackend, SurfelMap, vertex_normal_maps, write_surfel_ply
-from tests.conftest import shared_path
+from conftest import shared_path
 
 W, H, F = 160, 120, 131.25  # a Kinect-like camera at a quarter of 640x480
 C_STABLE = 10.0
