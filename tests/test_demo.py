@@ -39,10 +39,12 @@ def _name(table: dict, base: str) -> str:
 
 
 def test_methods_are_ordered_as_in_the_paper(demo):
-    """No correction worst, LUT best on the L1 mean. Measured (seed 0, exposure compensation on): none 23.78,
-    response+ec 23.19, poly+ec 15.909, lut+ec 15.899. The LUT's lead over the free-centre polynomial is tiny
-    (0.01 level): that polynomial leaves only ~0.5 % of the xtion preset's V unexplained, and the L1 mean
-    reacts to such small errors only at second order; the colour error below separates them at first order."""
+    """No correction worst, LUT best on the L1 mean. Measured (quick demo, 'asymmetric' camera, seed 0,
+    exposure compensation on): none 26.21, response+ec 25.89, poly+ec 15.96, lut+ec 15.89. The LUT's lead
+    on the L1 mean is small although the polynomial misses V by 2.5 % RMS: a point keeps nearly the same image
+    position over a short handheld sequence, so a smooth residual largely cancels between the map and the new
+    sample, and the L1 mean adds such errors to the noise floor only at second order; the colour error
+    against the truth below separates the two at first order."""
     table = demo["table"]
     l1 = {name: row["L1 mean"] for name, row in table.items()}
     assert max(l1, key=l1.get) == "none"
@@ -61,6 +63,7 @@ def test_mesh_colours_against_the_truth_follow_the_same_order(demo):
     err = {name: row["colour err"] for name, row in table.items()}
     lut, poly, resp = _name(table, "lut"), _name(table, "poly"), _name(table, "response")
     assert err[lut] < err[poly] < err[resp]
+    assert err[poly] > 1.1 * err[lut]          # measured 4.31 vs 3.58: the non-radial field the polynomial misses
     assert err["none"] > 2.0 * err[lut]
     assert err[lut] < 5.0
 
@@ -69,7 +72,9 @@ def test_calibration_is_accurate(demo):
     cal = demo["demo"]["calibration"]
     assert max(cal["response_error_percent"]) < 3.0
     lut, poly = np.array(cal["vignetting_error_levels"]["lut"]), np.array(cal["vignetting_error_levels"]["poly"])
-    assert np.all(lut < poly) and np.all(lut < 0.5) and np.all(poly < 1.0)
+    # measured LUT 0.28 / 0.29 / 0.26, polynomial 2.86 / 2.72 / 2.51 levels: the polynomial cannot follow the
+    # 'asymmetric' camera's non-radial field (the free-centre fit is within 1 level on the nearly radial xtion)
+    assert np.all(lut < 0.5) and np.all(poly > 5 * lut) and np.all(poly < 4.0)
     assert cal["paper_frames_used"] >= 50
 
 
@@ -104,6 +109,7 @@ def test_everything_is_written_into_out_only(demo):
         assert (out / "compare" / name / "mesh.ply").is_file()
     assert demo["compare"]["poses_identical"] is True
     assert demo["demo"]["quick"] is True and demo["demo"]["size"]["width"] == 160
+    assert demo["demo"]["camera"] == "asymmetric" and "asymmetric preset" in demo["output"]
     assert demo["demo"]["seconds"] > 0 and set(demo["demo"]["timings"]) == {"response", "vignetting", "room",
                                                                            "compare"}
 

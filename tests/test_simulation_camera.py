@@ -193,7 +193,7 @@ def test_vignetting_argument_errors():
         VignettingSpec("polynomial", ((-1.5, 0.0, 0.0),)).render(64, 48)
     with pytest.raises(ValueError, match="needs path"):
         VignettingSpec("dso")
-    with pytest.raises(ValueError, match="valid names: xtion, mild, none"):
+    with pytest.raises(ValueError, match="valid names: xtion, asymmetric, mild, none"):
         vignetting_preset("strongest")
     with pytest.raises(ValueError, match="centres must have shape"):
         polynomial_vignetting(8, 8, [[0, 0, 0]] * 3, [[0.5, 0.5]])
@@ -420,7 +420,7 @@ def test_bad_camera_files_are_rejected(tmp_path):
         CameraSpec.load(tmp_path / "missing.json")
     with pytest.raises(ValueError, match="jpeg_quality"):
         CameraSpec(jpeg_quality=101)
-    with pytest.raises(ValueError, match="valid names: xtion, mild, ideal"):
+    with pytest.raises(ValueError, match="valid names: xtion, asymmetric, mild, ideal"):
         CameraSpec.preset("kinect2")
 
 

@@ -475,7 +475,7 @@ def test_sequence_argument_errors(tmp_path):
     assert not (tmp_path / "b").exists() and not (tmp_path / "d").exists()     # nothing half-made
     with pytest.raises(TypeError, match="camera must be a preset name"):
         simulate_brackets(tmp_path / "e", camera=42)
-    with pytest.raises(ValueError, match="valid names: xtion, mild, ideal"):
+    with pytest.raises(ValueError, match="valid names: xtion, asymmetric, mild, ideal"):
         simulate_brackets(tmp_path / "f", camera="webcam")
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputError, match="is an existing file"):
