@@ -158,3 +158,122 @@ def test_correct_resolution_mismatch(sweep, model_file, tmp_path):
     cv2.imwrite(str(img), np.full((64, 64, 3), 100, np.uint8))
     line = one_line_error(invoke("correct", img, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "o"))
     assert "calibrated at 96x72" in line and "64x64" in line
+
+
+# ==================================================================================================
+# live camera, --stop-when-covered, --smooth-sigma
+# ==================================================================================================
+class FakeCapture:
+    """A stand-in for ``cv2.VideoCapture``: ``read()`` returns the given BGR frames, then fails."""
+
+    def __init__(self, frames, opened=True):
+        self.frames, self.opened, self.reads, self.released = list(frames), opened, 0, False
+
+    def isOpened(self):  # noqa: N802 - OpenCV's name
+        return self.opened
+
+    def read(self):
+        self.reads += 1
+        if not self.opened or self.reads > len(self.frames):
+            return False, None
+        return True, self.frames[self.reads - 1].copy()
+
+    def release(self):
+        self.released = True
+
+
+def _summary(prefix):
+    import json
+
+    return json.loads(prefix.with_name(prefix.name + "_summary.json").read_text())
+
+
+def test_vignetting_from_a_camera_index(sweep, tmp_path, monkeypatch):
+    """``radiomap vignetting 0``: the camera's BGR frames (after 10 warm-up frames, noise here) give the
+    same model as the same frames read from the folder."""
+    from radiometry.fileio import list_images
+
+    rng = np.random.default_rng(0)
+    warmup = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(10)]
+    bgr = [cv2.imread(str(p)) for p in list_images(sweep["rgb"])[:40]]
+    captures = []
+
+    def capture(index):
+        captures.append((index, FakeCapture(warmup + bgr)))
+        return captures[-1][1]
+
+    monkeypatch.setattr(cv2, "VideoCapture", capture)
+    result = invoke("vignetting", "0", "-r", sweep["response"], "-o", tmp_path / "cam.npz", "--no-plots",
+                    "--max-frames", "30")
+    assert result.exit_code == 0, result.output
+    assert [i for i, _ in captures] == [0] and captures[0][1].released and captures[0][1].reads == 40
+    folder = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "dir.npz", "--no-plots",
+                    "--max-frames", "30")
+    assert folder.exit_code == 0, folder.output
+    live, ref = _summary(tmp_path / "cam"), _summary(tmp_path / "dir")
+    assert live["frames_used"] == ref["frames_used"] >= 28 and live["frames_skipped"] == ref["frames_skipped"]
+    assert live["run"]["parameters"]["frames"] == "0"
+    np.testing.assert_array_equal(load_vignetting(tmp_path / "cam.npz").evaluate(),
+                                  load_vignetting(tmp_path / "dir.npz").evaluate())
+    # a camera that does not open: one line naming the camera and the fix, nothing written
+    monkeypatch.setattr(cv2, "VideoCapture", lambda index: FakeCapture([], opened=False))
+    line = one_line_error(invoke("vignetting", "3", "-r", sweep["response"], "-o", tmp_path / "none.npz"))
+    assert "cannot open camera 3; check that it is connected" in line and "record the sweep to a video" in line
+    assert not (tmp_path / "none.npz").exists()
+
+
+def test_vignetting_stop_when_covered(sweep, tmp_path):
+    out = tmp_path / "early.npz"
+    result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--min-samples", "5",
+                    "--stop-when-covered", "--no-plots")
+    assert result.exit_code == 0, result.output
+    summary = _summary(tmp_path / "early")
+    seen = summary["frames_used"] + summary["frames_skipped"]
+    assert 20 <= seen < 100  # stopped well before the 120 frames of the sweep
+    assert summary["fraction_below_min_samples"] == 0.0  # ... because every pixel had 5 samples
+    assert "coverage: 100.0% of pixels have >= 5 samples" in result.stdout
+    assert summary["run"]["parameters"]["stop_when_covered"] is True
+    model = load_vignetting(out)
+    assert isinstance(model, LUTVignetting) and model.info["frames_used"] == summary["frames_used"]
+    response = CameraResponse.load(sweep["response"])
+    assert np.all(vignetting_error_levels(model, sweep["truth"], response) < 0.5)
+
+
+def test_vignetting_smooth_sigma(sweep, tmp_path):
+    """On a short sweep (40 frames, ~9 samples per pixel) a wider smoothing is closer to the true V."""
+    import inspect
+
+    from mapping.cli.vignetting import DEFAULT_SMOOTH_SIGMA
+    from radiometry.vignetting_calibration import fit_vignetting_lut
+
+    assert inspect.signature(fit_vignetting_lut).parameters["smooth_sigma"].default == DEFAULT_SMOOTH_SIGMA
+    response = CameraResponse.load(sweep["response"])
+    errors = {}
+    for sigma in ("0", "3"):
+        out = tmp_path / f"s{sigma}.npz"
+        result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--no-plots",
+                        "--max-frames", "40", "--smooth-sigma", sigma)
+        assert result.exit_code == 0, result.output
+        model = load_vignetting(out)
+        assert model.info["smooth_sigma"] == float(sigma)  # recorded in the model file
+        assert _summary(tmp_path / f"s{sigma}")["run"]["parameters"]["smooth_sigma"] == float(sigma)
+        errors[sigma] = vignetting_error_levels(model, sweep["truth"], response)
+    assert np.all(errors["3"] < 0.7 * errors["0"]), errors
+    assert invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "d.npz", "--no-plots",
+                  "--max-frames", "20").exit_code == 0
+    assert load_vignetting(tmp_path / "d.npz").info["smooth_sigma"] == DEFAULT_SMOOTH_SIGMA
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--smooth-sigma", "-1"], "Invalid value for '--smooth-sigma': must be a finite number of pixels >= 0 "
+                               "(0 disables the smoothing), got -1.0"),
+    (["--smooth-sigma", "nan"], "Invalid value for '--smooth-sigma': must be a finite number of pixels >= 0"),
+    (["--model", "poly", "--smooth-sigma", "2"], "Invalid value for --smooth-sigma: applies to --model lut only, "
+                                                 "got --model poly; drop --smooth-sigma or use --model lut"),
+])
+def test_vignetting_smooth_sigma_errors(sweep, tmp_path, args, message):
+    result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.npz", *args)
+    assert result.exit_code == 2, result.output
+    error = [line for line in result.output.splitlines() if line.startswith("Error: ")]
+    assert len(error) == 1 and error[0].startswith("Error: " + message), result.output
+    assert not (tmp_path / "v.npz").exists()

@@ -432,3 +432,200 @@ def test_accumulation_round_trip(tmp_path):
     LUTVignetting(np.ones((4, 4, 3), np.float32)).save(tmp_path / "model.npz")
     with pytest.raises(CalibrationFileError, match="'vignetting' model where a 'vignetting_accumulation'"):
         VignettingAccumulation.load(tmp_path / "model.npz")
+
+
+# ==================================================================================================
+# live camera (cv2.VideoCapture replaced by a fake that delivers BGR frames, as OpenCV does)
+# ==================================================================================================
+class FakeCapture:
+    """A stand-in for ``cv2.VideoCapture``: ``read()`` returns the given frames, then fails."""
+
+    def __init__(self, frames, *, opened: bool = True) -> None:
+        self.frames = list(frames)
+        self.opened = opened
+        self.reads = 0
+        self.released = False
+
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return self.opened
+
+    def read(self):
+        if not self.opened or self.reads >= len(self.frames):
+            self.reads += 1
+            return False, None
+        self.reads += 1
+        return True, self.frames[self.reads - 1].copy()
+
+    def release(self) -> None:
+        self.released = True
+
+
+@pytest.fixture()
+def fake_camera(monkeypatch):
+    """``install(frames, opened=True)`` makes ``cv2.VideoCapture(index)`` return a :class:`FakeCapture`;
+    returns the list of ``(index, capture)`` opened so far."""
+    opened = []
+
+    def install(frames, *, opened_ok: bool = True):
+        def capture(index):
+            cap = FakeCapture(frames, opened=opened_ok)
+            opened.append((index, cap))
+            return cap
+
+        monkeypatch.setattr(cv2, "VideoCapture", capture)
+        return opened
+
+    return install
+
+
+def _bgr_frames(n, shape=(H, W)):
+    """Frame i is the BGR colour (B, G, R) = (10 + i, 100, 200) everywhere."""
+    return [np.dstack([np.full(shape, 10 + i, np.uint8), np.full(shape, 100, np.uint8),
+                       np.full(shape, 200, np.uint8)]) for i in range(n)]
+
+
+def test_camera_frames_skip_the_warm_up_read_max_frames_in_rgb_and_release(fake_camera):
+    opened = fake_camera(_bgr_frames(8))
+    frames = list(CameraFrames(2, max_frames=3, warmup=2))
+    assert [index for index, _ in opened] == [2]
+    assert len(frames) == 3
+    for k, f in enumerate(frames):  # the first two frames were the warm-up; BGR -> RGB
+        assert f.dtype == np.uint8 and f.shape == (H, W, 3)
+        assert np.all(f == np.array([200, 100, 12 + k], np.uint8))
+    cap = opened[0][1]
+    assert cap.reads == 5 and cap.released  # no frame read beyond max_frames
+    # without max_frames: everything the camera delivers, until read() fails
+    frames = list(CameraFrames(0, warmup=0))
+    assert [int(f[0, 0, 2]) for f in frames] == list(range(10, 18)) and opened[1][1].released
+    # a consumer that stops early still releases the camera
+    it = iter(CameraFrames(0, warmup=1))
+    assert int(next(it)[0, 0, 2]) == 11
+    it.close()
+    assert opened[2][1].released and opened[2][1].reads == 2
+
+
+def test_camera_frames_convert_bgra_and_keep_grayscale(fake_camera):
+    bgra = np.dstack([_bgr_frames(1)[0], np.full((H, W), 255, np.uint8)])
+    fake_camera([bgra, np.full((H, W), 77, np.uint8)])
+    colour, grey = list(CameraFrames(0, warmup=0))
+    assert colour.shape == (H, W, 3) and np.all(colour == np.array([200, 100, 10], np.uint8))
+    assert grey.shape == (H, W) and np.all(grey == 77)
+
+
+def test_camera_that_cannot_be_opened_is_a_one_line_error(fake_camera):
+    opened = fake_camera([], opened_ok=False)
+    with pytest.raises(ImageError) as info:
+        list(CameraFrames(7))
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("cannot open camera 7; ")
+    assert "check that it is connected and not in use" in message
+    assert "record the sweep to a video or folder first" in message
+    assert opened[0][0] == 7 and opened[0][1].released
+    # the same through collect_vignetting with a camera index given as text (as the CLI passes it)
+    with pytest.raises(ImageError, match=r"^cannot open camera 7; "):
+        collect_vignetting("7", CameraResponse.gamma(), progress=False)
+
+
+def test_collect_vignetting_from_a_camera_matches_the_same_frames_in_memory(fake_camera):
+    """Warm-up frames (noise here) are dropped, max_frames bounds the read, and the accumulated colours
+    are RGB: the sheet is tinted, so swapped channels would change the sums."""
+    tint = np.array([1.0, 0.9, 0.75])
+    sheets = [np.clip(np.rint(f * tint), 0, 255).astype(np.uint8) for f in _sheet_frames(6)]
+    rng = np.random.default_rng(5)
+    warmup = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(10)]
+    opened = fake_camera(warmup + [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in sheets])
+    response = CameraResponse.gamma(2.2)
+    live = collect_vignetting("3", response, max_frames=4, progress=False)
+    assert opened[0][0] == 3 and opened[0][1].reads == 14 and opened[0][1].released
+    assert live.frames_used == 4 and live.skipped == {} and live.source == "camera 3"
+    ref = collect_vignetting(sheets[:4], response, progress=False)
+    np.testing.assert_array_equal(live.count, ref.count)
+    np.testing.assert_allclose(live.sum, ref.sum, rtol=1e-12)
+    red, blue = live.sum[..., 0].sum(), live.sum[..., 2].sum()
+    assert red > 1.2 * blue  # the tint survived in RGB order
+
+
+# ==================================================================================================
+# mixed sequences: a lost sheet, a distractor at the image centre
+# ==================================================================================================
+def test_a_lost_sheet_is_skipped_counted_and_not_fused():
+    sheets = _sheet_frames(3)
+    dark, _ = _frame(level=5.0, background=2.0, seed=9)  # lens covered / the sheet left the view
+    response = CameraResponse.gamma()
+    mixed = collect_vignetting([sheets[0], dark, sheets[1], sheets[2]], response, progress=False)
+    assert mixed.frames_used == 3 and mixed.skipped == {"no sheet": 1} and mixed.frames_skipped == 1
+    assert mixed.indices().tolist() == [0, 2, 3]
+    clean = collect_vignetting(sheets, response, progress=False)
+    np.testing.assert_array_equal(mixed.count, clean.count)  # the dark frame added nothing
+    np.testing.assert_array_equal(mixed.sum, clean.sum)
+    assert mixed.count.max() == 3
+
+
+def test_the_seed_follows_the_sheet_not_a_bright_patch_at_the_image_centre():
+    """The sheet sits left of the centre; from the second frame on a bright patch covers the image centre.
+    The fill is seeded at the previous frame's sheet centre, so the patch is never accumulated."""
+    rects = [(4, 20 + 3 * i, 60, 95 + 3 * i) for i in range(4)]
+    patch = (slice(40, 80), slice(75, 115))  # rows, columns: the image centre (80, 60) is inside
+    frames, insides = [], []
+    for i, rect in enumerate(rects):
+        frame, inside = _frame(rect=rect, seed=20 + i)
+        if i > 0:
+            rng = np.random.default_rng(40 + i)
+            frame[patch] = np.clip(np.rint(215 + rng.normal(0, 2, frame[patch].shape[:2])), 0, 255)[..., None]
+        frames.append(frame)
+        insides.append(inside)
+    # control: seeded at the image centre (no history), the patch is what a fill finds
+    det = detect_sheet(frames[1])
+    assert det.ok and det.mask[patch].mean() > 0.5 and not det.mask[:, :70].any()
+    acc = collect_vignetting(frames, CameraResponse.gamma(), progress=False)
+    assert acc.frames_used == 4 and acc.skipped == {}
+    assert acc.count[patch].max() == 0 and acc.count[:, 65:].max() == 0  # nothing right of the sheet
+    common = np.logical_and.reduce(insides)
+    core = cv2.erode(common.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert core.sum() > 1000 and np.all(acc.count[core] == 4)  # every frame's sheet was fused
+
+
+# ==================================================================================================
+# fill tolerance and LUT denoising
+# ==================================================================================================
+def test_fill_tolerance_grows_with_the_sheet_noise_and_both_segment():
+    tolerances = {}
+    for noise in (2.0, 8.0):
+        frame, inside = _frame(noise=noise, seed=3)
+        det = detect_sheet(frame)
+        assert det.ok, noise
+        assert not np.any(det.mask & ~inside), noise  # no background
+        assert det.mask.sum() > 0.7 * inside.sum(), noise
+        x, y = det.centre
+        assert 40 <= x < 120 and 30 <= y < 90
+        tolerances[noise] = det.tolerance
+    # tolerance = noise_factor * sigma + 0.5 (sigma measured on the blurred grey image): 4x the noise,
+    # 4x the noise term
+    ratio = (tolerances[8.0] - 0.5) / (tolerances[2.0] - 0.5)
+    assert 3.2 < ratio < 4.8, tolerances
+    assert tolerances[2.0] > 1.5  # above the floor max(1, ...) + 0.5: it was measured, not clamped
+
+
+@pytest.fixture(scope="module")
+def noisy_thin_sweep(tmp_path_factory):
+    """40 frames of a noisy camera (small full well, high read noise): 2-20 samples per pixel."""
+    from radiometry.simulation import CameraSpec
+
+    spec = CameraSpec.preset("xtion", width=W, height=H).replace(full_well=800.0, read_noise=0.006)
+    return _simulate(tmp_path_factory, "noisy", spec, flicker=0.0, n_frames=40)
+
+
+def test_lut_smoothing_lowers_the_error_on_a_noisy_thin_sweep(noisy_thin_sweep):
+    s = noisy_thin_sweep
+    acc = s["acc"]
+    assert acc.frames_used >= 35 and np.median(acc.coverage()) < 20  # thinly covered
+    errors = {sigma: vignetting_error_levels(fit_vignetting_lut(acc, smooth_sigma=sigma), s["truth"], s["response"])
+              for sigma in (0.0, 1.0, 3.0)}
+    assert np.all(errors[0.0] > 0.8), errors  # raw per-pixel means carry the noise
+    assert np.all(errors[1.0] < 0.6 * errors[0.0]), errors  # the default already helps
+    assert np.all(errors[3.0] < errors[1.0]) and np.all(errors[3.0] < 0.4), errors
+    lut = fit_vignetting_lut(acc, smooth_sigma=3.0)
+    assert lut.info["smooth_sigma"] == 3.0
+    with pytest.raises(ValueError, match=r"smooth_sigma must be >= 0, got -1"):
+        fit_vignetting_lut(acc, smooth_sigma=-1)

@@ -38,6 +38,18 @@ def _centre_of(model, c: int) -> tuple[float, float]:
     return float(x), float(y)
 
 
+# the library default of fit_vignetting_lut(smooth_sigma=...); tests check that they agree
+DEFAULT_SMOOTH_SIGMA = 1.0
+
+
+def _smooth_sigma(ctx, param, value):
+    import math
+
+    if value is not None and not (math.isfinite(value) and value >= 0):
+        raise click.BadParameter(f"must be a finite number of pixels >= 0 (0 disables the smoothing), got {value}")
+    return value
+
+
 def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]:
     """Per-channel rows (centre, corner/centre ratio, fit RMS) and the run's facts."""
     import numpy as np
@@ -79,12 +91,17 @@ def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Read at most this many frames.")
 @click.option("--no-drift-correction", is_flag=True,
               help="Do not estimate per-frame brightness drift (plain average as in radical).")
+@click.option("--smooth-sigma", type=float, default=DEFAULT_SMOOTH_SIGMA, show_default=True,
+              callback=_smooth_sigma,
+              help="LUT only: denoise the per-pixel residual to the radial fit with a Gaussian of this many "
+                   "pixels (0 = off). Raise it (2-3) for short or noisy sweeps with few samples per pixel; "
+                   "lower it to keep fine non-radial detail when every pixel has many samples.")
 @click.option("--save-accumulation", type=click.Path(dir_okay=False), default=None,
               help="Also save the fused data (.npz) for later fits or repeatability studies.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures (the coverage map is always written).")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 def command(frames: str, response_path: str, output: str, model_name: str, min_samples: int,
-            stop_when_covered: bool, max_frames: int | None, no_drift_correction: bool,
+            stop_when_covered: bool, max_frames: int | None, no_drift_correction: bool, smooth_sigma: float,
             save_accumulation: str | None, no_plots: bool, force: bool) -> None:
     """Calibrate vignetting from a white-paper sweep FRAMES (folder, video file or camera index).
 
@@ -98,6 +115,10 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
     from mapping.cli._common import format_table, run_manifest
 
+    source = click.get_current_context().get_parameter_source("smooth_sigma")
+    if model_name != "lut" and source is not click.core.ParameterSource.DEFAULT:
+        raise click.BadParameter(f"applies to --model lut only, got --model {model_name}; drop --smooth-sigma "
+                                 "or use --model lut", param_hint="--smooth-sigma")
     out = Path(output)
     suffix = out.suffix.lower()
     if suffix not in (".npz", ".vgn", ".png"):
@@ -110,7 +131,10 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     response = load_response(response_path)
     acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
                              max_frames=max_frames, progress=True)
-    model = fit_vignetting(acc, model=model_name, joint_scale=not no_drift_correction)
+    fit_options = {"joint_scale": not no_drift_correction}
+    if model_name == "lut":
+        fit_options["smooth_sigma"] = smooth_sigma
+    model = fit_vignetting(acc, model=model_name, **fit_options)
     if suffix == ".vgn":
         from radiometry.formats.vgn import write_radical_vgn
 
@@ -146,4 +170,6 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
                                                           "min_samples": min_samples,
                                                           "stop_when_covered": stop_when_covered,
                                                           "max_frames": max_frames,
-                                                          "drift_correction": not no_drift_correction})})
+                                                          "drift_correction": not no_drift_correction,
+                                                          "smooth_sigma": smooth_sigma if model_name == "lut"
+                                                          else None})})

@@ -104,6 +104,10 @@ class DepthSensor:
 
                 k = 2 * self.edge_px - 1
                 far = cv2.dilate(far.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+                # the dilation also reaches edge_px - 1 pixels into the near surface: keep the band on the
+                # far side (pixels with a nearer surface within edge_px pixels)
+                nearest = cv2.erode(zz, np.ones((k + 2, k + 2), np.uint8))
+                far &= zz > nearest * thr
             np.maximum(p_hole, np.where(far, np.float32(self.edge_drop), np.float32(0.0)), out=p_hole)
         holes = rng.random((H, W), dtype=np.float32) < p_hole
         if self.projector_shadow and pose is not None and scene is not None:
