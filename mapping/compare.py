@@ -31,7 +31,8 @@ Outputs (``OUT``)::
 
     OUT/compare.json, compare.csv, compare.txt   the table (and everything else, in JSON)
     OUT/histograms.png                           normalised histograms of all methods (Fig. 9), linear + log
-    OUT/renders.jpg                              the meshes side by side from 2-3 trajectory viewpoints
+    OUT/renders.jpg                              the meshes side by side from 2-3 trajectory viewpoints (their
+                                                 poses and camera: "renders" in compare.json)
     OUT/report.html                              everything above in one self-contained page
     OUT/<method>/                                a reconstruct results folder per method (histogram,
                                                  trajectory, metrics, mesh.ply, mesh_colours.npz)
@@ -381,6 +382,7 @@ class CompareResult:
     seconds: float
     ate: Any = None
     parameters: dict[str, Any] = field(default_factory=dict)
+    renders: dict[str, Any] | None = None   # the side-by-side renders' camera and viewpoints (compare.json)
 
     def __getitem__(self, name: str) -> MethodResult:
         for r in self.results:
@@ -694,20 +696,32 @@ def _render_views(result: CompareResult, dataset, scene, *, views: int, render_w
     picks = pick_viewpoints(result.poses, views)
     width = min(int(render_width), int(dataset.width))
     K, w, h = scaled_intrinsics(dataset.K, dataset.width, dataset.height, width)
+    fused = [rec.index for rec in result.results[0].run.records if rec.fused]
+    viewpoints = [{"pose_index": int(i), "frame": int(fused[i]) if i < len(fused) else None,
+                   "timestamp": float(result.stamps[i]), "pose": np.asarray(result.poses[i], np.float64).tolist()}
+                  for i in picks]
     columns: dict[str, list[np.ndarray]] = {}
+    recorded: list[dict[str, Any]] = []      # per column: the viewpoints (pose indices) its tiles were rendered from
+
+    def render_column(label: str, method: str | None, render_one) -> None:
+        columns[label] = [render_one(np.asarray(v["pose"], np.float64)) for v in viewpoints]
+        recorded.append({"label": label, "method": method, "views": [v["pose_index"] for v in viewpoints]})
+
     for r in result.results:
         g = r.geometry
         caster = MeshRaycaster(g.vertices, g.triangles, display_colours_uint8(g.colours, r.colour_model.to_display))
-        columns[r.method.label] = [caster.render(result.poses[i], K, w, h) for i in picks]
+        render_column(r.method.label, r.method.name, lambda pose, caster=caster: caster.render(pose, K, w, h))
     if scene is not None:
         ref = _truth_reference(result)
         if ref is not None:
             model, scale = ref
-            columns["true radiance"] = [render_scene_truth(scene, result.poses[i], K, w, h,
-                                                           lambda L: model.to_display((L * scale).astype(np.float32)))
-                                        for i in picks]
-    return save_render_grid(result.output / "renders.jpg", columns,
+            render_column("true radiance", None, lambda pose: render_scene_truth(
+                scene, pose, K, w, h, lambda L: model.to_display((L * scale).astype(np.float32))))
+    path = save_render_grid(result.output / "renders.jpg", columns,
                             row_labels=[f"view {j + 1}" for j in range(len(picks))])
+    result.renders = {"file": path.name, "width": int(w), "height": int(h), "K": np.asarray(K).tolist(),
+                      "viewpoints": viewpoints, "columns": recorded}
+    return path
 
 
 def _truth_reference(result: CompareResult):
@@ -742,6 +756,7 @@ def _write_json(result: CompareResult) -> None:
                      "files": {k: Path(v).relative_to(result.output).as_posix() for k, v in r.files.items()}}
                     for r in result.results],
         "files": {k: Path(v).name for k, v in result.files.items()},
+        "renders": result.renders,
     }
     result.files["json"] = atomic_write_json(result.output / MARKER, _finite(doc))
 

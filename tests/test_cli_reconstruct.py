@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 from conftest import shared_path
 
@@ -39,6 +41,23 @@ def test_redwood_ground_truth_raw(tmp_path):
               "--no-progress")
     assert res.exit_code == 0, res.output
     assert json.loads((out / "metrics.json").read_text())["frames"]["total"] == 3
+
+
+def test_timing_and_progress_bar(tmp_path):
+    """metrics.json reports a positive, finite frame rate; without --no-progress the tqdm bar ("reconstruct
+    <sequence>", frames as units) goes to stderr and nothing of it to stdout; with it, stderr stays empty."""
+    seq = shared_path("rgbd", "open3d_testdata")
+    res = run(str(seq), "-o", str(tmp_path / "bar"), "--poses", "gt", "--voxel-size", "0.03")
+    assert res.exit_code == 0, res.output
+    assert "reconstruct" in res.stderr and "frame" in res.stderr and "5/5" in res.stderr, res.stderr
+    assert "5/5" not in res.stdout and "L1 mean" in res.stdout
+    timing = json.loads((tmp_path / "bar" / "metrics.json").read_text())["timing"]
+    fps = timing["frames_per_second"]
+    assert isinstance(fps, float) and math.isfinite(fps) and fps > 0
+    assert fps == pytest.approx(5 / timing["seconds"], rel=1e-9)    # the 5 frames over the run's time
+    quiet = run(str(seq), "-o", str(tmp_path / "quiet"), "--poses", "gt", "--voxel-size", "0.03", "--no-progress")
+    assert quiet.exit_code == 0, quiet.output
+    assert "reconstruct" not in quiet.stderr and "5/5" not in quiet.stderr
 
 
 def test_simulated_room_corrected_with_icp(tmp_path):

@@ -232,6 +232,36 @@ def test_sevenscenes_malformed_pose(tmp_path):
     assert ds[0].pose is None and ds.ground_truth() is None   # lost KinectFusion frames carry inf
 
 
+def test_sevenscenes_reads_its_intrinsics_file(tmp_path):
+    """camera-intrinsics.txt beside frames/ is really read (not the 7-Scenes default 585, 585, 320, 240)."""
+    shared = shared_path(*KITCHEN)
+    root = tmp_path / "seq"
+    (root / "frames").mkdir(parents=True)
+    for i in range(2):
+        for suffix in ("color.jpg", "depth.png", "pose.txt"):
+            shutil.copy(shared / "frames" / f"frame-{i:06d}.{suffix}", root / "frames" / f"frame-{i:06d}.{suffix}")
+    original = np.loadtxt(shared / "camera-intrinsics.txt")
+    np.testing.assert_allclose(original, [[585, 0, 320], [0, 585, 240], [0, 0, 1]])   # the shipped file
+    modified = original.copy()
+    modified[0, 0], modified[1, 1], modified[0, 2], modified[1, 2] = 532.5, 531.0, 318.25, 241.5
+    np.savetxt(root / "camera-intrinsics.txt", modified)
+    ds = open_dataset(root)
+    assert detect_format(root) == "7scenes" and len(ds) == 2
+    np.testing.assert_allclose(ds.K, modified)
+    np.testing.assert_allclose(ds[1].K, modified)                    # the frames carry it too
+    assert ds.intrinsics_source == str(root / "camera-intrinsics.txt")
+    # without the file: the documented default, and the source says so
+    (root / "camera-intrinsics.txt").unlink()
+    ds = open_dataset(root)
+    np.testing.assert_allclose(ds.K, original)
+    assert "default" in ds.intrinsics_source and "camera-intrinsics" not in ds.intrinsics_source
+    # an explicit --intrinsics wins over the file
+    np.savetxt(root / "camera-intrinsics.txt", modified)
+    ds = open_dataset(root, intrinsics="500,501,319,239")
+    np.testing.assert_allclose(ds.K, [[500, 0, 319], [0, 501, 239], [0, 0, 1]])
+    assert ds.intrinsics_source == "option"
+
+
 # --------------------------------------------------------------------------------------------------
 # simulator output
 # --------------------------------------------------------------------------------------------------

@@ -283,6 +283,50 @@ def test_vignetting_is_divided_out_before_the_ratio():
     assert np.all(k < 0.7 * 0.97)          # vignetting not removed: the median pixel looks darker
 
 
+def bar_scene(k, *, bleed=2, period=16, bar_width=8, seed=None):
+    """Bright bars 1 m in front of a dark wall, seen head-on: ``(depth, radiance of the surface at each pixel's
+    depth, rgb at exposure k)``. Colour and depth are misregistered as on real sensors: in the colour image the
+    bars are ``bleed`` pixels wider on each side than in the depth image, so next to every depth step the wall's
+    depth carries the bar's (3.2x brighter) colour, always in the same direction."""
+    u, v = np.meshgrid(np.arange(PW), np.arange(PH))
+    phase = (u + 4) % period
+    colour_bar = phase < bar_width
+    depth_bar = (phase >= bleed) & (phase < bar_width - bleed)
+    depth = np.where(depth_bar, 1.5, 2.5).astype(np.float32)
+    tex = 0.32 + 0.12 * np.sin(0.4 * u) * np.cos(0.3 * v) + 0.05 * np.sin(1.3 * u + 0.7 * v)
+    L_surface = (tex * np.where(depth_bar, 1.6, 0.5))[..., None] * ALBEDO
+    L_image = (tex * np.where(colour_bar, 1.6, 0.5))[..., None] * ALBEDO
+    E = L_image * np.asarray(k, np.float64)
+    if seed is not None:
+        E = E * (1 + 0.01 * np.random.default_rng(seed).standard_normal(E.shape))
+    rgb = np.clip(np.rint(GAMMA.forward(E.astype(np.float32))), 0, 255).astype(np.uint8)
+    return depth, L_surface.astype(np.float32), rgb
+
+
+def test_depth_edges_are_excluded_from_the_estimate():
+    """With misregistered colour at depth steps (a quarter of the pixels lie within 2 px of one), including
+    the edge pixels biases the exposure by ~40 %; the default exclusion (steps grown by 2 px) removes it."""
+    k0, k1 = np.array([0.9, 0.9, 0.9]), np.array([0.63, 0.72, 1.08])
+    depth, L, rgb1 = bar_scene(k1, seed=1)
+    assert np.mean(depth_edges(depth)) > 0.3 and not depth_edges(depth, dilation=0)[:, 8:10].any()
+
+    def estimate(**edge_options):
+        est = ExposureEstimator(GAMMA, frame_to_frame=False, downsample=1, **edge_options)
+        _, _, rgb0 = bar_scene(k0)
+        est(RGBDFrame(0, 0.0, rgb0, depth, PK, np.eye(4)), None, None)
+        view = ModelView(depth=depth.copy(), colour=(L * k0).astype(np.float32))   # the ideal map, k0 units
+        k = est(RGBDFrame(1, 1 / 30, rgb1, depth, PK, np.eye(4)), None, view)
+        assert est.last.source == "map"
+        return k / (k1 / k0) - 1, est.last.correspondences
+
+    err, n_default = estimate()
+    assert np.abs(err).max() < 0.003, err                              # measured 0.02 %
+    err, n_all = estimate(edge_dilation=0, edge_absolute=1e3, edge_relative=0.0)   # no edge is ever found
+    assert err.min() > 0.2 and n_all > 2 * n_default, err              # measured +41 %, brighter: the bars' colour
+    err, _ = estimate(edge_dilation=0)                                 # the steps alone, not grown
+    assert err.min() > 0.2, err                                        # measured +43 %: the 2 px bleed remains
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"low": 200, "high": 100}, "low"), ({"min_correspondences": 0}, "min_correspondences"),
     ({"max_jump": 1.0}, "max_jump"), ({"confirm_frames": 1}, "confirm_frames"),
@@ -639,3 +683,57 @@ def test_cli_reconstruct_with_and_without_exposure_compensation(tmp_path):
     res = runner.invoke(cli, ["reconstruct", str(seq), "--poses", "gt", "--exposure-compensation", "-o",
                               str(tmp_path / "raw")])
     assert res.exit_code != 0 and "--response" in res.output
+
+
+def test_cli_mesh_colours_are_exported_at_the_reference_exposure(tmp_path):
+    """The mesh's display colours are ``f(E * k_ref)`` of the stored irradiance ``E``: ``k_ref`` the per-channel
+    median of the sequence's estimates by default, the first frame's (1) with ``--exposure-reference first``.
+    The sequence's auto exposure falls from a 2.5x too long start to ~0.3x, so the two references differ by
+    ~2.7x and their displays by tens of levels."""
+    import trimesh
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+    from mapping.datasets.simulated import SimulatedDataset
+    from mapping.export import read_mesh_colours
+    from mapping.simulation import simulate_room
+
+    seq = simulate_room(tmp_path / "seq", seed=5, n_frames=12, width=160, height=120, exposure_time=0.025,
+                        progress=False)
+    response = CameraResponse.load(seq / "truth" / "response.npz")
+    truth = SimulatedDataset(seq).true_exposures()
+    true_k = np.array([truth[t][0] * np.asarray(truth[t][1:]) for t in sorted(truth)])
+    true_k /= true_k[0]
+    assert np.median(true_k, axis=0).max() < 0.45                   # the median frame is far from the first
+    common = [str(seq), "--response", str(seq / "truth" / "response.npz"), "--vignetting",
+              str(seq / "truth" / "vignetting.npy"), "--poses", "gt", "--voxel-size", "0.04", "--no-progress"]
+    meshes = {}
+    for reference in ("median", "first"):
+        out = tmp_path / reference
+        extra = [] if reference == "median" else ["--exposure-reference", "first"]
+        res = CliRunner().invoke(cli, ["reconstruct", *common, *extra, "-o", str(out)], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        est = read_exposures(out / "exposures.txt")
+        accepted = est["source"] != "fallback"
+        assert accepted.sum() >= 10
+        k_ref = np.median(est["k"][accepted], axis=0) if reference == "median" else np.ones(3)
+        if reference == "median":                                   # the sequence's median exposure, measured
+            np.testing.assert_allclose(k_ref, np.median(true_k, axis=0), rtol=0.03)
+        mesh = read_mesh_colours(out / "mesh_colours.npz")
+        E, shown = mesh["colours"], mesh["display"]
+        assert len(E) > 1000 and shown.dtype == np.uint8
+        expected = np.clip(np.rint(response.forward((E * k_ref).astype(np.float32))), 0, 255)
+        diff = np.abs(shown.astype(np.float64) - expected)
+        assert diff.max() <= 1.0 and diff.mean() < 0.05, (diff.max(), diff.mean())
+        # the PLY carries the same display colours
+        ply = trimesh.load(out / "mesh.ply", process=False)
+        np.testing.assert_array_equal(np.asarray(ply.visual.vertex_colors)[:, :3], shown)
+        meshes[reference] = mesh
+    # the same map (same poses, same estimates) shown at two references: only the display differs
+    # (marching cubes lists the vertices in a different order each run: match them by position)
+    a, b = (meshes[r] for r in ("median", "first"))
+    ia, ib = np.lexsort(a["vertices"].T), np.lexsort(b["vertices"].T)
+    np.testing.assert_array_equal(a["vertices"][ia], b["vertices"][ib])
+    np.testing.assert_array_equal(a["colours"][ia], b["colours"][ib])
+    gap = b["display"][ib].astype(np.float64) - a["display"][ia].astype(np.float64)
+    assert np.median(gap) > 40, np.median(gap)      # measured 84 levels: the first frame was exposed ~2.7x longer

@@ -78,6 +78,57 @@ def test_tracker_tracks_and_rejects(box):
     assert "valid depth pixels" in tracker.track(np.zeros_like(f1.depth), f1.K, view, f0.pose).reason
 
 
+def _tracked_once(box, **limits):
+    """A tracker that has accepted frame 1 (so its motion model has a velocity), then had ``limits`` tightened;
+    returns ``(tracker, frame 2, view, the view's pose)``."""
+    ds, view = box
+    f0, f1, f2 = ds[0], ds[1], ds[2]
+    tracker = FrameToModelTracker(depth_max=5.0)
+    tracker.start(f0.pose)
+    assert tracker.track(f1.depth, f1.K, view, f0.pose).ok
+    for name, value in limits.items():
+        setattr(tracker, name, value)
+    return tracker, f2, view, f0.pose
+
+
+def _assert_rejected_without_state_change(tracker, frame, view, view_pose, reason: str):
+    last, guess = tracker.last_pose, tracker.predict()
+    velocity = np.linalg.inv(last) @ guess
+    result = tracker.track(frame.depth, frame.K, view, view_pose)
+    assert not result.ok and result.reason == reason
+    np.testing.assert_array_equal(result.pose, guess)                # the initial guess, not the ICP estimate
+    np.testing.assert_array_equal(result.initial_pose, guess)
+    np.testing.assert_array_equal(tracker.last_pose, last)           # the last accepted pose stays
+    # the velocity stays too; the next guess spans the rejected frame as well (two steps from the last pose)
+    np.testing.assert_allclose(tracker.predict(), last @ velocity @ velocity, atol=1e-12)
+    return result
+
+
+def test_tracker_rejects_a_large_inlier_rmse(box):
+    # measured on this box: the frame-2 alignment has an inlier RMSE of ~2.2 mm, fitness ~0.93
+    tracker, f2, view, view_pose = _tracked_once(box, max_rmse=0.001)
+    result = _assert_rejected_without_state_change(tracker, f2, view, view_pose,
+                                                   "inlier RMSE 0.2 cm > 0.1 cm")
+    assert result.fitness > tracker.min_fitness and 0.001 < result.inlier_rmse < 0.004
+    # the same frame passes under the default limit (3 cm): it really was the RMSE test that rejected it
+    ok_tracker, *_ = _tracked_once(box)
+    assert ok_tracker.track(f2.depth, f2.K, view, view_pose).ok
+
+
+def test_tracker_rejects_an_implausible_rotation(box):
+    # the box camera turns ~0.8 deg per frame and moves 2 cm (well within max_translation = 0.3 m)
+    tracker, f2, view, view_pose = _tracked_once(box, max_rotation_deg=0.4)
+    result = _assert_rejected_without_state_change(tracker, f2, view, view_pose,
+                                                   "implausible rotation 0.8 deg > 0.4 deg")
+    assert 0.7 < result.rotation_deg < 0.9 and result.translation < tracker.max_translation
+    assert result.inlier_rmse < tracker.max_rmse and result.fitness > tracker.min_fitness
+    # the limit scales with the frames elapsed since the last accepted one: after this rejection the next
+    # frame (two steps, ~1.6 deg) is allowed 0.8 deg, still rejected, and the message says so
+    f3 = box[0][3]
+    again = tracker.track(f3.depth, f3.K, view, view_pose)
+    assert not again.ok and again.reason.startswith("implausible rotation 1.6 deg > 0.8 deg")
+
+
 def test_tracker_rejects_a_wrong_model(box):
     ds, view = box
     f0, f1 = ds[0], ds[1]
