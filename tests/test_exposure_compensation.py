@@ -529,10 +529,11 @@ def test_simulated_auto_exposure_and_white_balance_are_recovered(ae_awb_sequence
     assert est.fallbacks == 0 and len(est.records) == SIM_N
     assert est.summary()["sources"]["map"] == SIM_N - 1
     err = exposure_errors(est.estimates(), truth, skip_first=3)
-    # measured: median 0.18 %, worst 0.38 %, drift (last - first quarter of the frames) -0.08 % at most
-    assert err["median"] < 0.02
-    assert err["max"] < 0.05
-    assert np.max(np.abs(err["drift"])) < 0.01
+    # measured: median 0.18 %, worst 0.38 %, drift (last - first quarter of the frames) -0.08 % at most; the
+    # issue asks for 2 % / 5 %; the bounds guard the measured accuracy with a margin of ~2.5x
+    assert err["median"] < 0.005
+    assert err["max"] < 0.01
+    assert np.max(np.abs(err["drift"])) < 0.003
     assert np.max(np.abs(err["errors"][1:3])) < 0.02              # the start-up frames are fine too
     # the map-vs-frame-to-frame cross-check agrees to a fraction of a percent (measured median 0.05 %)
     assert est.summary()["disagreement_median"] < 0.005
