@@ -472,6 +472,7 @@ class ReconstructConfig:
     depth_scale: float | None = None
     intrinsics: Any = None
     backend: str = "tsdf"
+    surfel_mesh: bool = False                   # surfel backend: also write a Poisson mesh (surfels_mesh.ply)
     format: str | None = None
     depth_max: float = 3.0
     block_resolution: int = 16
@@ -485,10 +486,17 @@ class ReconstructConfig:
 
 
 def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0, block_resolution: int = 16,
-                 trunc_voxel_multiplier: float = 8.0, **kwargs) -> FusionBackend:
-    """A fusion backend by name (:data:`BACKENDS`), imported lazily; options it does not take are ignored."""
+                 trunc_voxel_multiplier: float = 8.0, surfel_mesh: bool = False, **kwargs) -> FusionBackend:
+    """A fusion backend by name (:data:`BACKENDS`), imported lazily; options it does not take are ignored,
+    except ``surfel_mesh`` (the surfel backend's Poisson mesh, ``mesh=True``), which only the surfel backend
+    accepts."""
     if name not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {name!r}")
+    if surfel_mesh:
+        if name != "surfel":
+            raise ValueError(f"surfel_mesh applies to the surfel backend only, got backend {name!r} (the TSDF "
+                             "backend always writes mesh.ply); pass backend='surfel' or surfel_mesh=False")
+        kwargs["mesh"] = True
     module_name, class_name = BACKENDS[name]
     try:
         import importlib
@@ -554,7 +562,7 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
         colour_model = CompensatedColour(colour_model, export_reference=parse_reference(config.exposure_reference))
     backend = make_backend(config.backend, voxel_size=config.voxel_size, depth_max=config.depth_max,
                            block_resolution=config.block_resolution,
-                           trunc_voxel_multiplier=config.trunc_voxel_multiplier)
+                           trunc_voxel_multiplier=config.trunc_voxel_multiplier, surfel_mesh=config.surfel_mesh)
     tracker = make_tracker(depth_max=config.depth_max, motion_model=config.motion_model) \
         if config.poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,

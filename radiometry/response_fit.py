@@ -92,7 +92,8 @@ def _as_stack(images: Sequence[np.ndarray], times: Sequence[float] | np.ndarray)
     if not np.all(np.isfinite(t)) or np.any(t <= 0):
         raise ValueError(f"times must be positive finite seconds, got {t.tolist()}")
     if np.unique(t).size < 2:
-        raise ValueError(f"times must contain at least two different exposure times, got {t.tolist()}")
+        raise ValueError(f"times must contain at least two different exposure times, got {t.tolist()}; give each "
+                         "image its own exposure time, and capture the bracket at two or more different exposures")
     return stack, t
 
 
@@ -584,7 +585,8 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str, float]]:
             raise DatasetError(f"{path}:{lineno}: exposure time {token!r} is not a number of seconds; "
                                "write e.g. 'img.png 0.004' or 'img.png 1/250' (comment headers with #)") from None
         if not (math.isfinite(seconds) and seconds > 0):
-            raise DatasetError(f"{path}:{lineno}: exposure time must be positive seconds, got {token!r}")
+            raise DatasetError(f"{path}:{lineno}: exposure time must be positive seconds, got {token!r}; write "
+                               f"{name}'s exposure time in seconds, e.g. '{name} 0.004' or '{name} 1/250'")
         if name in seen:
             raise DatasetError(f"{path}:{lineno}: {name} is listed twice (first on line {seen[name]}); "
                                "keep one line per image")

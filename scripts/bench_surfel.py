@@ -11,6 +11,12 @@ renders the same ``--frames`` frames.
 Times are CPU time of the process (``time.process_time``), so that other jobs on a shared machine do not
 inflate them; wall time of integrate is printed beside.
 
+"Fusion" is what the issue counts: association and update (``integrate``) plus the histogram of the colour
+pairs, timed as the pipeline does it (``mapping.pipeline._Loop._measure``): the display conversion of the
+pairs (``mapping.colour.display_l1``: for ``--colour irradiance``, the default, the corrected runs' response
+forward at k_ref through a gamma 2.2 response; for ``--colour raw`` a clip) and
+``DisagreementHistogram.add_distances``. The ``hist`` column is that step alone, ``fusion fps`` counts both.
+
 Peers measured in the same run (ratios printed):
 - ``np transform``: one vectorised ``pos @ R.T + t`` of the whole map, the floor of any method that touches
   every surfel per frame;
@@ -81,7 +87,9 @@ def trajectory(i: int) -> np.ndarray:
     return look_at(eye, target)
 
 
-def make_frames(start: int, count: int, K, w, h, seed: int):
+def make_frames(start: int, count: int, K, w, h, seed: int, response=None):
+    """Frames of the room: depth with Kinect-like noise, colour in intensity levels (float32) or, with a
+    ``response``, relative irradiance ``f^-1(I)`` (the map units of a corrected run)."""
     rng = np.random.default_rng(seed)
     frames = []
     for i in range(start, start + count):
@@ -89,6 +97,8 @@ def make_frames(start: int, count: int, K, w, h, seed: int):
         depth, pts = render_room(pose, K, w, h)
         depth = depth + rng.normal(0, 1, depth.shape).astype(np.float32) * 0.0015 * depth ** 2
         colour = (albedo(pts) + rng.normal(0, 5, pts.shape)).astype(np.float32)
+        if response is not None:
+            colour = response.inverse(colour)
         frames.append((depth.astype(np.float32), colour, pose))
     return frames
 
@@ -109,25 +119,37 @@ def pad_map(backend, total: int) -> None:
         k += 1
 
 
-def time_backend(backend, frames, K, w, h, first_index: int):
-    """Median CPU seconds (process time: the machine may be shared) of integrate and render per frame, the
-    median wall seconds of integrate, mean colour pairs and the mean CPU ms per stage."""
-    t_int, t_ren, t_wall, pairs, visible = [], [], [], [], []
+def time_backend(backend, frames, K, w, h, first_index: int, colour_model):
+    """Per frame: median CPU seconds (process time: the machine may be shared) of integrate, of the histogram
+    step (display conversion of the pairs and binning, as the pipeline does it) and of render; the median wall
+    seconds of integrate, mean colour pairs, mean surfels in view, the mean CPU ms per stage and the
+    histogram (its mean L1, a check that the pairs were counted)."""
+    from mapping.colour import display_l1
+    from mapping.histogram import DisagreementHistogram
+
+    histogram = DisagreementHistogram(label="bench")
+    t_int, t_hist, t_ren, t_wall, pairs, visible = [], [], [], [], [], []
     backend.timings.clear()
     for i, (depth, colour, pose) in enumerate(frames):
         w0, t0 = time.perf_counter(), time.process_time()
         p = backend.integrate(depth, colour, K, pose, frame_index=first_index + i)
         w1, t1 = time.perf_counter(), time.process_time()
-        backend.render(pose, K, h, w)
+        if len(p):
+            histogram.add_distances(display_l1(colour_model, p.map_colour, p.sample_colour))
         t2 = time.process_time()
+        backend.render(pose, K, h, w)
+        t3 = time.process_time()
         t_int.append(t1 - t0)
-        t_ren.append(t2 - t1)
+        t_hist.append(t2 - t1)
+        t_ren.append(t3 - t2)
         t_wall.append(w1 - w0)
         pairs.append(len(p))
         visible.append(backend.last_frame["visible"])
     stages = {k: 1000 * v / len(frames) for k, v in backend.timings.items()}
-    return (statistics.median(t_int), statistics.median(t_ren), statistics.median(t_wall), statistics.mean(pairs),
-            statistics.mean(visible), stages)
+    return {"integrate": statistics.median(t_int), "hist": statistics.median(t_hist),
+            "fusion": statistics.median(np.add(t_int, t_hist)), "render": statistics.median(t_ren),
+            "wall": statistics.median(t_wall), "pairs": statistics.mean(pairs), "visible": statistics.mean(visible),
+            "stages": stages, "histogram": histogram}
 
 
 def time_numpy_transform(pos: np.ndarray, pose: np.ndarray, repeats: int = 5) -> float:
@@ -176,6 +198,8 @@ def main() -> None:
     ap.add_argument("--cpu", type=int, default=0, help="CPU to pin to (-1: no pinning)")
     ap.add_argument("--voxel", type=float, default=0.01, help="voxel size of the Open3D TSDF peer, metres")
     ap.add_argument("--no-tsdf", action="store_true", help="skip the Open3D TSDF peer")
+    ap.add_argument("--colour", choices=("irradiance", "raw"), default="irradiance",
+                    help="map units: irradiance through a gamma 2.2 response (a corrected run) or raw levels")
     args = ap.parse_args()
 
     if args.cpu >= 0 and hasattr(os, "sched_setaffinity"):
@@ -185,12 +209,16 @@ def main() -> None:
 
     numba.set_num_threads(1)
     cv2.setNumThreads(1)
+    from mapping.colour import RawIntensity, make_colour_model
     from mapping.fusion.surfel import SurfelBackend
+    from radiometry.response import CameraResponse
 
     w, h = 640, 480
     K = intrinsics(w, h)
-    warm = make_frames(0, args.warmup, K, w, h, seed=1)
-    timed = make_frames(args.warmup, args.frames, K, w, h, seed=2)
+    response = CameraResponse.gamma(2.2) if args.colour == "irradiance" else None
+    colour_model = RawIntensity() if response is None else make_colour_model(response)
+    warm = make_frames(0, args.warmup, K, w, h, seed=1, response=response)
+    timed = make_frames(args.warmup, args.frames, K, w, h, seed=2, response=response)
 
     base = SurfelBackend(pixel_stride=args.stride, max_depth=args.max_depth)
     for i, (depth, colour, pose) in enumerate(warm):
@@ -198,14 +226,14 @@ def main() -> None:
     base.stats()  # applies the pending unstable rule
     base.map.compact()
     n_local = len(base.map)
-    print(f"640x480, one core (CPU {args.cpu}, numba threads {numba.get_num_threads()}), pixel_stride {args.stride}; "
-          f"in-room map after {args.warmup} frames: {n_local} surfels "
+    print(f"640x480, one core (CPU {args.cpu}, numba threads {numba.get_num_threads()}), pixel_stride {args.stride}, "
+          f"colour {args.colour}; in-room map after {args.warmup} frames: {n_local} surfels "
           f"({base.stats()['stable_surfels']} stable)")
 
     tsdf = None if args.no_tsdf else time_open3d_tsdf(timed, K, w, h, args.voxel, args.max_depth)
-    header = (f"{'surfels':>9} {'in view':>8} {'integrate':>10} {'fps':>6} {'(wall)':>8} {'render':>8} "
-              f"{'int+ren fps':>11} {'pairs':>7} {'np transform':>12} {'int/np':>7}")
-    print("CPU time per frame (process time), medians; wall time in brackets")
+    header = (f"{'surfels':>9} {'in view':>8} {'integrate':>10} {'(wall)':>8} {'hist':>7} {'fusion fps':>10} "
+              f"{'render':>8} {'fus+ren fps':>11} {'pairs':>7} {'np transform':>12} {'int/np':>7}")
+    print("CPU time per frame (process time), medians; wall time in brackets; fusion = integrate + hist")
     print(header)
     rows = []
     for size in (float(s) for s in args.sizes.split(",")):
@@ -214,22 +242,23 @@ def main() -> None:
         if total > n_local:
             pad_map(backend, total)
         n = len(backend.map)
-        t_int, t_ren, t_wall, pairs, in_view, stages = time_backend(backend, timed, K, w, h, args.warmup)
-        pos = backend.map.position
-        t_np = time_numpy_transform(pos, timed[-1][2])
-        rows.append((n, t_int, t_ren, stages))
-        print(f"{n:>9} {in_view:>8.0f} {1000 * t_int:>8.1f}ms {1 / t_int:>6.1f} {1000 * t_wall:>6.1f}ms "
-              f"{1000 * t_ren:>6.1f}ms "
-              f"{1 / (t_int + t_ren):>11.1f} {pairs:>7.0f} {1000 * t_np:>10.1f}ms {t_int / t_np:>7.1f}")
-    print("\nper-stage mean CPU ms per frame (integrate):")
-    for n, _, _, stages in rows:
-        print(f"  {n:>9}: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+        r = time_backend(backend, timed, K, w, h, args.warmup, colour_model)
+        t_np = time_numpy_transform(backend.map.position, timed[-1][2])
+        rows.append((n, r))
+        print(f"{n:>9} {r['visible']:>8.0f} {1000 * r['integrate']:>8.1f}ms {1000 * r['wall']:>6.1f}ms "
+              f"{1000 * r['hist']:>5.2f}ms {1 / r['fusion']:>10.1f} {1000 * r['render']:>6.1f}ms "
+              f"{1 / (r['fusion'] + r['render']):>11.1f} {r['pairs']:>7.0f} {1000 * t_np:>10.1f}ms "
+              f"{r['integrate'] / t_np:>7.1f}")
+    print("\nper-stage mean CPU ms per frame (integrate; hist = display conversion + binning of the pairs):")
+    for n, r in rows:
+        print(f"  {n:>9}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items())
+              + f"; hist {1000 * r['hist']:.2f} ({r['histogram'].total} pairs, "
+              f"L1 mean {r['histogram'].stats()['mean']:.2f})")
     if tsdf is not None:
         print(f"\npeer: Open3D VoxelBlockGrid TSDF integrate ({args.voxel * 1000:.0f} mm voxels, one thread) "
               f"{1000 * tsdf:.1f} CPU ms/frame ({1 / tsdf:.1f} fps)")
-        for n, t_int, _, _ in rows:
-            print(f"  surfel integrate / TSDF integrate at {n} surfels: {t_int / tsdf:.2f}")
-
+        for n, r in rows:
+            print(f"  surfel integrate / TSDF integrate at {n} surfels: {r['integrate'] / tsdf:.2f}")
 
 if __name__ == "__main__":
     main()

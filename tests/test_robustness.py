@@ -314,7 +314,8 @@ def test_sequence_depth_in_an_unusual_unit(room, tmp_path):
 def test_sequence_empty(room, tmp_path):
     seq = tum_copy(room, tmp_path / "seq")
     (seq / "rgb.txt").write_text("# timestamp filename\n")
-    error_line(reconstruct(seq, tmp_path / "run"), seq / "rgb.txt", "lists no frames", "the sequence is empty")
+    error_line(reconstruct(seq, tmp_path / "run"), seq / "rgb.txt", "lists no frames", "the sequence is empty",
+               "; list one 'timestamp filename' line per colour image, or pass a complete sequence folder")
 
 
 def test_sequence_frame_selection_empty(room, tmp_path):
@@ -348,7 +349,9 @@ def test_correct_folder_empty(models, tmp_path):
     (lambda t: t + "exposure_5.png 1.024\n", ["exposure_5.png", "has no such image", "remove those lines"]),
     (lambda t: t.replace("exposure_4.png 0.256\n", ""), ["does not list exposure_4.png", "add a line"]),
     (lambda t: t.replace("0.016", "fast"), [":4:", "'fast' is not a number of seconds", "write e.g."]),
-    (lambda t: t.replace("0.016", "-0.016"), [":4:", "must be positive seconds"]),
+    (lambda t: t.replace("0.016", "-0.016"), [":4:", "must be positive seconds, got '-0.016'",
+                                               "; write exposure_2.png's exposure time in seconds, e.g. "
+                                               "'exposure_2.png 0.004' or 'exposure_2.png 1/250'"]),
     (lambda t: t.replace("0.016", "1/0"), [":4:", "not a number of seconds"]),
     (lambda t: t + "exposure_1.png 0.004\n", ["listed twice", "keep one line per image"]),
     (lambda t: t.replace("exposure_2.png 0.016", "exposure_2.png"), [":4:", "expected 'image_name seconds'"]),
@@ -371,7 +374,8 @@ def test_times_all_equal(brackets, tmp_path):
     times = brackets / "times.txt"
     times.write_text("\n".join(f"exposure_{i}.png 0.016" for i in range(5)) + "\n")
     error_line(run("response", brackets, "-o", tmp_path / "crf.npz"), brackets, "times.txt",
-               "at least two different exposure times")
+               "at least two different exposure times",
+               "; give each image its own exposure time, and capture the bracket at two or more different exposures")
 
 
 # ==================================================================================================
@@ -516,7 +520,9 @@ VIGNETTING_DEFECTS = {
     "vgn:nan": ["contains NaN or infinite values", "re-calibrate or re-export it"],
     "vgn:zero": ["strictly positive", "re-calibrate or re-export it"],
     "vgn:truncated": ["truncated", "re-export the model"],
-    "vgn:poly-degree": ["polynomial of degree 2", "use degree 3"],
+    "vgn:poly-degree": ["polynomial of degree 2", "use degree 3",
+                        "; re-export a degree-3 model from radical or re-calibrate with 'radiomap vignetting --model "
+                        "poly'"],
     "png:zero": ["5 pixels are 0", "re-export the vignette with V > 0 everywhere"],
     "png:colour": ["has 3 channels", "single-channel (grayscale) 16-bit PNG"],
     "png:truncated": ["corrupt or truncated", "re-export the DSO vignette"],

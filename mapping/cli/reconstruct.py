@@ -21,7 +21,8 @@ Examples:
       a 7-Scenes sequence, every second of the first 300 frames
   radiomap reconstruct rgbd_dataset_freiburg1_desk --depth-scale 5000 --intrinsics 517.3,516.5,318.6,255.3 -o desk
 \b
-The results folder holds mesh.ply/.glb (colours through the response at --reference-exposure),
+The results folder holds mesh.ply/.glb (colours through the response at --reference-exposure; with
+--backend surfel surfels.ply, and surfels_mesh.ply with --surfel-mesh),
 trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9 of
 Alexandrov et al.), metrics.json, frames.csv, config.json and summary.txt; with exposure compensation
 exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source map|frame|fallback) and
@@ -57,6 +58,9 @@ def _positive(ctx, param, value):
                    "[default: the sequence's own].")
 @click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
               help="Fusion backend.")
+@click.option("--surfel-mesh", is_flag=True,
+              help="With --backend surfel: also write surfels_mesh.ply, a Poisson mesh of the stable surfels "
+                   "(Open3D; beside surfels.ply).")
 @click.option("--format", "fmt", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
               help="Sequence layout [default: detected].")
 @click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
@@ -74,7 +78,7 @@ def _positive(ctx, param, value):
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
-            backend: str, fmt: str | None, depth_max: float, reference_exposure: float,
+            backend: str, surfel_mesh: bool, fmt: str | None, depth_max: float, reference_exposure: float,
             exposure_compensation: bool | None, exposure_reference: str, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample."""
@@ -86,6 +90,10 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
         raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
     if exposure_compensation and response is None:
         raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
+    if surfel_mesh and backend != "surfel":
+        raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
+                                 "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
+                                 param_hint="--surfel-mesh")
     from mapping.exposure_compensation import parse_reference
 
     try:
@@ -94,7 +102,8 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
         raise click.BadParameter(str(exc), param_hint="--exposure-reference") from None
     config = ReconstructConfig(sequence=sequence, output=output, response=response, vignetting=vignetting,
                                poses=poses, voxel_size=voxel_size, frames=frames or slice(None),
-                               depth_scale=depth_scale, intrinsics=intrinsics, backend=backend, format=fmt,
+                               depth_scale=depth_scale, intrinsics=intrinsics, backend=backend,
+                               surfel_mesh=surfel_mesh, format=fmt,
                                depth_max=depth_max, reference_exposure=reference_exposure,
                                exposure_compensation=exposure_compensation, exposure_reference=exposure_reference,
                                force=force, progress=not no_progress)

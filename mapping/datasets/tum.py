@@ -73,7 +73,9 @@ class TUMDataset(FileSequence):
         depth_list = read_stamped_list(root / "depth.txt")
         if not rgb_list or not depth_list:
             empty = "rgb.txt" if not rgb_list else "depth.txt"
-            raise DatasetError(f"{root / empty}: lists no frames; the sequence is empty")
+            raise DatasetError(f"{root / empty}: lists no frames; the sequence is empty; list one 'timestamp "
+                               f"filename' line per {'colour' if empty == 'rgb.txt' else 'depth'} image, or pass a "
+                               "complete sequence folder")
         rgb_t = np.array([r[0] for r in rgb_list])
         depth_t = np.array([d[0] for d in depth_list])
         ia, ib = associate_timestamps(rgb_t, depth_t, max_difference=max_difference)

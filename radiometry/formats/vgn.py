@@ -140,7 +140,8 @@ def read_radical_vgn(path: str | os.PathLike) -> VignettingModel:
                                            f"'{POLY_HEADER} 3 WIDTH HEIGHT'") from None
             if degree != POLY_DEGREE:
                 raise CalibrationFileError(f"{path}: polynomial of degree {degree}; radical and radiomap use "
-                                           f"degree {POLY_DEGREE}")
+                                           f"degree {POLY_DEGREE}; re-export a degree-{POLY_DEGREE} model from "
+                                           "radical or re-calibrate with 'radiomap vignetting --model poly'")
             if width < 1 or height < 1:
                 raise CalibrationFileError(f"{path}: image size {width}x{height} in the header is not positive")
             mat = _read_mat(path, data, newline + 1, CV_64FC3)
