@@ -188,6 +188,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
+        loop.drop_unfinished()
         raise
     finally:
         if bar is not None:
@@ -334,6 +335,12 @@ class _Loop:
         if view is None or np.count_nonzero(view.depth > 0) < self.refresh_coverage * valid:
             view = self.backend.render(pose, frame.K, frame.height, frame.width)
         self.track_view = (view, pose)
+
+    def drop_unfinished(self) -> None:
+        """Forget the frame an interruption cut short (neither fused nor skipped for a reason): it was not
+        processed, so it is not counted as skipped."""
+        if self.records and not self.records[-1].fused and not self.records[-1].reason:
+            self.records.pop()
 
     def result(self, status: str) -> RunResult:
         return RunResult(stamps=np.asarray(self.stamps), poses=np.asarray(self.est).reshape(-1, 4, 4),

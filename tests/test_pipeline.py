@@ -220,6 +220,28 @@ def test_interrupted_run_stays_marked_incomplete(tmp_path):
     ResultsFolder(out.path, force=True)                                       # --force reuses the folder
 
 
+def test_a_frame_cut_short_by_ctrl_c_is_not_counted_as_skipped(tmp_path):
+    """Ctrl-C while frame 3 is being fused: frames 0-2 fused, frame 3 neither fused nor counted as skipped (it
+    once appeared as a skip with an empty reason)."""
+    backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    original = backend.integrate
+
+    def integrate(*args, frame_index=0, **kwargs):
+        if frame_index == 3:
+            raise KeyboardInterrupt
+        return original(*args, frame_index=frame_index, **kwargs)
+
+    backend.integrate = integrate
+    out = ResultsFolder(tmp_path / "run")
+    with pytest.raises(KeyboardInterrupt):
+        reconstruct(_box(6), backend=backend, poses="gt", output=out, progress=False)
+    metrics = json.loads((out.path / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted"
+    assert metrics["frames"] | {"skip_reasons": None, "skipped_frames": None} == {
+        "total": 3, "fused": 3, "skipped": 0, "skip_reasons": None, "skipped_frames": None}
+    assert metrics["frames"]["skip_reasons"] == {} and metrics["frames"]["skipped_frames"] == []
+
+
 def test_backends_by_name():
     with pytest.raises(ValueError, match="backend must be one of"):
         make_backend("octomap")
