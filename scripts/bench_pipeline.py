@@ -148,7 +148,8 @@ def run_worker(method: str, args) -> dict:
            "--depth-diff", str(args.depth_diff), "--device", args.device, "--motion-model", args.motion_model]
     out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
     if out.returncode != 0:
-        raise SystemExit(f"{method} worker failed:\n{out.stderr[-3000:]}")
+        how = f"signal {-out.returncode}" if out.returncode < 0 else f"exit code {out.returncode}"
+        raise SystemExit(f"{method} worker failed ({how}):\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
