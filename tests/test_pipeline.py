@@ -40,20 +40,52 @@ def test_simulated_room_icp_ate(room):
     assert np.linalg.norm(run.poses[-1, :3, 3] - gt[-1, :3, 3]) < 0.05   # no drift away (first pose = truth)
 
 
-def _mesh_error(backend, room_truth, response, linearise: bool) -> float:
-    """Mean absolute error of the mesh colours against the true radiance after one scale per channel, relative
-    to the mean radiance. Raw-intensity maps are first linearised through the true response (which undoes the
-    camera's non-linearity, not its vignetting or exposure)."""
-    mesh = backend.extract_mesh()
-    colours = response.inverse(np.clip(mesh.colours, 0, 255)) if linearise else mesh.colours
-    truth = room_truth.radiance_at(mesh.vertices, mesh.normals, max_distance=0.03)
+def _mesh_error(colours: np.ndarray, truth: np.ndarray, *, scale: str) -> float:
+    """Mean absolute error of mesh colours against the true radiance, relative to the mean radiance, after a
+    least-squares scale: ``scale="channel"`` fits one scale per channel (forgives white balance),
+    ``scale="global"`` one scalar for all three channels, ``s = sum(t c) / sum(c^2)`` over every vertex and
+    channel (what issue 5 asks for: any colour cast counts). Vertices farther than 3 cm from the true
+    surface (NaN truth) or with a non-positive value are left out; they must be fewer than 10 %."""
     ok = np.all(np.isfinite(truth), 1) & np.all(truth > 0, 1) & np.all(colours > 0, 1)
-    assert ok.mean() > 0.9 and ok.sum() > 5000
-    scale = (truth[ok] * colours[ok]).sum(0) / (colours[ok] ** 2).sum(0)
-    return float(np.abs(colours[ok] * scale - truth[ok]).mean() / truth[ok].mean())
+    assert ok.mean() > 0.9 and ok.sum() > 5000           # measured: 99.2 % of 47 000 vertices
+    c, t = colours[ok].astype(np.float64), truth[ok].astype(np.float64)
+    if scale == "channel":
+        s = (t * c).sum(0) / (c ** 2).sum(0)
+    elif scale == "global":
+        s = (t * c).sum() / (c ** 2).sum()
+    else:
+        raise ValueError(f"scale must be 'channel' or 'global', got {scale!r}")
+    return float(np.abs(c * s - t).mean() / t.mean())
 
 
-def test_simulated_room_corrected_colours_are_closer_to_the_truth(room):
+@pytest.fixture(scope="module")
+def calibrated_lut(room, tmp_path_factory):
+    """The vignetting LUT calibrated as a user would: a 50-frame white-paper sweep (fixed exposure) simulated
+    with the room sample's own camera (``truth/camera.json``: same spec, resolution, response, vignetting
+    and noise), accumulated with the camera's true response and fitted as a LUT (about 3 s)."""
+    from mapping.simulation.sequences import simulate_paper
+    from radiometry.simulation import CameraSpec
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting_lut, vignetting_error_levels
+
+    spec = CameraSpec.load(room.truth_path("camera.json"))
+    response = room.true_response()
+    assert (spec.width, spec.height) == (room.width, room.height) == (320, 240)
+    np.testing.assert_array_equal(spec.response().inverse_table, response.inverse_table)
+    sweep = simulate_paper(tmp_path_factory.mktemp("sweep") / "paper", camera=spec, seed=1, n_frames=50,
+                           force=True, progress=False, write_depth_images=False)
+    acc = collect_vignetting(sweep / "rgb", response, progress=False)
+    lut = fit_vignetting_lut(acc)
+    # measured: 50 of 50 frames used; RMS error vs the true V 0.17 / 0.16 / 0.15 levels (flat field at 200)
+    assert acc.frames_used >= 45
+    assert np.all(vignetting_error_levels(lut, room.true_vignetting(), response) < 0.5)
+    return lut
+
+
+@pytest.fixture(scope="module")
+def room_colour_runs(room, calibrated_lut):
+    """The room fused at the ground-truth poses with each colour model: ``{name: (mesh colours, true radiance
+    at the vertices, histogram stats)}``; the raw-intensity run is also given linearised through the true
+    response as ``none-linearised`` (undoes the camera's non-linearity, not its vignetting or exposure)."""
     from mapping.simulation import load_room
 
     truth = load_room(room.truth_path("room.json"))
@@ -67,18 +99,52 @@ def test_simulated_room_corrected_colours_are_closer_to_the_truth(room):
 
     models = {"none": RawIntensity(),
               "lut": IrradianceColour(response, V),
+              "lut-calibrated": IrradianceColour(response, calibrated_lut),
               "lut+exposure": IrradianceColour(response, V, exposure=true_exposure,
                                                reference_exposure=float(np.median(k[:, 0])))}
-    errors, hists = {}, {}
+    runs = {}
     for name, model in models.items():
         backend = make_backend("tsdf", voxel_size=0.02, depth_max=4.0)
         run = reconstruct(room, colour_model=model, backend=backend, poses="gt", progress=False)
-        errors[name] = _mesh_error(backend, truth, response, linearise=(name == "none"))
-        hists[name] = run.histogram.stats()
-    # measured: none 13.2 %, LUT 5.6 %, LUT + true exposure 3.8 % (mean error relative to the mean radiance)
-    assert errors["lut"] < 0.7 * errors["none"]
+        mesh = backend.extract_mesh()
+        radiance = truth.radiance_at(mesh.vertices, mesh.normals, max_distance=0.03)
+        runs[name] = (mesh.colours, radiance, run.histogram.stats())
+    colours, radiance, stats = runs["none"]
+    runs["none-linearised"] = (response.inverse(np.clip(colours, 0, 255)), radiance, stats)
+    return runs
+
+
+def test_simulated_room_corrected_colours_are_closer_to_the_truth(room_colour_runs):
+    """One scale per channel (white balance forgiven): what vignetting correction alone buys."""
+    errors = {name: _mesh_error(c, t, scale="channel") for name, (c, t, _) in room_colour_runs.items()}
+    hists = {name: stats for name, (_, _, stats) in room_colour_runs.items()}
+    # measured: none linearised 13.2 %, LUT 5.6 %, calibrated LUT 5.6 %, LUT + true exposure 3.8 % (mean error
+    # relative to the mean radiance)
+    assert errors["lut"] < 0.7 * errors["none-linearised"]
+    assert errors["lut-calibrated"] < 0.7 * errors["none-linearised"]
     assert errors["lut+exposure"] < errors["lut"]
     assert hists["lut+exposure"]["mean"] < hists["none"]["mean"]
+
+
+def test_simulated_room_colours_after_one_global_scale(room_colour_runs):
+    """Issue 5 as written: with ground-truth poses, the mesh colours with LUT correction are closer to the truth
+    (mean error after ONE global least-squares scale, the same for R, G and B) than without correction, with
+    the simulator's true V and with a LUT calibrated from a white-paper sweep of the same camera.
+
+    The truth is the surfaces' true radiance (albedo times the room's fixed, uneven lighting), i.e. the albedo
+    as the camera can see it: no colour correction can remove the shading, so a comparison with the bare
+    albedo measures the lighting (about 28-35 % for every run) rather than the correction."""
+    errors = {name: _mesh_error(c, t, scale="global") for name, (c, t, _) in room_colour_runs.items()}
+    # measured (relative to the mean radiance): none (raw 8-bit) 18.9 %, none linearised through the true
+    # response 14.3 %, LUT (true V) 9.0 %, calibrated LUT 9.0 %, LUT + true exposure 3.8 %. The single scale
+    # also counts the auto white balance's cast, which only the exposure run removes (9.0 % -> 3.8 %; with
+    # one scale per channel the LUT runs are at 5.6 %).
+    for lut in ("lut", "lut-calibrated"):
+        assert errors[lut] < 0.55 * errors["none"], lut                  # measured ratio 0.48
+        assert errors[lut] < 0.75 * errors["none-linearised"], lut       # measured ratio 0.63
+    # the calibrated LUT does as well as the true V (measured 8.97 % vs 8.99 %)
+    assert errors["lut-calibrated"] < 1.05 * errors["lut"]
+    assert errors["lut+exposure"] < 0.6 * errors["lut"]                  # measured ratio 0.42
 
 
 # --------------------------------------------------------------------------------------------------
