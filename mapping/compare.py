@@ -496,6 +496,10 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
         raise ValueError(f"brightness must be one of {', '.join(BRIGHTNESS)}, got {brightness!r}")
     if not (isinstance(voxel_size, (int, float)) and math.isfinite(voxel_size) and voxel_size > 0):
         raise ValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
+    if not (isinstance(views, (int, np.integer)) and views >= 0):
+        raise ValueError(f"views must be a whole number >= 0 (0: no renders), got {views!r}")
+    if views and not (isinstance(render_width, (int, np.integer)) and 16 <= render_width <= 4096):
+        raise ValueError(f"render_width must be a whole number of pixels in 16..4096, got {render_width!r}")
     if len(dataset) == 0:
         raise RadiomapError(f"{getattr(dataset, 'name', 'the sequence')}: no frames to compare; check --frames")
     compensated = _compensated_colour_class() if any(m.exposure_compensation for m in methods) else None

@@ -373,6 +373,11 @@ def test_compare_rejects_bad_arguments(room, models, tmp_path):
         compare(ds, [], output=tmp_path / "a")
     with pytest.raises(ValueError, match="voxel_size"):
         compare(ds, methods, output=tmp_path / "a", voxel_size=0)
+    with pytest.raises(ValueError, match="render_width must be a whole number of pixels"):
+        compare(ds, methods, output=tmp_path / "a", render_width=0)
+    with pytest.raises(ValueError, match="views must be a whole number"):
+        compare(ds, methods, output=tmp_path / "a", views=-1)
+    assert not (tmp_path / "a").exists()                     # refused before anything is written
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputError, match="existing file"):
         compare(ds, methods, output=tmp_path / "file")
@@ -425,3 +430,17 @@ def test_cli_compare_rejects_unknown_methods(room, tmp_path):
     res = CliRunner().invoke(cli, ["compare", str(room[0]), "-r", str(tmp_path / "crf.npz"), "-o",
                                    str(tmp_path / "o"), "--methods", "lut"])
     assert res.exit_code == 2 and "--vignetting-lut" in res.output
+
+
+def test_one_progress_bar_over_the_whole_comparison(room, models, tmp_path, capsys):
+    """The progress bar counts frames over every method (3 frames x 3 methods = 9), on stderr only."""
+    from mapping.datasets import open_dataset
+
+    seq, _ = room
+    response, poly, lut = models
+    methods = make_methods(response, vignetting_poly=poly, vignetting_lut=lut)
+    compare(open_dataset(seq, frames=slice(0, 3)), methods, output=tmp_path / "out", poses="gt", voxel_size=0.02,
+            progress=True, views=0)
+    captured = capsys.readouterr()
+    assert "compare" in captured.err and "9/9" in captured.err
+    assert "compare" not in captured.out and "9/9" not in captured.out
