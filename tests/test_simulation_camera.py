@@ -219,6 +219,29 @@ def test_float_path_round_trips_to_float_precision(camera):
     np.testing.assert_allclose(cap.irradiance, truth * camera.vignetting, rtol=1e-6)
 
 
+def test_float_path_round_trips_a_rendered_room_frame(camera):
+    """The same round trip on the radiance of a real rendered room frame (sharp texture edges, dark
+    skirting boards and bright walls, light fall-off) instead of a smooth synthetic field."""
+    from mapping.simulation import Renderer, make_room, room_trajectory
+    from radiometry.simulation import default_intrinsics
+
+    room = make_room(3, texel=0.01)
+    pose = room_trajectory(room, 100, seed=5)[40]
+    r = Renderer(room, default_intrinsics(W, H), W, H).render(pose)
+    L = r.radiance
+    assert r.valid.all() and L.dtype == np.float32 and L.min() > 0
+    assert np.percentile(L, 99) / np.percentile(L, 1) > 10          # a real, contrasty frame
+    k, g = 0.6 / float(np.percentile(L, 99)), np.array([0.85, 1.0, 1.3])
+    cap = camera.capture(L, exposure_time=k, gains=g, noise=False, jpeg=False)
+    truth = k * g * L
+    unsaturated = cap.irradiance < 0.999
+    assert unsaturated.mean() > 0.9
+    recovered = camera.response.inverse(cap.intensity) / camera.vignetting
+    assert recovered.dtype == np.float32
+    np.testing.assert_allclose(recovered[unsaturated], truth[unsaturated], rtol=2e-6, atol=1e-9)
+    np.testing.assert_allclose(cap.irradiance, truth * camera.vignetting, rtol=1e-6)
+
+
 def test_uint8_path_round_trips_within_half_a_level(camera):
     """With 8-bit rounding, |f^-1(I) - E| is at most half of the larger table step next to level I."""
     L = smooth_field(2, lo=0.5, hi=60.0)

@@ -1,4 +1,5 @@
-"""``radiomap simulate {room,paper,brackets}``: render sequences with known ground truth."""
+"""``radiomap simulate {room,paper,brackets}``: render sequences with known ground truth (a room can
+hang the user's own pictures on its walls with ``--picture``)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ Examples:
       100 frames of a furnished room, 640x480, auto exposure and white balance, TUM layout + truth
   radiomap simulate room -o room_fixed --seed 1 --fixed-exposure --frames 300 --light-change 0.5
       fixed exposure; the light dims to half its brightness in the middle of the sequence
+  radiomap simulate room -o room_art --seed 1 --picture holiday.jpg --picture map.png
+      your own pictures hung on the walls (image textures; the paths are recorded in truth/room.json)
   radiomap simulate paper -o paper_seq --seed 1 --flicker 0.05
       a white-paper sweep for vignetting calibration (fixed exposure), light flickering by 5 %
   radiomap simulate brackets -o brackets --seed 1 --frames 11
@@ -69,6 +72,9 @@ DIR/truth/; DIR/radiomap_sequence.json describes the sequence.
               help="Pass every frame through JPEG at this quality (frames are still written as PNG).")
 @click.option("--supersample", type=click.IntRange(1, 4), default=1, show_default=True,
               help="Room: rays per pixel side (anti-aliasing; cost grows with its square).")
+@click.option("--picture", "pictures", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              metavar="PATH", help="Room: hang this PNG/JPEG picture on a wall (longer side 0.5-1.0 m, aspect "
+              "kept, sRGB decoded to linear albedo); repeat for several.")
 @click.option("--force", is_flag=True, help="Overwrite a non-empty output folder (an earlier simulation there "
               "is removed first).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -76,7 +82,8 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
             vignetting_preset: str | None, vignette_png: Path | None, lensfun_lens: str | None,
             lens_focal: float | None, lens_aperture: float | None, lensfun_db: Path | None, crf: str | None,
             auto_exposure: bool, exposure_time: float | None, light_change: float | None, flicker: float,
-            bracket_scene: str, jpeg_quality: int | None, supersample: int, force: bool, no_progress: bool) -> None:
+            bracket_scene: str, jpeg_quality: int | None, supersample: int, pictures: tuple[Path, ...], force: bool,
+            no_progress: bool) -> None:
     """Render a simulated sequence with ground truth: KIND is room (RGB-D, TUM layout), paper
     (white-paper vignetting sweep) or brackets (bracketed exposures)."""
     from mapping.cli._common import format_table
@@ -87,8 +94,8 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
     n_sources = sum(v is not None for v in (vignetting_preset, vignette_png, lensfun_lens))
     if n_sources > 1:
         raise click.UsageError("give at most one of --vignetting, --vignette-png and --lensfun")
-    if kind != "room" and (light_change is not None or supersample != 1 or not auto_exposure):
-        raise click.UsageError("--light-change, --supersample and --fixed-exposure are for 'room' "
+    if kind != "room" and (light_change is not None or supersample != 1 or not auto_exposure or pictures):
+        raise click.UsageError("--light-change, --supersample, --fixed-exposure and --picture are for 'room' "
                                "(paper and brackets always use a fixed exposure)")
     if kind != "paper" and flicker:
         raise click.UsageError("--flicker is for 'paper'")
@@ -131,7 +138,8 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
         light = None if light_change is None else sequences.light_step(n, light_change)
         out = sequences.simulate_room(output, camera=spec, seed=seed, n_frames=n, auto_exposure=auto_exposure,
                                       exposure_time=exposure_time, light_scale=light, jpeg_quality=jpeg_quality,
-                                      supersample=supersample, force=force, progress=progress)
+                                      supersample=supersample, pictures=pictures, force=force,
+                                      progress=progress)
     elif kind == "paper":
         out = sequences.simulate_paper(output, camera=spec, seed=seed, n_frames=n, exposure_time=exposure_time,
                                        flicker=flicker, jpeg_quality=jpeg_quality, force=force, progress=progress)

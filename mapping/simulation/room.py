@@ -5,12 +5,22 @@ Furniture boxes stand along the walls; the camera region (:attr:`Room.camera_bou
 of the room, at least ``clearance`` metres from every box and wall, so a trajectory inside it never
 enters furniture and rarely sees anything closer than ~0.5 m.
 
+Walls carry procedural textures (paint, wallpaper, tiles, generated posters and printed pages) and,
+optionally, the user's own pictures (``pictures=(path, ...)``, PNG or JPEG; ``radiomap simulate room
+--picture PATH``): each is pasted on a wall at eye level with its longer side 0.5-1.0 m and its aspect
+ratio kept, its sRGB values decoded to linear albedo (:func:`mapping.simulation.textures.picture`).
+Their placement is drawn from the room's random stream after everything else, so adding a picture
+changes nothing else in the room.
+
 ``make_room(seed, **params)`` is deterministic: ``room.json`` stores the seed and parameters (plus
-informational derived values and checksums) and :func:`load_room` rebuilds the identical room.
+informational derived values and checksums) and :func:`load_room` rebuilds the identical room. Pictures
+are recorded by absolute path with their SHA-1; one changed since is reported with the texture checksum
+warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -23,8 +33,8 @@ import numpy as np
 
 from mapping.simulation import textures as tx
 from mapping.simulation.scene import Face, Lighting, PointLight, TexturedScene
-from radiometry.errors import DatasetError
-from radiometry.fileio import atomic_write_json
+from radiometry.errors import DatasetError, ImageError
+from radiometry.fileio import atomic_write_json, read_rgb
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +60,8 @@ class RoomParams:
     light_intensity: point light intensity (radiance units x m^2).
     ambient:         ambient irradiance.
     clearance:       free distance around the camera region.
+    pictures:        paths of PNG/JPEG pictures pasted on the walls (stored as absolute paths; the
+                     files are read by :func:`make_room`, and again by :func:`load_room`).
     """
 
     size: tuple = (6.0, 5.0, 2.7)
@@ -60,6 +72,7 @@ class RoomParams:
     light_intensity: float = 1400.0
     ambient: float = 40.0
     clearance: float = 0.4
+    pictures: tuple = ()
 
     def __post_init__(self) -> None:
         size = tuple(float(v) for v in self.size)
@@ -77,6 +90,39 @@ class RoomParams:
             raise ValueError("light_intensity and ambient must be >= 0 and not both 0")
         if not (0.1 <= self.clearance <= 1.0):
             raise ValueError(f"clearance must be within [0.1, 1] metres, got {self.clearance!r}")
+        object.__setattr__(self, "pictures", _picture_paths(self.pictures))
+
+
+def _picture_paths(pictures: Any) -> tuple[str, ...]:
+    """``pictures`` as a tuple of absolute path strings, or a ValueError saying what is wrong."""
+    if isinstance(pictures, (str, bytes, os.PathLike)):
+        raise ValueError(f"pictures must be a sequence of image paths, got the single path {pictures!r}; "
+                         f"write pictures=({str(pictures)!r},)")
+    try:
+        paths = tuple(os.fspath(v) for v in pictures)
+    except TypeError:
+        raise ValueError(f"pictures must be a sequence of image paths (str or pathlib.Path), "
+                         f"got {pictures!r}") from None
+    if any(not isinstance(v, str) or not v.strip() for v in paths):
+        raise ValueError(f"pictures must be non-empty path strings, got {paths!r}")
+    if len(paths) > 30:
+        raise ValueError(f"pictures: at most 30 pictures, got {len(paths)}")
+    return tuple(os.path.abspath(os.path.expanduser(v)) for v in paths)
+
+
+@dataclass(frozen=True)
+class PicturePlacement:
+    """Where :func:`make_room` pasted a user picture: the wall face, the texel rectangle in its texture
+    (row ``top``, column ``left``, ``height`` x ``width`` texels; row 0 is the top of the wall), and the
+    SHA-1 of the file it read."""
+
+    path: str
+    face: str
+    top: int
+    left: int
+    height: int
+    width: int
+    sha1: str
 
 
 @dataclass(frozen=True)
@@ -115,11 +161,13 @@ class Room(TexturedScene):
     (:attr:`boxes`) and the region a camera may move in (:attr:`camera_bounds`)."""
 
     def __init__(self, faces: list[Face], lighting: Lighting, *, seed: int, params: RoomParams,
-                 boxes: list[Box], camera_bounds: tuple[np.ndarray, np.ndarray]) -> None:
+                 boxes: list[Box], camera_bounds: tuple[np.ndarray, np.ndarray],
+                 pictures: list[PicturePlacement] | tuple = ()) -> None:
         super().__init__(faces, lighting, name=f"room-{seed}")
         self.seed = int(seed)
         self.params = params
         self.boxes = list(boxes)
+        self.pictures = list(pictures)
         self.camera_bounds = (np.asarray(camera_bounds[0], float), np.asarray(camera_bounds[1], float))
 
     @property
@@ -131,12 +179,14 @@ class Room(TexturedScene):
 
     def to_dict(self) -> dict[str, Any]:
         """What ``room.json`` holds: seed + parameters (enough to rebuild), and for information the
-        furniture, lights, camera region and checksums of geometry and textures."""
+        furniture, lights, camera region, user pictures (where they went, their SHA-1) and checksums of
+        geometry and textures."""
         return {
             "format": ROOM_FORMAT, "version": ROOM_FORMAT_VERSION, "seed": self.seed,
             "params": {f.name: (list(v) if isinstance(v := getattr(self.params, f.name), tuple) else v)
                        for f in fields(self.params)},
             "boxes": [asdict(b) for b in self.boxes],
+            "pictures": [asdict(pl) for pl in self.pictures],
             "lighting": self.lighting.to_dict(),
             "camera_bounds": [self.camera_bounds[0].tolist(), self.camera_bounds[1].tolist()],
             "faces": [{"name": f.name, "origin": f.origin.tolist(), "axis_s": f.axis_s.tolist(),
@@ -153,9 +203,10 @@ class Room(TexturedScene):
 def load_room(path: str | os.PathLike) -> Room:
     """Rebuild the room described by a ``room.json`` written by :meth:`Room.save`.
 
-    Raises :class:`DatasetError` when the file is not a room description or the rebuilt geometry
-    differs from the recorded checksum (a different radiomap version); a texture checksum mismatch
-    (possible across CPU instruction sets) is logged as a warning.
+    Raises :class:`DatasetError` when the file is not a room description, a picture it names cannot
+    be read, or the rebuilt geometry differs from the recorded checksum (a different radiomap version);
+    a texture checksum mismatch (possible across CPU instruction sets, or a picture file changed since)
+    is logged as a warning naming the changed pictures.
     """
     path = Path(path)
     if not path.is_file():
@@ -175,11 +226,18 @@ def load_room(path: str | os.PathLike) -> Room:
         room = make_room(int(data["seed"]), **data["params"])
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: bad room parameters ({exc}); re-create the sequence") from None
+    except ImageError as exc:
+        raise DatasetError(f"{path}: cannot rebuild the room: {exc}") from None
     checks = data.get("checksum", {})
     if checks.get("geometry") and checks["geometry"] != room.checksum(textures=False):
         raise DatasetError(f"{path}: the rebuilt room geometry differs from the recorded one (written by "
                            "another radiomap version?); re-create the sequence with this version")
-    if checks.get("textures") and checks["textures"] != room.checksum(textures=True):
+    recorded = {d.get("path"): d.get("sha1") for d in data.get("pictures", []) if isinstance(d, dict)}
+    changed = [pl.path for pl in room.pictures if recorded.get(pl.path, pl.sha1) != pl.sha1]
+    if changed:
+        log.warning("%s: rebuilt textures differ from the recorded checksum: picture(s) changed since the room "
+                    "was made: %s", path, ", ".join(changed))
+    elif checks.get("textures") and checks["textures"] != room.checksum(textures=True):
         log.warning("%s: rebuilt textures differ slightly from the recorded checksum", path)
     return room
 
@@ -226,6 +284,46 @@ def _box_faces(box: Box, rng: np.random.Generator, texel: float, index: int) -> 
     top_kind = "granite" if box.material in ("paint", "page") else box.material
     faces.append(Face(f"box{index}_top", top_origin, ex, ey, (sx, sy), tx.material(rng, h, w, texel, top_kind)))
     return faces
+
+
+def _read_picture(path: str) -> tuple[np.ndarray, str]:
+    """A user picture as RGB uint8 (grey stays 2-D) and the SHA-1 of its file; :class:`ImageError`
+    naming the file when it is missing or not a readable image."""
+    file = Path(path)
+    if not file.is_file():
+        raise ImageError(f"{file}: no such picture for the room; check the path (--picture / RoomParams.pictures)")
+    try:
+        rgb = read_rgb(file)
+        digest = hashlib.sha1(file.read_bytes()).hexdigest()
+    except ImageError as exc:
+        raise ImageError(f"room picture {exc}; use a PNG or JPEG file") from None
+    except OSError as exc:
+        raise ImageError(f"{file}: cannot read the room picture ({exc.strerror or exc}); check its "
+                         "permissions") from None
+    return rgb, digest
+
+
+def _paste_picture(path: str, walls: list[Face], rng: np.random.Generator, p: RoomParams) -> PicturePlacement:
+    """Paste one user picture on a wall at eye level, its longer side 0.5-1.0 m. Always draws the same
+    four numbers from ``rng``, so the picture's content never changes the rest of the room."""
+    rgb, digest = _read_picture(path)
+    k = int(rng.integers(0, 4))
+    longer = rng.uniform(0.5, 1.0)
+    centre_height = rng.uniform(1.3, 1.8)
+    along = rng.random()
+    wall = walls[k]
+    th, tw = wall.texture.shape[:2]
+    ih, iw = rgb.shape[:2]
+    texel = p.texel
+    n_long = max(2, int(round(longer / texel)))
+    n_short = max(2, int(round(n_long * min(ih, iw) / max(ih, iw))))
+    ph, pw = (n_long, n_short) if ih > iw else (n_short, n_long)
+    lz = p.size[2]
+    top_m = min(lz - 0.05, max(centre_height + ph * texel / 2, 0.1 + ph * texel))   # above the skirting board
+    top = int(round((lz - top_m) / texel))
+    left = int(round(along * max(0, tw - pw)))
+    tx.paste(wall.texture, tx.picture(rgb, ph, pw), top, left)
+    return PicturePlacement(path, wall.name, top, left, ph, pw, digest)
 
 
 def _overlaps(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
@@ -345,7 +443,10 @@ def make_room(seed: int = 0, **params: Any) -> Room:
     amb_tint = np.array([1.0, 0.98, 0.95])
     lighting = Lighting(tuple(float(v) for v in p.ambient * amb_tint), 0.25, tuple(lights))
 
+    # the user's pictures last: the rest of the room is the same with or without them
+    pictures = [_paste_picture(path, walls, rng, p) for path in p.pictures]
+
     margin = band + p.clearance
     lo = np.array([margin, margin, 1.1])
     hi = np.array([lx - margin, ly - margin, min(1.75, lz - 0.6)])
-    return Room(faces, lighting, seed=int(seed), params=p, boxes=boxes, camera_bounds=(lo, hi))
+    return Room(faces, lighting, seed=int(seed), params=p, boxes=boxes, camera_bounds=(lo, hi), pictures=pictures)

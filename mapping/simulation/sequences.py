@@ -15,7 +15,8 @@ Folder layout (other modules' loaders depend on it exactly)::
     SEQ/truth/exposures.txt          'timestamp k gain_r gain_g gain_b' (effective exposure k * gain_c)
     SEQ/truth/light_scale.txt        'timestamp scale' (multiplies all scene radiance; 1 = nominal)
     SEQ/truth/camera.json            CameraSpec (re-create the camera with CameraSpec.load)
-    room:     SEQ/truth/room.json (load_room), SEQ/truth/room_mesh.ply (vertex colour = radiance / scale)
+    room:     SEQ/truth/room.json (load_room; records the pictures hung on the walls by absolute path),
+              SEQ/truth/room_mesh.ply (vertex colour = radiance / scale)
     paper:    SEQ/truth/paper.json, SEQ/truth/masks/<timestamp>.png (255 = sheet)
     brackets: SEQ/<name>.png, SEQ/times.txt ('name seconds'), SEQ/truth/radiance.npy (float32 (H, W, 3))
 
@@ -214,14 +215,18 @@ def simulate_room(out_dir: str | os.PathLike, *, camera: CameraSpec | SimulatedC
                   exposure_time: float | None = None, room: Room | None = None, light_scale: Any = None,
                   jpeg_quality: int | None = None, depth_sensor: DepthSensor | None = DepthSensor(),
                   supersample: int = 1, motion: HandheldMotion | None = None, mesh_spacing: float = 0.04,
-                  force: bool = False, progress: bool = True) -> Path:
+                  pictures: Sequence[str | os.PathLike] = (), force: bool = False, progress: bool = True) -> Path:
     """Write a room RGB-D sequence with ground truth to ``out_dir`` (layout in the module doc);
-    returns the folder. ``room`` defaults to ``make_room(seed)``; the hand-held trajectory comes from
-    ``seed`` too. See :func:`iter_room_frames` for the exposure options."""
+    returns the folder. ``room`` defaults to ``make_room(seed, pictures=pictures)`` (``pictures``:
+    PNG/JPEG files pasted on its walls); the hand-held trajectory comes from ``seed`` too. See
+    :func:`iter_room_frames` for the exposure options."""
     _check_frames(n_frames)
+    if room is not None and len(pictures):
+        raise ValueError("pictures are pasted by make_room: give them to make_room(seed, pictures=...) when "
+                         "passing room, or drop room")
     cam = resolve_camera(camera, width, height, jpeg_quality=jpeg_quality)
+    room = room if room is not None else make_room(seed, pictures=pictures)   # bad pictures fail early
     out = prepare_output(out_dir, force=force)
-    room = room if room is not None else make_room(seed)
     K = default_intrinsics(cam.width, cam.height)
     poses = room_trajectory(room, n_frames, seed=seed, motion=motion or HandheldMotion())
     scales = _light_schedule(light_scale, n_frames)
