@@ -444,3 +444,22 @@ def test_one_progress_bar_over_the_whole_comparison(room, models, tmp_path, caps
     captured = capsys.readouterr()
     assert "compare" in captured.err and "9/9" in captured.err
     assert "compare" not in captured.out and "9/9" not in captured.out
+
+
+@pytest.mark.parametrize("depth_max, warned", [("2.5", True), ("6", False)])
+def test_cli_compare_warns_when_the_range_cuts_the_scene(room, models, tmp_path, depth_max, warned):
+    """As reconstruct: more than 20 % of the valid depth beyond --depth-max is reported on stderr."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    seq, _ = room
+    models[0].save(tmp_path / "crf.npz")
+    res = CliRunner().invoke(cli, ["compare", str(seq), "--response", str(tmp_path / "crf.npz"), "--methods", "none",
+                                   "-o", str(tmp_path / "out"), "--frames", "0:3", "--voxel-size", "0.04",
+                                   "--views", "0", "--depth-max", depth_max, "--no-progress"])
+    assert res.exit_code == 0, res.output
+    far = json.loads((tmp_path / "out" / "none" / "metrics.json").read_text())["depth_beyond_range"]
+    assert (far > 0.2) == warned
+    line = f"warning: {100 * far:.0f} % of the valid depth lies beyond --depth-max {depth_max} m"
+    assert (line in res.stderr) == warned and "warning" not in res.stdout

@@ -14,6 +14,8 @@ import click
 from radiometry import __version__
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
+FAR_DEPTH_WARNING = 0.2   # warn when more of the valid depth than this lies beyond --depth-max
+
 
 class FrameRange(click.ParamType):
     """``A:B:S`` (Python slice syntax, each part optional) -> ``slice``."""

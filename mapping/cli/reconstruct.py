@@ -6,9 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FrameRange
-
-FAR_DEPTH_WARNING = 0.2   # warn when more of the valid depth than this lies beyond --depth-max
+from mapping.cli._common import FAR_DEPTH_WARNING, FrameRange
 
 EPILOG = """\b
 Examples:
