@@ -170,9 +170,10 @@ def icp_point_to_plane(depth: np.ndarray, K: np.ndarray, target_vertex: np.ndarr
             tgt_v, tgt_n = tv, tn
         else:
             src = pyrdown_depth(src, 2.0 * depth_diff)
-            tgt_v, tgt_n = tv[::step, ::step].contiguous(), tn[::step, ::step].contiguous()
-        if level and coarse is not None:
-            tgt_v, tgt_n = coarse[level]
+            if coarse is not None:
+                tgt_v, tgt_n = coarse[level]
+            else:
+                tgt_v, tgt_n = tv[::step, ::step].contiguous(), tn[::step, ::step].contiguous()
         src_img = o3d.t.geometry.Image(_to_tensor(src))
         pyramid.append((src_img.create_vertex_map(Kt, _NAN).as_tensor(), tgt_v, tgt_n, Kt))
 
