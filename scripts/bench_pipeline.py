@@ -7,7 +7,11 @@ alternating order, ``--repeats`` times; the table reports medians.
 
 - open3d:   ``o3d.t.pipelines.slam.Model`` (``track_frame_to_model``, ``integrate``,
             ``synthesize_model_frame``), frames read with ``o3d.t.io.read_image`` (Open3D's example loop
-            ``examples/python/t_reconstruction_system/dense_slam.py``); uint16 colour, no correction.
+            ``examples/python/t_reconstruction_system/dense_slam.py``); uint16 colour, no correction. As in
+            the example, the model frame is ray cast without colour (``enable_color=False``).
+- open3d-colour: the same loop casting colour too (``enable_color=True``): the like-for-like peer, since
+            radiomap's histogram and exposure compensation need the map's colour at every pixel (the colour
+            costs Open3D's ray cast ~30 ms of ~125 ms per 640x480 frame here).
 - radiomap: :func:`mapping.pipeline.reconstruct`: loading through the dataset loader, radiometric
             correction to float irradiance (a gamma-2.2 response and a polynomial vignetting model),
             frame-to-model ICP, TSDF fusion of float colour, the colour-disagreement histogram.
@@ -20,14 +24,7 @@ alignment against the dataset's ground truth (target < 5 cm and <= 1.2x Open3D's
 
 The time ratio is the median over back-to-back pairs (the machine's load drifts between runs).
 
-Measured (open3d 0.20, CPU, 2 cores shared with other jobs; 7-Scenes redkitchen 0-99, every frame, 1 cm voxels,
-16^3 blocks, trunc 8 voxels, depth max 3 m, 4000 initial blocks):
-
-    method    ms/frame (quiet run)  ATE (Horn)  peak RSS
-    open3d    398                   1.26 cm     450 MB
-    radiomap  420   (ratio 1.05)    1.09 cm     718 MB   (float colour and weight: 20 B/voxel vs 12 B)
-
-Under heavy load from other jobs the pairwise ratios spread 0.98-1.42 (median 1.15).
+The figures are in README.md (section Benchmarks).
 """
 
 from __future__ import annotations
@@ -43,7 +40,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "radiomap")
+METHODS = ("open3d", "open3d-colour", "radiomap")
+PEERS = ("open3d", "open3d-colour")
 
 
 def parse_frames(text: str) -> slice:
@@ -98,9 +96,10 @@ def worker_open3d(args) -> dict:
             stamps.append(f.timestamp)
             model.update_frame_pose(i, T)
             model.integrate(input_frame, ds.depth_scale, args.depth_max, args.trunc)
-            model.synthesize_model_frame(raycast_frame, ds.depth_scale, 0.1, args.depth_max, args.trunc, False)
+            model.synthesize_model_frame(raycast_frame, ds.depth_scale, 0.1, args.depth_max, args.trunc,
+                                         args.worker == "open3d-colour")
         seconds = time.perf_counter() - t0
-    return {"method": "open3d", "frames": len(files), "fused": len(files), "seconds": seconds,
+    return {"method": args.worker, "frames": len(files), "fused": len(files), "seconds": seconds,
             "ate_m": _ate(np.array(stamps), np.array(poses), ds), "peak_rss_mb": _peak_mb(),
             "blocks": int(model.get_hashmap().size())}
 
@@ -171,7 +170,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     if args.worker:
-        result = (worker_open3d if args.worker == "open3d" else worker_radiomap)(args)
+        result = (worker_radiomap if args.worker == "radiomap" else worker_open3d)(args)
         print(json.dumps(result))
         return 0
 
@@ -202,9 +201,10 @@ def main(argv=None) -> int:
         for k, v in r.get("stage_ms", {}).items():
             stages.setdefault(k, []).append(v)
     # the machine's load drifts between runs: the ratio of each back-to-back pair, then their median
-    pair_ratios = [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
-                   for r, o in zip(runs["radiomap"], runs["open3d"])]
-    ratio = statistics.median(pair_ratios)
+    pairs = {peer: [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
+                    for r, o in zip(runs["radiomap"], runs[peer])] for peer in PEERS}
+    ratios = {peer: statistics.median(v) for peer, v in pairs.items()}
+    pair_ratios, ratio = pairs["open3d"], ratios["open3d"]
     a, b = summary["radiomap"]["ate_cm"], summary["open3d"]["ate_cm"]
     ate_ratio = a / b if (a is not None and b) else None
     from mapping.cli._common import format_table
@@ -218,12 +218,16 @@ def main(argv=None) -> int:
     print(format_table(rows))
     print(f"time ratio radiomap / open3d: {ratio:.3f} (median of back-to-back pairs "
           f"{', '.join(f'{x:.3f}' for x in pair_ratios)}; target <= 1.15)")
+    print(f"time ratio radiomap / open3d-colour (the same loop casting colour too, as radiomap must): "
+          f"{ratios['open3d-colour']:.3f} (pairs {', '.join(f'{x:.3f}' for x in pairs['open3d-colour'])})")
     if ate_ratio is not None:
         print(f"ATE ratio radiomap / open3d: {ate_ratio:.3f} (target <= 1.2; radiomap ATE {a:.2f} cm, target < 5)")
     print("radiomap stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages.items()))
     if args.json:
         args.json.write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
                                          "time_ratio": ratio, "pair_ratios": pair_ratios, "ate_ratio": ate_ratio,
+                                         "time_ratio_colour_peer": ratios["open3d-colour"],
+                                         "pair_ratios_colour_peer": pairs["open3d-colour"],
                                          "runs": runs}, indent=2))
     return 0
 
