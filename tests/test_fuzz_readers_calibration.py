@@ -143,7 +143,7 @@ def test_vignetting_npz(workdir, seed):
     check_vignetting(only_own_errors(VignettingModel.load, put(workdir, "v.npz", data)))
 
 
-@fuzz(1500)
+@fuzz(2000)
 @given(seed=SEEDS)
 def test_vignetting_accumulation_npz(workdir, seed):
     """Accumulations saved with --save-accumulation: a file that loads can be fitted (or fails cleanly)."""

@@ -181,7 +181,7 @@ MANIFEST = json.dumps({"format": "radiomap-sim", "version": 1, "kind": "room", "
                        "K": [[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], "depth_scale": 5000.0, "n_frames": 3})
 
 
-@fuzz(1500)
+@fuzz(2000)
 @given(seed=SEEDS)
 def test_simulated_manifest(tum_folder, seed):
     """A simulator manifest beside a valid TUM folder: SimulatedDataset opens it or fails cleanly."""
