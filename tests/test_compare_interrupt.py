@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-DISTINCT, REPEATS = 4, 75     # a TUM copy of 4 simulated frames, 75 times over: 300 frames per method
+DISTINCT, REPEATS = 4, 300    # a TUM copy of 4 simulated frames, 300 times over: 1200 frames per method (~25 s)
 
 
 def repeated_tum_sequence(room: Path, dest: Path, indices) -> Path:
