@@ -221,6 +221,9 @@ class _Loop:
         self.failures = 0
         self.depth_valid = 0            # valid depth pixels seen, and those at or beyond the depth range
         self.depth_far = 0
+        # the backend's fusion range (TSDF: depth_min/depth_max; surfels: max_depth)
+        self.depth_low = getattr(backend, "depth_min", 0.0)
+        self.depth_high = getattr(backend, "depth_max", getattr(backend, "max_depth", np.inf))
         self.started = time.perf_counter()
 
     def _timed(self, stage: str, fn, *args, **kwargs):
@@ -290,16 +293,13 @@ class _Loop:
     def _count_far_depth(self, frame) -> None:
         """Count the depth the range cuts away: a scene deeper than depth_max leaves ICP fewer surfaces (two
         walls and a floor can become one wall and a floor, along which it slides)."""
-        high = getattr(self.backend, "depth_max", getattr(self.backend, "max_depth", np.inf))
         valid = frame.depth > 0
         self.depth_valid += int(np.count_nonzero(valid))
-        self.depth_far += int(np.count_nonzero(valid & (frame.depth >= high)))
+        self.depth_far += int(np.count_nonzero(valid & (frame.depth >= self.depth_high)))
 
     def _fusable_depth(self, frame) -> int:
         """Depth pixels within the backend's range (a frame of only far or no depth has nothing to fuse)."""
-        low = getattr(self.backend, "depth_min", 0.0)
-        high = getattr(self.backend, "depth_max", getattr(self.backend, "max_depth", np.inf))
-        return int(np.count_nonzero((frame.depth > low) & (frame.depth < high)))
+        return int(np.count_nonzero((frame.depth > self.depth_low) & (frame.depth < self.depth_high)))
 
     def _colour_valid_depth(self, frame, record: FrameRecord) -> np.ndarray | None:
         """The frame's depth without the pixels whose colour the model rejects (``last_valid_mask``, e.g.

@@ -14,8 +14,6 @@ import click
 from radiometry import __version__
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
-FAR_DEPTH_WARNING = 0.2   # warn when more of the valid depth than this lies beyond --depth-max
-
 
 class FrameRange(click.ParamType):
     """``A:B:S`` (Python slice syntax, each part optional) -> ``slice``."""
@@ -73,5 +71,13 @@ def format_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -
     return "\n".join([line, sep, *body])
 
 
-__all__ = ["FrameRange", "run_manifest", "format_table", "atomic_write_json", "atomic_write_text",
-           "ensure_dir", "json"]
+def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2) -> None:
+    """Warn on stderr when more than ``threshold`` of the valid depth lay beyond ``--depth-max`` (ICP then
+    sees fewer surfaces and may slide along what is left)."""
+    if fraction > threshold:
+        click.echo(f"warning: {100 * fraction:.0f} % of the valid depth lies beyond --depth-max {depth_max:g} m and "
+                   "was neither fused nor tracked; raise --depth-max if the scene is deeper", err=True)
+
+
+__all__ = ["FrameRange", "run_manifest", "format_table", "warn_far_depth", "atomic_write_json",
+           "atomic_write_text", "ensure_dir", "json"]

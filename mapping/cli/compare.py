@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FAR_DEPTH_WARNING, FrameRange
+from mapping.cli._common import FrameRange, warn_far_depth
 
 EPILOG = """\b
 Examples:
@@ -131,10 +131,7 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
         click.echo("(no ground truth: colour error not measured)")
     click.echo(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
     click.echo(f"report: {result.files['report']}")
-    far = max((r.run.depth_beyond_range for r in result.results), default=0.0)
-    if far > FAR_DEPTH_WARNING:
-        click.echo(f"warning: {100 * far:.0f} % of the valid depth lies beyond --depth-max {depth_max:g} m and was "
-                   "neither fused nor tracked; raise --depth-max if the scene is deeper", err=True)
+    warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
 
 
 def _as_model(vignetting):

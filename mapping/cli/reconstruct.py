@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FAR_DEPTH_WARNING, FrameRange
+from mapping.cli._common import FrameRange, warn_far_depth
 
 EPILOG = """\b
 Examples:
@@ -123,8 +123,5 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
         click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
                    err=True)
-    if run.depth_beyond_range > FAR_DEPTH_WARNING:
-        click.echo(f"warning: {100 * run.depth_beyond_range:.0f} % of the valid depth lies beyond --depth-max "
-                   f"{depth_max:g} m and was neither fused nor tracked; raise --depth-max if the scene is deeper",
-                   err=True)
+    warn_far_depth(run.depth_beyond_range, depth_max)
     click.echo(f"results in {output}")
