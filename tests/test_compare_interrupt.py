@@ -3,41 +3,14 @@
 from __future__ import annotations
 
 import json
-import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
+from test_robustness import interrupt_once_started, tum_copy
 
 REPO = Path(__file__).resolve().parents[1]
 DISTINCT, REPEATS = 4, 300    # a TUM copy of 4 simulated frames, 300 times over: 1200 frames per method (~25 s)
-
-
-def repeated_tum_sequence(room: Path, dest: Path, indices) -> Path:
-    """A plain TUM sequence of the simulated room's frames ``indices`` (repeats allowed, fresh timestamps 1/30 s
-    apart), with its ground truth and intrinsics."""
-    from mapping.metrics import read_tum_trajectory, write_tum_trajectory
-
-    rows = {kind: [line.split() for line in (room / f"{kind}.txt").read_text().splitlines() if line and line[0] != "#"]
-            for kind in ("rgb", "depth")}
-    stamps, poses = read_tum_trajectory(room / "groundtruth.txt")
-    lines: dict[str, list[str]] = {"rgb": [], "depth": []}
-    for kind in lines:
-        (dest / kind).mkdir(parents=True)
-        for i in sorted(set(indices)):
-            shutil.copy(room / rows[kind][i][1], dest / kind / f"{i:05d}.png")
-    new_stamps = 1000.0 + np.arange(len(indices)) / 30.0
-    for t, i in zip(new_stamps, indices):
-        for kind in lines:
-            lines[kind].append(f"{t:.6f} {kind}/{i:05d}.png")
-    for kind, entries in lines.items():
-        (dest / f"{kind}.txt").write_text("# timestamp filename\n" + "\n".join(entries) + "\n")
-    write_tum_trajectory(dest / "groundtruth.txt", new_stamps, poses[list(indices)])
-    shutil.copy(room / "intrinsics.txt", dest / "intrinsics.txt")
-    return dest
 
 
 def test_ctrl_c_during_compare_leaves_it_marked_unfinished(tmp_path):
@@ -47,25 +20,13 @@ def test_ctrl_c_during_compare_leaves_it_marked_unfinished(tmp_path):
     from mapping.simulation import simulate_room
 
     room = simulate_room(tmp_path / "room", seed=3, n_frames=DISTINCT, width=160, height=120, progress=False)
-    seq = repeated_tum_sequence(room, tmp_path / "seq", list(range(DISTINCT)) * REPEATS)
+    seq = tum_copy(room, tmp_path / "seq", list(range(DISTINCT)) * REPEATS, shared=True)
     out = tmp_path / "cmp"
     proc = subprocess.Popen([sys.executable, "-m", "mapping.cli", "compare", str(seq), "--response",
                              str(room / "truth" / "response.npz"), "--methods", "none,response", "--poses", "gt",
                              "--voxel-size", "0.04", "-o", str(out), "--no-progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
-    try:
-        deadline = time.monotonic() + 120
-        while not (out / "none" / "RUNNING").exists():   # the first method's results folder: fusion starts
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        time.sleep(1.5)
-        assert proc.poll() is None, "the comparison finished before it could be interrupted"
-        proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    stdout, stderr = interrupt_once_started(proc, out / "none" / "RUNNING")  # the first method's fusion started
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.strip() == "radiomap: interrupted"
     assert "ranking" not in stdout and "report:" not in stdout

@@ -150,9 +150,11 @@ def room(tmp_path_factory) -> Path:
                          height=ROOM_H, progress=False)
 
 
-def tum_copy(room: Path, dest: Path, indices=range(4)) -> Path:
+def tum_copy(room: Path, dest: Path, indices=range(4), *, shared: bool = False) -> Path:
     """A plain TUM sequence (no simulator manifest) of the room's frames ``indices`` (repeats allowed: the
-    copy gets fresh timestamps 1/30 s apart), with its ground truth and intrinsics."""
+    copy gets fresh timestamps 1/30 s apart), with its ground truth and intrinsics. Every listed frame has its
+    own image files (a test may overwrite one), unless ``shared``: then repeats list one copy per source frame
+    (long sequences at little cost)."""
     from mapping.metrics import read_tum_trajectory, write_tum_trajectory
 
     rgb = [line.split() for line in (room / "rgb.txt").read_text().splitlines() if line and line[0] != "#"]
@@ -163,11 +165,12 @@ def tum_copy(room: Path, dest: Path, indices=range(4)) -> Path:
     rgb_lines, depth_lines, new_stamps, new_poses = [], [], [], []
     for k, i in enumerate(indices):
         t = 1000.0 + k / 30.0
+        name = f"{i if shared else k:05d}.png"
         for kind, rows, lines in (("rgb", rgb, rgb_lines), ("depth", depth, depth_lines)):
-            target = dest / kind / f"{k:05d}.png"
+            target = dest / kind / name
             if not target.exists():
                 shutil.copy(room / rows[i][1], target)
-            lines.append(f"{t:.6f} {kind}/{k:05d}.png")
+            lines.append(f"{t:.6f} {kind}/{name}")
         new_stamps.append(t)
         new_poses.append(poses[i])
     (dest / "rgb.txt").write_text("# timestamp filename\n" + "\n".join(rgb_lines) + "\n")
@@ -175,6 +178,24 @@ def tum_copy(room: Path, dest: Path, indices=range(4)) -> Path:
     write_tum_trajectory(dest / "groundtruth.txt", np.array(new_stamps), np.array(new_poses))
     shutil.copy(room / "intrinsics.txt", dest / "intrinsics.txt")
     return dest
+
+
+def interrupt_once_started(proc: subprocess.Popen, started: Path, settle: float = 1.5) -> tuple[str, str]:
+    """Wait until ``started`` exists (the run's loop over frames has begun), let it work ``settle`` seconds,
+    send SIGINT and return ``(stdout, stderr)``; the process is killed if anything goes wrong."""
+    try:
+        deadline = time.monotonic() + 120
+        while not started.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(settle)
+        assert proc.poll() is None, "the run finished before it could be interrupted"
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
 
 
 def reconstruct(seq: Path, out: Path, *extra):
@@ -911,18 +932,7 @@ def test_ctrl_c_marks_the_results_incomplete(room, tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "mapping.cli", "reconstruct", str(seq), "-o", str(out), "--poses",
                              "gt", "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=REPO)
-    try:
-        deadline = time.monotonic() + 120
-        while not (out / "config.json").exists():  # written just before the loop over frames starts
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        time.sleep(1.5)
-        proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    stdout, stderr = interrupt_once_started(proc, out / "config.json")  # written just before the frame loop
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.strip() == "radiomap: interrupted"
     assert (out / "RUNNING").is_file()
