@@ -133,3 +133,29 @@ def test_arguments():
         backend.integrate(np.ones((4, 4), np.float32), np.zeros((4, 5, 3), np.float32), K, np.eye(4))
     view = ModelView(depth=np.zeros((2, 2), np.float32), colour=np.zeros((2, 2, 3), np.float32))
     assert not view.valid.any()
+
+
+def test_range_map_buffer_is_reserved_on_the_empty_grid():
+    """The one-off ray cast that sizes Open3D's range-map buffer runs before the first integration, when no
+    ray can read a voxel (on a filled grid that cast, which no weight stops, crashed Open3D 0.20 now and
+    then); once per camera, and later casts see the whole view."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    backend = TSDFBackend(voxel_size=0.02, depth_max=4.0)
+    blocks_at_reservation = []                  # map size whenever a camera's buffer was actually reserved
+    original = backend._reserve_range_fragments
+
+    def reserve(*args):
+        size, before = int(backend.grid.hashmap().size()), len(backend._range_reserved)
+        original(*args)
+        if len(backend._range_reserved) > before:
+            blocks_at_reservation.append(size)
+
+    backend._reserve_range_fragments = reserve
+    depth = np.full((480, 640), 2.0, np.float32)
+    for z in (0.0, 0.05):
+        pose = np.eye(4)
+        pose[2, 3] = z
+        view = backend.render_for_frame(depth, K, pose)
+        backend.integrate(depth, np.ones((480, 640, 3), np.float32), K, pose, view=view)
+    assert blocks_at_reservation == [0]
+    assert (backend.render(np.eye(4), K, 480, 640).depth > 0).mean() > 0.9      # measured 0.944

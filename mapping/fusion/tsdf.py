@@ -67,6 +67,11 @@ class MeshData:
     normals: np.ndarray    # (N, 3) float32
 
 
+def _padded(height: int, width: int) -> tuple[int, int]:
+    """The image size Open3D's ray cast is given: both sides rounded up to multiples of the range-map factor."""
+    return -(-int(height) // _RANGE_FACTOR) * _RANGE_FACTOR, -(-int(width) // _RANGE_FACTOR) * _RANGE_FACTOR
+
+
 def _tensor(array: np.ndarray, dtype=np.float32):
     return o3d.core.Tensor.from_numpy(np.ascontiguousarray(array, dtype=dtype))
 
@@ -166,8 +171,8 @@ class TSDFBackend:
         Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
         # Open3D's ray cast builds its range map at 1/8 resolution and reads it out of bounds (hanging or
         # returning nothing) unless both sides are multiples of 8: cast a padded image and crop it
-        hp, wp = -(-int(height) // _RANGE_FACTOR) * _RANGE_FACTOR, -(-int(width) // _RANGE_FACTOR) * _RANGE_FACTOR
-        self._reserve_range_fragments(K, hp, wp)
+        hp, wp = _padded(height, width)
+        self._reserve_range_fragments(K, hp, wp)   # normally done before the first integration (a no-op here)
         with _quiet():  # Open3D reports growing its range-map buffer as a warning on stdout
             result = self.grid.ray_cast(blocks, Kt, self._extrinsic(pose), wp, hp, ["depth", "color"], 1.0,
                                         self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
@@ -195,7 +200,10 @@ class TSDFBackend:
         returns an incomplete range map (parts of the view silently empty) and only then grows the buffer.
         Once per camera, cast against the blocks of fronto-parallel walls filling the viewing frustum from
         ``depth_min`` to ``depth_max`` (as Open3D itself lists them), a superset of any frame's blocks, so that
-        the buffer never has to grow during the run."""
+        the buffer never has to grow during the run. Done before the first frame is integrated (see
+        :meth:`integrate`): on an empty grid the rays find no block and read no voxel. On a filled grid this
+        cast (which no weight stops) marches every ray through the whole frustum, and Open3D 0.20 then
+        occasionally crashed (a segmentation fault in ``ray_cast``, once in about ten full test runs)."""
         key = (int(height), int(width), tuple(np.round(np.asarray(K, dtype=np.float64).ravel(), 6)))
         if key in self._range_reserved:
             return
@@ -301,6 +309,8 @@ class TSDFBackend:
             raise ValueError(f"colour must be (H, W, 3) matching depth {depth.shape}, got {colour.shape}")
         _, _, blocks, depth_image, extrinsic = self._prepare(depth, K, pose)
         self._pending = None
+        if self.frames_integrated == 0:
+            self._reserve_range_fragments(K, *_padded(*depth.shape))
         pairs = None
         if self.frames_integrated:
             if view is None:
