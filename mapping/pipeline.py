@@ -532,13 +532,15 @@ def load_vignetting_option(path: Path):
     path = Path(path)
     if path.suffix.lower() == ".npy":
         from radiometry.errors import CalibrationFileError
+        from radiometry.fileio import load_array_file
         from radiometry.vignetting import LUTVignetting
 
+        fix = "pass a float (H, W[, C]) .npy with finite V > 0"
+        array = load_array_file(path, fix=fix)  # refuses complex, object, text and structured arrays
         try:
-            return LUTVignetting(np.load(path, allow_pickle=False), info={"source": str(path)})
-        except (OSError, ValueError, TypeError, EOFError) as exc:
-            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); pass a float "
-                                       "(H, W[, C]) .npy with finite V > 0") from None
+            return LUTVignetting(array, info={"source": str(path)})
+        except (ValueError, TypeError) as exc:
+            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); {fix}") from None
     from radiometry.formats import load_vignetting
 
     return load_vignetting(path)

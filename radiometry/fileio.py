@@ -154,6 +154,7 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
     path = Path(path)
     if not path.is_file():
         raise CalibrationFileError(f"{path}: no such file; check the path of the {kind} model")
+    fix = f"re-create the {kind} file with radiomap"
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
@@ -161,7 +162,10 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
             RuntimeError, struct.error, UnicodeDecodeError, OverflowError, tokenize.TokenError, SyntaxError,
             MemoryError) as exc:
         # everything a corrupt, truncated or foreign .npz raises while its members are decompressed (a
-        # mangled .npy header fails to tokenize, or claims an array too large to allocate)
+        # mangled .npy header fails to tokenize, or claims an array too large to allocate); an object array
+        # (pickled Python objects, refused by allow_pickle=False) is named as such
+        if isinstance(exc, ValueError):
+            check_real_arrays(path, {k: v for k, v in _npz_header_dtypes(path).items() if k != "meta"}, fix)
         raise CalibrationFileError(
             f"{path}: not a radiomap {kind} file or corrupt ({type(exc).__name__}); re-create it with radiomap"
         ) from None
@@ -183,7 +187,83 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
         raise CalibrationFileError(
             f"{path}: format version {version!r} is not supported (this radiomap reads up to {max_version}); "
             "upgrade radiomap or re-create the file")
+    check_real_arrays(path, {name: a.dtype for name, a in arrays.items()}, fix)
     return meta, arrays
+
+
+# Model arrays hold real numbers: bool, signed and unsigned integers, floats. Anything else (complex, whose
+# imaginary part a cast would drop; pickled objects; text; structured records; dates) is refused, here only.
+_REAL_KINDS = "biuf"
+_KIND_NAMES = {"c": "complex", "O": "pickled Python-object", "U": "text", "S": "byte-string", "V": "structured",
+               "M": "date-time", "m": "time-delta"}
+
+
+def check_real_arrays(path: str | os.PathLike, dtypes: Mapping[str | None, np.dtype], fix: str) -> None:
+    """Raise :class:`CalibrationFileError` naming ``path`` (and the array) if a dtype is not real numeric.
+
+    ``dtypes`` maps array names (None for a file holding one array) to their dtypes; ``fix`` ends the message.
+    Every model loader goes through here: :func:`load_model_file`, :func:`load_array_file` (``.npy``)."""
+    for name, dtype in dtypes.items():
+        dtype = np.dtype(dtype)
+        if dtype.kind in _REAL_KINDS and dtype.fields is None:
+            continue
+        what = f"array {name!r} holds" if name is not None else "holds"
+        kind = "structured" if dtype.fields is not None else _KIND_NAMES.get(dtype.kind, "non-numeric")
+        raise CalibrationFileError(f"{path}: {what} {kind} values ({dtype}) where real numbers (bool, integer or "
+                                   f"float) are needed; {fix}")
+
+
+def _npy_header_dtype(fh) -> np.dtype | None:
+    """The dtype in a ``.npy`` header (without reading the data); None if the header cannot be parsed."""
+    fmt = np.lib.format
+    try:
+        major, _minor = fmt.read_magic(fh)
+        header = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
+        return np.dtype(header(fh)[2])
+    except Exception:  # noqa: BLE001 - best effort: the caller falls back to its generic message
+        return None
+
+
+def _npz_header_dtypes(path: Path) -> dict[str, np.dtype]:
+    """Member name -> dtype of the arrays of an ``.npz`` whose headers can be read (corrupt members skipped)."""
+    out: dict[str, np.dtype] = {}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for member in archive.namelist():
+                with archive.open(member) as fh:
+                    dtype = _npy_header_dtype(fh)
+                if dtype is not None:
+                    out[member.removesuffix(".npy")] = dtype
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, zlib.error, NotImplementedError, RuntimeError):
+        pass
+    return out
+
+
+def load_array_file(path: str | os.PathLike, *, fix: str) -> np.ndarray:
+    """Read a single-array ``.npy`` file (no pickle) holding real numbers; :class:`CalibrationFileError` naming
+    the file and ending with ``fix`` otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"{path}: no such file; {fix}")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        try:
+            with open(path, "rb") as fh:
+                dtype = _npy_header_dtype(fh)
+        except OSError:
+            dtype = None
+        if dtype is not None:
+            check_real_arrays(path, {None: dtype}, fix)
+        raise CalibrationFileError(f"{path}: not a NumPy .npy array or corrupt ({type(exc).__name__}); {fix}") from None
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, struct.error, UnicodeDecodeError, OverflowError,
+            tokenize.TokenError, SyntaxError, MemoryError) as exc:
+        raise CalibrationFileError(f"{path}: not a NumPy .npy array or corrupt ({type(exc).__name__}); {fix}") from None
+    if not isinstance(array, np.ndarray):  # an .npz archive under a .npy name
+        array.close()
+        raise CalibrationFileError(f"{path}: an .npz archive of several arrays, not one .npy array; {fix}")
+    check_real_arrays(path, {None: array.dtype}, fix)
+    return array
 
 
 # --------------------------------------------------------------------------------------------------

@@ -165,3 +165,41 @@ def test_plot_response_is_axis_first(tmp_path):
     assert ax.get_yscale() == "log" and np.isnan(line.get_ydata()[0]) and line.get_ydata()[255] == 1.0
     path = save_figure(response_figure(rgb, title="sample"), tmp_path / "curves.png")
     assert path.read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize("args, name, expected", [
+    (["--gamma", "2.2"], "gamma.npz", (np.arange(256) / 255.0) ** 2.2),
+    (["--linear"], "linear.crf", np.arange(256) / 255.0),
+    (["--gamma", "1.8"], "pcalib.txt", (np.arange(256) / 255.0) ** 1.8),
+])
+def test_standard_responses_are_written(tmp_path, args, name, expected):
+    """`radiomap response --gamma 2.2 -o gamma.npz` (or --linear) writes the documented default response for a
+    camera whose response is unknown, in any response format, with its plot and record; --force as ever."""
+    out = tmp_path / name
+    result = invoke(*args, "-o", out)
+    assert result.exit_code == 0, result.output
+    assert result.output.startswith(f"wrote {out} (")
+    response = load_response(out)
+    assert response.channels == (1 if name.endswith(".txt") else 3)
+    np.testing.assert_allclose(response.inverse_table, np.repeat(expected[:, None], response.channels, axis=1),
+                               atol=1e-6)
+    assert out.with_suffix(".png").read_bytes().startswith(b"\x89PNG")
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["command"] == "response" and record["summary"]["method"] in ("gamma", "linear")
+    first = out.read_bytes()
+    line = one_line_error(invoke(*args, "-o", out))
+    assert line == f"radiomap: error: {out} exists; pass --force to overwrite it or choose another name"
+    assert out.read_bytes() == first and invoke(*args, "-o", out, "--force").exit_code == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "give the FOLDER of bracketed images to calibrate, or --gamma G / --linear"),
+    ([str(SAMPLE), "--gamma", "2.2"], "they take no FOLDER"),
+    (["--gamma", "2.2", "--samples", "10"], "they take no FOLDER, --times, --lambda, --samples"),
+    (["--gamma", "2.2", "--linear"], "give --gamma or --linear, not both"),
+    (["--gamma", "0"], "0.0 is not in the range 0.2<=x<=5.0"),
+])
+def test_standard_response_usage_errors(tmp_path, args, message):
+    result = invoke(*args, "-o", tmp_path / "r.npz")
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert not (tmp_path / "r.npz").exists()

@@ -136,7 +136,11 @@ def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     (out / "compare" / "none" / "mesh.ply").write_text("old")
     (out / "demo.json").write_text("{}")
     (out / "notes.txt").write_text("mine")
-    prepare_output(out, force=False)
+    with pytest.raises(OutputError, match=f"^{out} holds an earlier demo; pass --force to overwrite it or choose "
+                                          "another folder$"):
+        prepare_output(out, force=False)
+    assert (out / "compare" / "none" / "mesh.ply").read_text() == "old" and (out / "demo.json").is_file()
+    prepare_output(out, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     with pytest.raises(OutputError, match="holds no earlier demo"):
         prepare_output(out, force=False)
@@ -146,6 +150,23 @@ def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     with pytest.raises(OutputError, match="existing file"):
         prepare_output(tmp_path / "f", force=True)
     assert prepare_output(tmp_path / "new", force=False).is_dir()
+
+
+def test_demo_run_twice_needs_force(demo):
+    """`radiomap demo -o OUT` onto an earlier demo: one line naming OUT and the fix, exit 1, every file of the
+    earlier demo byte-identical (calibrations included)."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    out = demo["out"]
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert out / "calibration" / "response.npz" in before
+    res = CliRunner().invoke(cli, ["demo", "--quick", "-o", str(out), "--no-progress"])
+    assert res.exit_code == 1, res.output
+    assert res.output.strip().splitlines() == [
+        f"radiomap: error: {out} holds an earlier demo; pass --force to overwrite it or choose another folder"]
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
 
 
 def test_response_error_measure():

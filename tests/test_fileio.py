@@ -117,3 +117,123 @@ def test_list_images_sorted(tmp_path):
 def test_atomic_files_follow_umask(tmp_path):
     path = fileio.atomic_write_text(tmp_path / "x.txt", "x")
     assert path.stat().st_mode & 0o777 == 0o666 & ~fileio._UMASK
+
+
+# --------------------------------------------------------------------------------------------------
+# model arrays must hold real numbers (bool, integer, float): one check for every loader
+# --------------------------------------------------------------------------------------------------
+BAD_DTYPES = {
+    "complex": (lambda a: a.astype(np.complex128) + 1e-3j, "complex values (complex128)"),
+    "object": (lambda a: a.astype(object), "pickled Python-object values (object)"),
+    "string": (lambda a: a.astype(str), "text values (<U"),
+    "structured": (lambda a: np.array([(v,) for v in a.ravel()], dtype=[("v", "f8")]).reshape(a.shape),
+                   "structured values ([('v', '<f8')])"),
+}
+
+
+def _models(tmp_path):
+    """One valid file per model type: (path, the array to spoil, loader)."""
+    from radiometry.formats import load_response, load_vignetting
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import LUTVignetting, PolynomialVignetting
+
+    CameraResponse.gamma(2.2).save(tmp_path / "response.npz")
+    LUTVignetting(np.full((6, 8, 3), 0.9, np.float32)).save(tmp_path / "lut.npz")
+    PolynomialVignetting(np.array([[-0.3, 0.0, 0.0]] * 3), np.array([[3.5, 2.5]] * 3), (8, 6)).save(tmp_path / "poly.npz")
+    return {"response": (tmp_path / "response.npz", "inverse_table", load_response),
+            "lut": (tmp_path / "lut.npz", "lut", load_vignetting),
+            "poly-coefficients": (tmp_path / "poly.npz", "coefficients", load_vignetting),
+            "poly-centres": (tmp_path / "poly.npz", "centres", load_vignetting)}
+
+
+@pytest.mark.parametrize("bad", sorted(BAD_DTYPES))
+@pytest.mark.parametrize("model", ["response", "lut", "poly-coefficients", "poly-centres"])
+def test_model_files_refuse_arrays_that_are_not_real_numbers(tmp_path, model, bad):
+    """A response, LUT or polynomial .npz whose array is complex, object, text or structured is one clear
+    error naming the file and the array; no numpy warning (complex used to load, imaginary part dropped)."""
+    import warnings
+
+    from radiometry.errors import CalibrationFileError
+
+    good, key, loader = _models(tmp_path)[model]
+    loader(good)  # the valid file loads
+    with np.load(good, allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    spoil, message = BAD_DTYPES[bad]
+    arrays[key] = spoil(arrays[key])
+    path = tmp_path / f"bad_{bad}.npz"
+    np.savez(path, **arrays)  # object arrays are pickled into the archive
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a ComplexWarning would fail here
+        with pytest.raises(CalibrationFileError) as info:
+            loader(path)
+    text = str(info.value)
+    assert text.startswith(f"{path}: array '{key}' holds {message}") and "\n" not in text
+    assert text.endswith("are needed; re-create the " + ("response" if model == "response" else "vignetting")
+                         + " file with radiomap")
+
+
+@pytest.mark.parametrize("bad", sorted(BAD_DTYPES))
+def test_vignetting_array_npy_refuses_arrays_that_are_not_real_numbers(tmp_path, bad):
+    from mapping.pipeline import load_vignetting_option
+    from radiometry.errors import CalibrationFileError
+
+    good = np.full((6, 8, 3), 0.9)
+    np.save(tmp_path / "good.npy", good)
+    assert load_vignetting_option(tmp_path / "good.npy").resolution == (8, 6)
+    spoil, message = BAD_DTYPES[bad]
+    path = tmp_path / f"{bad}.npy"
+    np.save(path, spoil(good), allow_pickle=True)
+    with pytest.raises(CalibrationFileError) as info:
+        load_vignetting_option(path)
+    assert str(info.value).startswith(f"{path}: holds {message}")
+    assert str(info.value).endswith("pass a float (H, W[, C]) .npy with finite V > 0")
+
+
+def test_real_dtypes_of_every_kind_are_accepted(tmp_path):
+    """bool, signed/unsigned integers and floats of any width are numbers: a uint16 or float16 V loads."""
+    from mapping.pipeline import load_vignetting_option
+
+    for dtype in (np.uint8, np.int32, np.uint16, np.float16, np.float64):
+        np.save(tmp_path / "v.npy", np.ones((6, 8), dtype))
+        assert load_vignetting_option(tmp_path / "v.npy").channels == 1
+    fileio.check_real_arrays("x.npz", {"a": np.dtype(bool), "b": np.dtype(">i8"), "c": np.dtype("<f4")}, "fix")
+
+
+def test_array_file_errors_name_the_file(tmp_path):
+    from radiometry.errors import CalibrationFileError
+
+    with pytest.raises(CalibrationFileError, match=r"missing.npy: no such file; FIX$"):
+        fileio.load_array_file(tmp_path / "missing.npy", fix="FIX")
+    np.savez(tmp_path / "two.npy", a=np.ones(3), b=np.ones(3))  # numpy writes two.npy.npz; rename it
+    os.replace(tmp_path / "two.npy.npz", tmp_path / "two.npy")
+    with pytest.raises(CalibrationFileError, match=r"two.npy: an .npz archive of several arrays, not one .npy"):
+        fileio.load_array_file(tmp_path / "two.npy", fix="FIX")
+    (tmp_path / "text.npy").write_text("not numpy")
+    with pytest.raises(CalibrationFileError, match=r"text.npy: not a NumPy .npy array or corrupt \(ValueError\); FIX"):
+        fileio.load_array_file(tmp_path / "text.npy", fix="FIX")
+
+
+def test_complex_response_through_the_cli_is_one_line(tmp_path):
+    """`radiomap correct -r` with a complex response: exit 1, one line, no output folder."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import LUTVignetting
+
+    CameraResponse.gamma(2.2).save(tmp_path / "r.npz")
+    with np.load(tmp_path / "r.npz", allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["inverse_table"] = arrays["inverse_table"] + 0j
+    np.savez(tmp_path / "complex.npz", **arrays)
+    (tmp_path / "in").mkdir()
+    fileio.write_image(tmp_path / "in" / "a.png", np.full((6, 8, 3), 100, np.uint8))
+    LUTVignetting(np.full((6, 8, 3), 0.9, np.float32)).save(tmp_path / "v.npz")
+    result = CliRunner().invoke(cli, ["correct", str(tmp_path / "in"), "--response", str(tmp_path / "complex.npz"),
+                                      "--vignetting", str(tmp_path / "v.npz"), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1, result.output
+    assert result.output.strip().splitlines() == [
+        f"radiomap: error: {tmp_path / 'complex.npz'}: array 'inverse_table' holds complex values (complex128) where "
+        "real numbers (bool, integer or float) are needed; re-create the response file with radiomap"]
+    assert not (tmp_path / "out").exists()

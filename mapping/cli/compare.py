@@ -17,9 +17,11 @@ Examples:
   radiomap compare room_seq -r crf.npz --vignetting-lut lut.npz --vignetting-poly poly.npz \\
       --exposure-compensation -o cmp_ec
       the same, each corrected method also with exposure compensation
-  radiomap compare redkitchen/seq-01 -r gamma.npz --vignetting-lut lut.npz --vignetting-poly poly.npz \\
+  radiomap response --gamma 2.2 -o gamma.npz
+  radiomap compare redkitchen/seq-01 -r gamma.npz --methods none,response,response+ec \\
       --poses icp --frames 0:200:2 -o kitchen_cmp
-      real data: tracked once (ICP), every method fused at the same estimated poses
+      real data of a camera whose response is unknown (the gamma 2.2 assumption) and not calibrated for
+      vignetting: tracked once (ICP), raw colours vs response vs response with exposure compensation
 \b
 OUT/report.html holds everything (figures embedded); OUT/compare.csv/.json/.txt the table;
 OUT/histograms.png the histograms (Fig. 9 of Alexandrov et al.); OUT/renders.jpg the meshes side by

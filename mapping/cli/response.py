@@ -17,6 +17,9 @@ Examples:
       the memorial stack without its blue border fill, saved for radical
   radiomap response brackets/ --times times.txt --method robertson -o pcalib.txt
       OpenCV's Robertson, saved as a DSO pcalib.txt (mean of R, G, B; or --channel G)
+  radiomap response --gamma 2.2 -o gamma.npz
+      no calibration: the standard response f^-1(I) = (I/255)^2.2, the documented assumption for a camera
+      whose response is unknown (sRGB is close to it); --linear writes f^-1(I) = I/255
 
 \b
 The times file has one 'image_name seconds' line per image ('#' comments; further columns, such as
@@ -26,7 +29,7 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 
 
 @click.command("response", epilog=EPILOG, short_help="Recover the camera response from bracketed exposures.")
-@click.argument("folder", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("folder", type=click.Path(file_okay=False, path_type=Path), required=False)
 @click.option("--times", "times_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Exposure times file ('name seconds' per line). Default: FOLDER/times.txt or image_list.txt.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
@@ -43,13 +46,20 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 @click.option("--channel", type=click.Choice(["mean", "R", "G", "B"], case_sensitive=False), default=None,
               help="For a .txt (pcalib, one channel) OUTPUT of colour images: the channel to write [default: "
                    "mean, with a warning].")
+@click.option("--gamma", type=click.FloatRange(min=0.2, max=5.0), default=None,
+              help="Instead of calibrating, write the standard response f^-1(I) = (I/255)^GAMMA (2.2: the "
+                   "assumption for a camera whose response is unknown). No FOLDER.")
+@click.option("--linear", is_flag=True, help="Instead of calibrating, write the linear response f^-1(I) = I/255. "
+                                             "No FOLDER.")
 @click.option("--force", is_flag=True, help="Overwrite OUTPUT if it exists.")
-def command(folder: Path, times_file: Path | None, output: Path, method: str, lam: float | None,
-            samples: int | None, mask_blue: bool, channel: str | None, force: bool) -> None:
+def command(folder: Path | None, times_file: Path | None, output: Path, method: str, lam: float | None,
+            samples: int | None, mask_blue: bool, channel: str | None, gamma: float | None, linear: bool,
+            force: bool) -> None:
     """Recover the inverse camera response f^-1 from bracketed exposures of a static scene.
 
     FOLDER holds the images (same size, 8-bit, fixed white balance) and usually their times file.
     Prints a summary and writes the response, a plot of the curves and a JSON record of the run.
+    With --gamma or --linear (and no FOLDER) it writes that standard response instead.
     """
     import numpy as np
 
@@ -60,11 +70,25 @@ def command(folder: Path, times_file: Path | None, output: Path, method: str, la
                                          prediction_rms)
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
-              "samples": samples, "mask_blue": mask_blue, "channel": channel, "force": force}
+              "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,
+              "force": force}
     suffix = output.suffix.lower()
     if suffix not in FORMATS:
         raise OutputError(f"{output}: unknown response format {output.suffix!r}; use .npz (radiomap), "
                           ".crf (radical) or .txt (DSO pcalib)")
+    standard = gamma is not None or linear
+    if standard:
+        if gamma is not None and linear:
+            raise click.UsageError("give --gamma or --linear, not both")
+        if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue:
+            raise click.UsageError("--gamma and --linear write a standard response: they take no FOLDER, --times, "
+                                   "--lambda, --samples or --mask-blue")
+        check_overwrite(output, force=force)
+        _write_standard(output, suffix, gamma, params)
+        return
+    if folder is None:
+        raise click.UsageError("give the FOLDER of bracketed images to calibrate, or --gamma G / --linear to write "
+                               "a standard response")
     kwargs = {}
     if method == "robertson" and (lam is not None or samples is not None):
         raise click.UsageError("--lambda and --samples apply to debevec and opencv-debevec, not robertson")
@@ -131,6 +155,26 @@ def command(folder: Path, times_file: Path | None, output: Path, method: str, la
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "
                    "or auto exposure/white balance; check the plot", err=True)
+
+
+def _write_standard(output: Path, suffix: str, gamma: float | None, params: dict) -> None:
+    """Write the gamma or linear response (1 channel for a pcalib .txt, else 3) with its plot and record."""
+    from mapping.cli._common import run_manifest
+    from radiometry.fileio import atomic_write_json
+    from radiometry.response import CameraResponse
+
+    channels = 1 if suffix == ".txt" else 3
+    response = CameraResponse.linear(channels) if gamma is None else CameraResponse.gamma(gamma, channels)
+    _save(output, response, suffix, None)
+    plot_path = output.with_suffix(".png")
+    name = "linear" if gamma is None else f"gamma {gamma:g}"
+    _plot(plot_path, response, f"standard response: {name}")
+    record = run_manifest("response", params)
+    record.update({"summary": {"method": response.meta["method"], "gamma": gamma, "channels": channels},
+                   "response": dict(response.meta), "outputs": {"response": str(output), "plot": str(plot_path)}})
+    atomic_write_json(output.with_suffix(".json"), record)
+    click.echo(f"wrote {output} ({FORMATS[suffix]}, {name}: f^-1(I) = "
+               f"{'I/255' if gamma is None else f'(I/255)^{gamma:g}'}), {plot_path}, {output.with_suffix('.json')}")
 
 
 def _save(output: Path, response, suffix: str, channel: str | None) -> None:
