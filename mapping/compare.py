@@ -514,9 +514,9 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     height, width = dataset.height, dataset.width
     n = len(dataset)
 
-    from tqdm import tqdm
+    from radiometry.progress import progress_bar
 
-    bar = tqdm(total=n * len(methods), desc="compare", unit="frame", dynamic_ncols=True, disable=not progress)
+    bar = progress_bar(total=n * len(methods), desc="compare", enabled=progress)
     results: list[MethodResult] = []
     fixed: list[np.ndarray | None] | None = None
     ate = None

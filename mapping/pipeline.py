@@ -167,7 +167,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     refresh_coverage: re-cast the map after fusion for the tracker when the pre-fusion view covers less than
                    this fraction of the frame's valid depth.
     max_consecutive_failures: raise :class:`TrackingError` when tracking fails this many frames in a row.
-    progress:      a tqdm progress bar on stderr.
+    progress:      a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     write_mesh:    export the map's mesh into ``output``.
     """
     if poses not in POSE_SOURCES:
@@ -184,15 +184,14 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     try:
         for i in range(len(dataset)):
             loop.step(i)
-            _advance(bar, loop.records)
+            _advance(bar, loop.records, len(dataset))
         status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
         loop.drop_unfinished()
         raise
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
         run = loop.result(status)
         if status != "complete" and output is not None:
             _write_partial(run, backend, output)
@@ -358,16 +357,16 @@ def _initial_pose(frame, initial_pose):
 
 
 def _progress_bar(n: int, enabled: bool, name: str):
-    if not enabled:
-        return None
-    from tqdm import tqdm
+    from radiometry.progress import progress_bar
 
-    return tqdm(total=n, desc=f"reconstruct {name}".strip(), unit="frame", dynamic_ncols=True, leave=False)
+    return progress_bar(total=n, desc=f"reconstruct {name}".strip(), enabled=enabled, leave=False)
 
 
-def _advance(bar, records: list[FrameRecord]) -> None:
-    if bar is None:
-        return
+def _advance(bar, records: list[FrameRecord], total: int) -> None:
+    """One frame done: the bar advances, and a DEBUG line says so ("frame 3 of 5: fused"; ``-vv``)."""
+    record = records[-1]
+    log.debug("frame %d of %d: %s", len(records), total,
+              "fused" if record.fused else f"skipped ({record.reason or 'no reason'})")
     skipped = sum(not r.fused for r in records)
     if skipped:
         bar.set_postfix(skipped=skipped, refresh=False)

@@ -614,16 +614,16 @@ def _is_file(path: Path) -> bool:
         return False
 
 
-def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | None = None
-                  ) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
+def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | None = None, *,
+                  progress: bool = True) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
     """Read a bracket folder: ``(images, times, names)`` in the order of the times file.
 
     Images are RGB uint8 (or grayscale). The times file defaults to ``times.txt`` / ``image_list.txt``
     in the folder. Every listed image must exist and every image in the folder must be listed.
+    ``progress``: a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     """
-    from tqdm import tqdm
-
     from radiometry.fileio import list_images, read_rgb
+    from radiometry.progress import progress_bar
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -641,8 +641,8 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
         more = " ..." if len(unlisted) > 3 else ""
         raise DatasetError(f"{tfile}: does not list {', '.join(unlisted[:3])}{more} found in {folder}; "
                            "add a line 'name seconds' for each or move them out")
-    images = [read_rgb(folder / name) for name, _ in tqdm(entries, desc="reading brackets", unit="image",
-                                                          disable=None, leave=False)]
+    images = [read_rgb(folder / name) for name, _ in progress_bar(entries, desc="reading brackets", unit="image",
+                                                                  enabled=progress, leave=False)]
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         first = images[0].shape

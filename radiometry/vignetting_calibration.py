@@ -781,7 +781,8 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
 
     ``source``: anything :func:`open_frames` takes. ``min_samples`` with ``stop_when_covered`` stops as
     soon as every pixel has that many samples. Raises :class:`CalibrationError` (with the fix) when no
-    frame is usable: all saturated (the clipped flat-field case), too dark, or no sheet found.
+    frame is usable: all saturated (the clipped flat-field case), too dark, or no sheet found. ``progress``:
+    a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     """
     if not isinstance(response, CameraResponse):
         raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
@@ -792,14 +793,14 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be positive, got {max_frames}")
     frames = open_frames(source, max_frames=max_frames)
-    from tqdm import tqdm
+    from radiometry.progress import progress_bar
 
     acc: VignettingAccumulator | None = None
     skipped: Counter[str] = Counter()
     seed: tuple[int, int] | None = None
     n_seen = 0
     total = frames.length if max_frames is None or frames.length is None else min(frames.length, max_frames)
-    bar = tqdm(frames, total=total, desc="vignetting frames", unit="frame", disable=not progress, leave=False)
+    bar = progress_bar(frames, total=total, desc="vignetting frames", enabled=progress, leave=False)
     try:
         for frame in bar:
             if max_frames is not None and n_seen >= max_frames:

@@ -18,7 +18,6 @@ import signal
 import struct
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -180,22 +179,57 @@ def tum_copy(room: Path, dest: Path, indices=range(4), *, shared: bool = False) 
     return dest
 
 
-def interrupt_once_started(proc: subprocess.Popen, started: Path, settle: float = 1.5) -> tuple[str, str]:
-    """Wait until ``started`` exists (the run's loop over frames has begun), let it work ``settle`` seconds,
-    send SIGINT and return ``(stdout, stderr)``; the process is killed if anything goes wrong."""
-    try:
-        deadline = time.monotonic() + 120
-        while not started.exists():
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
+# Run by interrupt_at_frame in a child process: the real command (mapping.cli.main) with a logging filter on the
+# pipeline's per-frame DEBUG line ("frame K of N: ..."). At frame K the filter reports on a pipe and never returns:
+# the run is paused for good in the middle of its loop, so SIGINT lands while it runs, whatever the machine's speed.
+# (The pause polls rather than blocking in one system call: a signal delivered to another thread, e.g. one of
+# Open3D's, is then still seen by the main thread within 50 ms.) Other records pass as without -v.
+_PAUSE_AT_FRAME = """
+import logging, os, sys, time
+ready, frame = int(sys.argv[1]), sys.argv[2]
+
+def pause(record):
+    if record.getMessage().startswith(f"frame {frame} of "):
+        os.write(ready, b"paused")
+        os.close(ready)
+        while True:
             time.sleep(0.05)
-        time.sleep(settle)
-        assert proc.poll() is None, "the run finished before it could be interrupted"
+    return record.levelno >= logging.WARNING
+
+logger = logging.getLogger("mapping.pipeline")
+logger.setLevel(logging.DEBUG)
+logger.addFilter(pause)
+from mapping.cli import main
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+def interrupt_at_frame(frame: int, *args) -> tuple[int, str, str]:
+    """``radiomap ARGS`` in a child process, paused once the reconstruction loop has finished frame ``frame``
+    (1-based; the first method's loop for compare) and interrupted there with SIGINT: ``(returncode, stdout,
+    stderr)``. The run cannot finish before the signal: the test waits for the pause, not for a time. A run
+    that ends without reaching the frame fails the test; the child is killed if anything goes wrong."""
+    import select
+
+    read_end, write_end = os.pipe()
+    proc = subprocess.Popen([sys.executable, "-c", _PAUSE_AT_FRAME, str(write_end), str(frame), *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            pass_fds=(write_end,))
+    os.close(write_end)  # the child holds the only write end: end-of-file means it exited without pausing
+    try:
+        # (the limit only ends a hung test: the pause is reached after a few frames of a tiny sequence)
+        ready, _, _ = select.select([read_end], [], [], 600)
+        paused = os.read(read_end, 16) if ready else b""
+        assert paused == b"paused", (f"the run ended or hung before frame {frame}", proc.poll(), paused)
+        assert proc.poll() is None
         proc.send_signal(signal.SIGINT)
-        return proc.communicate(timeout=60)
+        stdout, stderr = proc.communicate(timeout=600)
+        return proc.returncode, stdout, stderr
     finally:
+        os.close(read_end)
         if proc.poll() is None:
             proc.kill()
+            proc.communicate()
 
 
 def reconstruct(seq: Path, out: Path, *extra):
@@ -707,10 +741,14 @@ def test_output_folder_not_writable_response(brackets, tmp_path, monkeypatch):
 def test_output_folder_not_writable_vignetting(paper, tmp_path, monkeypatch):
     (tmp_path / "locked").mkdir()
     _deny_writes_in(monkeypatch, tmp_path / "locked")
-    started = time.perf_counter()
+    import radiometry.vignetting_calibration as calibration
+
+    def collect(*_args, **_kwargs):  # refused before reading the sweep: the command never starts collecting
+        raise AssertionError("the sweep was read before the output folder was checked")
+
+    monkeypatch.setattr(calibration, "collect_vignetting", collect)
     error_line(run("vignetting", paper["rgb"], "-r", paper["response"], "-o", tmp_path / "locked" / "v.npz"),
                tmp_path / "locked", "permission denied", "choose a writable output folder")
-    assert time.perf_counter() - started < 5  # refused before reading the sweep
 
 
 def test_output_folder_not_writable_reconstruct(room, tmp_path, monkeypatch):
@@ -925,20 +963,17 @@ def test_tracking_lost_for_good(room, tmp_path):
 
 
 def test_ctrl_c_marks_the_results_incomplete(room, tmp_path):
-    """SIGINT to 'radiomap reconstruct' while it fuses frames: exit 130, one line, no traceback; the folder
-    keeps its RUNNING marker and metrics.json says 'interrupted' with the frames done so far."""
-    seq = tum_copy(room, tmp_path / "seq", indices=list(range(ROOM_FRAMES)) * 40)
+    """SIGINT to 'radiomap reconstruct' while it fuses frames (paused after frame 3 of 14): exit 130, one line, no
+    traceback; the folder keeps its RUNNING marker and metrics.json says 'interrupted' with the 3 frames done, whose
+    poses are in trajectory.txt; no mesh."""
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "mapping.cli", "reconstruct", str(seq), "-o", str(out), "--poses",
-                             "gt", "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=REPO)
-    stdout, stderr = interrupt_once_started(proc, out / "config.json")  # written just before the frame loop
-    assert proc.returncode == 130, stderr
+    code, stdout, stderr = interrupt_at_frame(3, "reconstruct", room, "-o", out, "--poses", "gt", "--no-progress")
+    assert code == 130, stderr
     assert "Traceback" not in stderr and stderr.strip() == "radiomap: interrupted"
     assert (out / "RUNNING").is_file()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "interrupted"
-    assert 0 < metrics["frames"]["total"] < ROOM_FRAMES * 40
+    assert metrics["frames"]["total"] == 3 and metrics["frames"]["fused"] == 3
     poses = [line for line in (out / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
-    assert len(poses) == metrics["frames"]["fused"]
+    assert len(poses) == 3
     assert not (out / "mesh.ply").exists()

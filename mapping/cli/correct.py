@@ -89,8 +89,9 @@ def _models_must_fit(what, response_path: str, vignetting_path: str):
 @click.option("--format", "fmt", type=click.Choice(["npy", "tiff", "exr"]), default="npy", show_default=True,
               help="File format of --irradiance output.")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(input_path: str, response_path: str, vignetting_path: str, outdir: str, scale: str,
-            irradiance: bool, fmt: str, force: bool) -> None:
+            irradiance: bool, fmt: str, force: bool, no_progress: bool) -> None:
     """Correct INPUT (an image, a folder of images or a video): I' = f(scale * f^-1(I) / V(x)).
 
     8-bit results are written as PNG (lossless), one per input image or video frame.
@@ -98,10 +99,10 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     import itertools
 
     import numpy as np
-    from tqdm import tqdm
 
     from radiometry.correction import Corrector
     from radiometry.fileio import check_overwrite, ensure_dir, write_image
+    from radiometry.progress import progress_bar
     from radiometry.formats import load_response, load_vignetting
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
@@ -134,7 +135,8 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     written = 0
     clipped = 0
     total = 0
-    for i, frame in enumerate(tqdm(frames, total=source.length, desc="correct", unit="frame", leave=False)):
+    bar = progress_bar(frames, total=source.length, desc="correct", enabled=not no_progress, leave=False)
+    for i, frame in enumerate(bar):
         name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
                                                    else Path(input_path).stem)
         target = out / f"{name}{ext}"

@@ -176,7 +176,7 @@ def run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int 
     # ---- 2. response from brackets
     t0 = time.perf_counter()
     brackets = simulate_brackets(calib / "brackets", camera=spec, seed=seed, force=True, progress=False)
-    images, times, _ = load_brackets(brackets)
+    images, times, _ = load_brackets(brackets, progress=progress)
     response = fit_response(images, times, method="debevec")
     response.save(calib / "response.npz")
     resp_err = response_error_percent(response, camera.response)

@@ -52,9 +52,10 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 @click.option("--linear", is_flag=True, help="Instead of calibrating, write the linear response f^-1(I) = I/255. "
                                              "No FOLDER.")
 @click.option("--force", is_flag=True, help="Overwrite OUTPUT if it exists.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(folder: Path | None, times_file: Path | None, output: Path, method: str, lam: float | None,
             samples: int | None, mask_blue: bool, channel: str | None, gamma: float | None, linear: bool,
-            force: bool) -> None:
+            force: bool, no_progress: bool) -> None:
     """Recover the inverse camera response f^-1 from bracketed exposures of a static scene.
 
     FOLDER holds the images (same size, 8-bit, fixed white balance) and usually their times file.
@@ -106,7 +107,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     used_times = times_file if times_file is not None else find_times_file(folder)
-    images, times, names = load_brackets(folder, used_times)
+    images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     if mask_blue:
         mask = blue_fill_mask(images)
         kwargs["mask"] = mask

@@ -100,9 +100,10 @@ def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]
               help="Also save the fused data (.npz) for later fits or repeatability studies.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures (the coverage map is always written).")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(frames: str, response_path: str, output: str, model_name: str, min_samples: int,
             stop_when_covered: bool, max_frames: int | None, no_drift_correction: bool, smooth_sigma: float,
-            save_accumulation: str | None, no_plots: bool, force: bool) -> None:
+            save_accumulation: str | None, no_plots: bool, force: bool, no_progress: bool) -> None:
     """Calibrate vignetting from a white-paper sweep FRAMES (folder, video file or camera index).
 
     Writes the model, a coverage map (<OUT stem>_coverage.png), figures (V per channel, radial
@@ -130,7 +131,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     ensure_dir(out.parent)  # an unwritable output fails now, not after reading every frame
     response = load_response(response_path)
     acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
-                             max_frames=max_frames, progress=True)
+                             max_frames=max_frames, progress=not no_progress)
     fit_options = {"joint_scale": not no_drift_correction}
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma

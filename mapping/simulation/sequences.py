@@ -29,7 +29,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import sys
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -465,10 +464,9 @@ def _check_frames(n_frames: int) -> None:
 
 
 def _progress(it, total: int, kind: str, enabled: bool):
-    from tqdm import tqdm
+    from radiometry.progress import progress_bar
 
-    return tqdm(it, total=total, desc=f"simulate {kind}", unit="frame", disable=not enabled, file=sys.stderr,
-                leave=False)
+    return progress_bar(it, total=total, desc=f"simulate {kind}", enabled=enabled, leave=False)
 
 
 def _dc(obj: Any) -> dict[str, Any]:
