@@ -619,7 +619,7 @@ def _write_outputs(result: CompareResult, dataset, scene, *, views: int, render_
         files["histograms"] = out / "histograms.png"
         figures.append(ReportFigure(out / "histograms.png",
                                     "Normalised histograms of the L1 distance between the map's colour and each new "
-                                    "sample before it is averaged in (the paper's Fig. 9); dashed lines: means."))
+                                    "sample before it is averaged in (the paper's Fig. 9); triangles on the top edge: means."))
     errors = {r.method.name: r.colour_error.mean for r in result.results if r.colour_error is not None}
     if errors:
         files["colour_error"] = save_bar_chart(out / "colour_error.png", errors,
@@ -671,9 +671,15 @@ def _write_outputs(result: CompareResult, dataset, scene, *, views: int, render_
             "Each method's mesh ray cast on the CPU (Open3D RaycastingScene) from the same viewpoints of the "
             "trajectory; pixel colours are the vertex colours (display levels) interpolated with the hit "
             "triangle's barycentric coordinates, without shading. "
-            + ("The last column is the simulated scene's true radiance (display scale of the LUT run)."
+            + ("The last row is the simulated scene's true radiance (display scale of the LUT run)."
                if scene is not None else "")],
-            figures=[ReportFigure(files["renders"], "Meshes from the same viewpoints (rows) per method (columns)")]))
+            figures=[ReportFigure(files["renders"], "Meshes from the same viewpoints (columns) per method (rows)")]))
+    from mapping.report import run_sections, true_exposures_of
+
+    per_run, run_files = run_sections(out, {r.method.label: r.folder for r in result.results},
+                                      ground_truth=dataset.ground_truth(), true_exposures=true_exposures_of(dataset))
+    sections += per_run
+    files.update(run_files)
     links = []
     for r in result.results:
         for kind in ("mesh_ply", "mesh_glb", "surfels"):

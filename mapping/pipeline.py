@@ -553,8 +553,10 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
 
     dataset = open_dataset(config.sequence, format=config.format, depth_scale=config.depth_scale,
                            intrinsics=config.intrinsics, frames=config.frames)
-    response = load_response(config.response) if config.response is not None else None
-    vignetting = load_vignetting_option(config.vignetting) if config.vignetting is not None else None
+    # a file is loaded; a model object (mapping.reconstruct_sequence) is used as it is
+    response = load_response(config.response) if isinstance(config.response, (str, Path)) else config.response
+    vignetting = load_vignetting_option(config.vignetting) if isinstance(config.vignetting, (str, Path)) \
+        else config.vignetting
     if vignetting is not None:  # refuse a model of another aspect ratio now, before any result is written
         try:
             vignetting.check_size(dataset.height, dataset.width)

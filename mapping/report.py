@@ -203,62 +203,118 @@ def _save_figure(fig, path: str | os.PathLike, *, dpi: int = 100) -> Path:
     return path
 
 
+@dataclass(frozen=True)
+class GridLayout:
+    """Where :func:`save_render_grid` puts things (pixels): one row per method (its label on the left), one
+    column per view (its label on top), tiles enlarged ``scale`` times (nearest neighbour) so that a grid of
+    small renders still fills the report's width."""
+
+    rows: int
+    columns: int
+    tile_width: int            # of the renders, before scaling
+    tile_height: int
+    scale: int
+    label_width: int
+    title_height: int
+    gap: int = 4
+
+    @property
+    def width(self) -> int:
+        return self.label_width + self.columns * (self.tile_width * self.scale + self.gap)
+
+    @property
+    def height(self) -> int:
+        return self.title_height + self.rows * (self.tile_height * self.scale + self.gap)
+
+    def tile(self, row: int, column: int) -> tuple[int, int, int, int]:
+        """``(x, y, width, height)`` of a tile from the image's top-left corner."""
+        w, h = self.tile_width * self.scale, self.tile_height * self.scale
+        return (self.label_width + column * (w + self.gap), self.title_height + row * (h + self.gap), w, h)
+
+
+#: a render grid is enlarged (by a whole factor) until its tiles span at least this many pixels
+GRID_MIN_WIDTH = 900
+GRID_FONT_PX = 15
+
+
+def render_grid_layout(rows: int, columns: int, tile_width: int, tile_height: int, *, title: bool = False
+                       ) -> GridLayout:
+    """The :class:`GridLayout` of ``rows`` methods x ``columns`` views of ``tile_width x tile_height`` renders."""
+    scale = max(1, -(-GRID_MIN_WIDTH // max(1, columns * tile_width)))
+    scale = min(scale, 4)
+    return GridLayout(rows, columns, int(tile_width), int(tile_height), scale, label_width=190,
+                      title_height=(2 * GRID_FONT_PX + 8) * (2 if title else 1))
+
+
 def save_render_grid(path: str | os.PathLike, columns: Mapping[str, Sequence[np.ndarray]], *,
                      row_labels: Sequence[str] | None = None, title: str | None = None, dpi: int = 100) -> Path:
-    """Images side by side: one column per entry of ``columns`` (``{label: [image per view]}``), one row per
-    view, at their native pixel size; written atomically (PNG, or JPEG for a ``.jpg`` path)."""
+    """Renders side by side: one row per entry of ``columns`` (``{method label: [image per view]}``, its label
+    on the left, wrapped) and one column per view (``row_labels`` above them), laid out by
+    :func:`render_grid_layout`: tiles at their pixel size or enlarged by a whole factor (nearest neighbour), so
+    that the grid fills a report's width; text 15 px. Written atomically (PNG, or JPEG for a ``.jpg`` path)."""
+    import textwrap
+
     from matplotlib.figure import Figure
 
     if not columns:
         raise ValueError("columns must hold at least one method's renders")
-    rows = {len(v) for v in columns.values()}
-    if len(rows) != 1 or 0 in rows:
-        raise ValueError(f"every column must have the same number (> 0) of views, got {sorted(rows)}")
-    n_rows, n_cols = rows.pop(), len(columns)
-    first = next(iter(columns.values()))[0]
+    counts = {len(v) for v in columns.values()}
+    if len(counts) != 1 or 0 in counts:
+        raise ValueError(f"every column must have the same number (> 0) of views, got {sorted(counts)}")
+    n_views = counts.pop()
+    first = np.asarray(next(iter(columns.values()))[0])
     h, w = first.shape[:2]
-    label_h, side = 0.32, (0.3 if row_labels else 0.0)
-    fig_w = n_cols * w / dpi + side
-    fig_h = n_rows * h / dpi + label_h * (1.0 if not title else 1.9)
-    fig = Figure(figsize=(fig_w, fig_h), dpi=dpi)
-    top = 1.0 - (label_h * (1.9 if title else 1.0)) / fig_h
-    left = side / fig_w
-    for c, (label, images) in enumerate(columns.items()):
-        for r, img in enumerate(images):
-            ax = fig.add_axes((left + c * (1 - left) / n_cols, top - (r + 1) * top / n_rows,
-                               (1 - left) / n_cols, top / n_rows))
-            ax.imshow(np.asarray(img), interpolation="nearest")
-            ax.set_axis_off()
-            if r == 0:
-                ax.set_title(str(label), fontsize=9, pad=3)
-            if c == 0 and row_labels:
-                fig.text(left * 0.5, top - (r + 0.5) * top / n_rows, str(row_labels[r]), rotation=90,
-                         ha="center", va="center", fontsize=8)
+    layout = render_grid_layout(len(columns), n_views, w, h, title=bool(title))
+    fig = Figure(figsize=(layout.width / dpi, layout.height / dpi), dpi=dpi, facecolor="white")
+    points = GRID_FONT_PX * 72.0 / dpi
+
+    def at(x: float, y: float) -> tuple[float, float]:   # pixels from the top-left -> figure fraction
+        return x / layout.width, 1.0 - y / layout.height
+
+    for r, (label, images) in enumerate(columns.items()):
+        for c, img in enumerate(images):
+            img = np.asarray(img)
+            if img.shape[:2] != (h, w):
+                raise ValueError(f"every render must be {w}x{h} like the first, got {img.shape[1]}x{img.shape[0]} "
+                                 f"({label}, view {c + 1})")
+            big = np.repeat(np.repeat(img, layout.scale, axis=0), layout.scale, axis=1)
+            x, y, tw, th = layout.tile(r, c)
+            fig.figimage(big, xo=x, yo=layout.height - y - th, origin="upper")
+        x, y, tw, th = layout.tile(r, 0)
+        wrapped = textwrap.fill(str(label), width=max(8, int(layout.label_width / (0.62 * GRID_FONT_PX))))
+        fig.text(*at(8, y + th / 2), wrapped, ha="left", va="center", fontsize=points)
+    for c in range(n_views):
+        x, y, tw, th = layout.tile(0, c)
+        text = str(row_labels[c]) if row_labels is not None and c < len(row_labels) else f"view {c + 1}"
+        fig.text(*at(x + tw / 2, y - 6), text, ha="center", va="bottom", fontsize=points)
     if title:
-        fig.suptitle(title, fontsize=10, y=1.0 - 0.35 * label_h / fig_h, va="top")
+        fig.text(*at(layout.width / 2, 6), str(title), ha="center", va="top", fontsize=points * 1.15)
     return _save_figure(fig, path, dpi=dpi)
 
 
 def save_bar_chart(path: str | os.PathLike, values: Mapping[str, float], *, ylabel: str, title: str | None = None
                    ) -> Path:
-    """A small bar chart (one bar per method)."""
+    """A bar chart (one bar per method, its value above it inside the frame), drawn for a report's width."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(max(4.0, 1.1 * len(values) + 1.5), 3.2))
+    from mapping.plots import COLOURS, DPI, FULL_WIDTH_INCHES
+
+    fig = Figure(figsize=(FULL_WIDTH_INCHES, 4.0))
     ax = fig.subplots()
     names = list(values)
     heights = [float(values[n]) for n in names]
-    bars = ax.bar(range(len(names)), heights, color="#4c72b0")
-    for b, v in zip(bars, heights):
-        if math.isfinite(v):
-            ax.text(b.get_x() + b.get_width() / 2, v, f"{v:.2f}", ha="center", va="bottom", fontsize=8)
-    ax.set_xticks(range(len(names)), names, rotation=15, ha="right", fontsize=8)
-    ax.set_ylabel(ylabel)
+    bars = ax.bar(range(len(names)), heights, color=COLOURS[0])
+    ax.bar_label(bars, labels=[f"{v:.2f}" if math.isfinite(v) else "" for v in heights], padding=3, fontsize=11)
+    finite = [v for v in heights if math.isfinite(v)]
+    if finite and max(finite) > 0:
+        ax.set_ylim(0, 1.15 * max(finite))   # room for the labels above the tallest bar
+    ax.set_xticks(range(len(names)), names, fontsize=11)
+    ax.set_ylabel(ylabel, fontsize=11)
     ax.grid(True, axis="y", alpha=0.3)
     if title:
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title, fontsize=13)
     fig.tight_layout()
-    return _save_figure(fig, path, dpi=110)
+    return _save_figure(fig, path, dpi=DPI)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -294,15 +350,15 @@ class ReportSection:
 
 
 _CSS = """
-body { font-family: system-ui, -apple-system, 'Segoe UI', sans-serif; margin: 2em auto; max-width: 1200px;
+body { font-family: system-ui, -apple-system, 'Segoe UI', sans-serif; margin: 2em auto; max-width: 1240px;
        padding: 0 1em; color: #222; line-height: 1.45; }
 h1 { font-size: 1.6em; margin-bottom: 0.2em; } h2 { font-size: 1.25em; margin-top: 1.8em;
        border-bottom: 1px solid #ddd; padding-bottom: 0.2em; }
 .meta { color: #666; font-size: 0.9em; }
 table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.92em; }
-th, td { border: 1px solid #ccc; padding: 0.3em 0.7em; text-align: right; }
-th { background: #f3f3f6; } td:first-child, th:first-child { text-align: left; }
-figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+th, td { border: 1px solid #ccc; padding: 0.3em 0.7em; text-align: left; vertical-align: top; }
+th { background: #f3f3f6; } th.num, td.num { text-align: right; }
+figure { margin: 1em 0; } figure img { width: 100%; height: auto; border: 1px solid #ddd; }
 figcaption { color: #444; font-size: 0.9em; margin-top: 0.3em; }
 code { background: #f4f4f4; padding: 0 0.2em; }
 """
@@ -320,12 +376,21 @@ def _cell(value: Any) -> str:
     return html.escape(str(value))
 
 
+def _numeric_column(values: Sequence[Any]) -> bool:
+    """Numbers (and blanks: None, "-") only: right-aligned; a column with any text is left-aligned."""
+    numbers = [v for v in values if v is not None and v != "-"]
+    return bool(numbers) and all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                                 for v in numbers)
+
+
 def _table_html(table: ReportTable) -> str:
     if not table.rows:
         return f"<p><em>{html.escape(table.title)}: no rows</em></p>"
     columns = table.columns or list(table.rows[0].keys())
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in columns)
-    body = "\n".join("<tr>" + "".join(f"<td>{_cell(r.get(c))}</td>" for c in columns) + "</tr>" for r in table.rows)
+    kind = {c: " class='num'" if _numeric_column([r.get(c) for r in table.rows]) else "" for c in columns}
+    head = "".join(f"<th{kind[c]}>{html.escape(str(c))}</th>" for c in columns)
+    body = "\n".join("<tr>" + "".join(f"<td{kind[c]}>{_cell(r.get(c))}</td>" for c in columns) + "</tr>"
+                     for r in table.rows)
     note = f"<p class='meta'>{html.escape(table.note)}</p>" if table.note else ""
     title = f"<h3>{html.escape(table.title)}</h3>" if table.title else ""
     return f"{title}<table>\n<tr>{head}</tr>\n{body}\n</table>{note}"
@@ -382,6 +447,115 @@ def write_html_report(path: str | os.PathLike, *, title: str, sections: Sequence
     return atomic_write_text(path, "\n".join(parts))
 
 
+# --------------------------------------------------------------------------------------------------
+# per-run figures: exposure estimates and trajectories
+# --------------------------------------------------------------------------------------------------
+def run_sections(output: str | os.PathLike, runs: Mapping[str, str | os.PathLike], *,
+                 ground_truth: tuple[np.ndarray, np.ndarray] | None = None,
+                 true_exposures: Mapping[float, np.ndarray] | None = None) -> tuple[list[ReportSection], dict]:
+    """Report sections for what the runs' results folders hold: ``exposures.png`` (per-frame exposure
+    estimates, from each run's ``exposures.txt``) and ``trajectory.png`` (camera positions from above, from each
+    run's ``trajectory.txt``, with ``ground_truth`` ``(stamps, poses)`` when known). A figure is made only when
+    its data exist; returns ``(sections, {"exposures"|"trajectory": path})``.
+
+    runs:           ``{label: results folder}`` in the report's order.
+    true_exposures: ``{timestamp: [k, gain_r, gain_g, gain_b]}`` (a simulated sequence's truth), drawn
+                    relative to the first estimated frame.
+    """
+    from mapping.exposure_compensation import read_exposures
+    from mapping.metrics import read_tum_trajectory
+    from mapping.plots import camera_up, save_exposure_figure, save_trajectory_figure
+
+    output = Path(output)
+    exposures, trajectories = {}, {}
+    for label, folder in runs.items():
+        folder = Path(folder)
+        if (folder / "exposures.txt").is_file():
+            exposures[label] = read_exposures(folder / "exposures.txt")
+        if (folder / "trajectory.txt").is_file():
+            _, poses = read_tum_trajectory(folder / "trajectory.txt")
+            if len(poses):
+                trajectories[label] = np.asarray(poses)
+    sections, files = [], {}
+    if exposures:
+        truth = _exposure_truth(next(iter(exposures.values())), true_exposures)
+        files["exposures"] = output / "exposures.png"
+        save_exposure_figure(files["exposures"], exposures, truth=truth)
+        sections.append(ReportSection("Exposure estimates per frame", [
+            "Each frame's exposure times white balance k per channel, estimated against the map (relative to the first "
+            "frame), for every run with exposure compensation; crosses: frames whose estimate fell back."
+            + (" Grey band: the simulator's true exposure." if truth is not None else "")],
+            figures=[ReportFigure(files["exposures"], "Per-frame exposure estimates (R, G, B)")]))
+    if trajectories:
+        shown = _distinct_trajectories({k: p[:, :3, 3] for k, p in trajectories.items()})
+        gt = None
+        if ground_truth is not None and len(ground_truth[1]):
+            gt = np.asarray(ground_truth[1])[:, :3, 3]
+            if len(shown) == 1 and _same_positions(next(iter(shown.values())), gt):
+                gt = None            # the runs fused at the ground truth: one line says it
+                shown = {f"{next(iter(shown))} (ground-truth poses)": next(iter(shown.values()))}
+        files["trajectory"] = output / "trajectory.png"
+        save_trajectory_figure(files["trajectory"], shown, ground_truth=gt,
+                               up=camera_up(np.concatenate(list(trajectories.values()))))
+        sections.append(ReportSection("Trajectory", [
+            "Camera positions seen from above (the two world axes of largest extent; equal scales)."
+            + (" Grey band: the sequence's ground truth." if gt is not None else "")
+            + " Runs that fused at the same poses share one line."],
+            figures=[ReportFigure(files["trajectory"], "Camera trajectory, top view")]))
+    return sections, files
+
+
+def true_exposures_of(dataset) -> dict[float, np.ndarray] | None:
+    """A simulated sequence's true exposures (``truth/exposures.txt``), None for other datasets or without it."""
+    from radiometry.errors import RadiomapError
+
+    read = getattr(dataset, "true_exposures", None)
+    if read is None:
+        return None
+    try:
+        return read()
+    except (RadiomapError, OSError) as exc:
+        log.info("no true exposures for the report: %s", exc)
+        return None
+
+
+def _same_positions(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and bool(np.allclose(a, b, atol=1e-6))
+
+
+def _distinct_trajectories(trajectories: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``{label: positions}`` with runs of identical positions merged into one entry ("all runs" when every run
+    shares one trajectory, as compare's runs do)."""
+    groups: list[tuple[list[str], np.ndarray]] = []
+    for label, positions in trajectories.items():
+        for names, pos in groups:
+            if _same_positions(pos, positions):
+                names.append(label)
+                break
+        else:
+            groups.append(([label], positions))
+    if len(groups) == 1 and len(trajectories) > 1:
+        return {"all runs": groups[0][1]}
+    return {", ".join(names): pos for names, pos in groups}
+
+
+def _exposure_truth(estimates: Mapping[str, np.ndarray], truth: Mapping[float, np.ndarray] | None
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+    """True ``k * gain_c`` at the estimated frames, relative to the first of them; None without truth."""
+    if not truth:
+        return None
+    stamps = np.array(sorted(truth))
+    values = np.array([truth[t] for t in stamps], dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] != 4:
+        return None
+    pick = np.abs(stamps[None, :] - np.asarray(estimates["timestamp"])[:, None]).argmin(axis=1)
+    k = values[pick, :1] * values[pick, 1:]
+    if not len(k) or np.any(k[0] <= 0):
+        return None
+    return np.asarray(estimates["index"]), k / k[0]
+
+
 __all__ = ["BACKGROUND", "MeshRaycaster", "ReportFigure", "ReportSection", "ReportTable", "camera_rays",
-           "image_data_uri", "pick_viewpoints", "raycast_colours", "render_scene_truth", "save_bar_chart",
-           "save_render_grid", "scaled_intrinsics", "write_html_report"]
+           "GridLayout", "image_data_uri", "pick_viewpoints", "raycast_colours", "render_grid_layout",
+           "render_scene_truth", "run_sections", "save_bar_chart", "save_render_grid", "scaled_intrinsics",
+           "true_exposures_of", "write_html_report"]

@@ -121,23 +121,25 @@ def test_measured_ordering_with_the_true_camera(gt_run):
 
 def test_report_opens_with_every_image(gt_run):
     images, links = check_report(gt_run.files["report"])
-    assert images == 3      # histograms, colour error, renders
-    assert links >= 3 + 6   # figure files, meshes and metrics of each method
-    for name in ("histograms", "colour_error", "renders"):
+    assert images == 4      # histograms, colour error, renders, trajectory (no exposure estimates: no +ec run)
+    assert links >= 4 + 6   # figure files, meshes and metrics of each method
+    for name in ("histograms", "colour_error", "renders", "trajectory"):
         assert Path(gt_run.files[name]).is_file()
 
 
-def _grid_tile(grid: np.ndarray, col: int, row: int, w: int, h: int, like: np.ndarray) -> np.ndarray:
-    """Tile (col, row) of save_render_grid's layout (100 dpi: 30 px of row labels on the left, 32 px of column
-    titles on top, tiles at native size), within +-2 px of its nominal place: the offset that best matches
-    ``like``."""
+def _grid_tile(grid: np.ndarray, layout, method: int, view: int, like: np.ndarray) -> np.ndarray:
+    """The render of ``method`` from ``view`` in save_render_grid's layout (:func:`mapping.report.render_grid_layout`:
+    a row per method, a column per view, tiles enlarged ``layout.scale`` times), within +-2 px of its place:
+    the offset that best matches ``like``, shrunk back to the render's size."""
     best = None
+    x0, y0, tw, th = layout.tile(method, view)
     for dy in range(-2, 3):
         for dx in range(-2, 3):
-            y, x = 32 + row * h + dy, 30 + col * w + dx
-            if y < 0 or x < 0 or y + h > grid.shape[0] or x + w > grid.shape[1]:
+            y, x = y0 + dy, x0 + dx
+            if y < 0 or x < 0 or y + th > grid.shape[0] or x + tw > grid.shape[1]:
                 continue
-            tile = grid[y:y + h, x:x + w]
+            half = layout.scale // 2     # the middle pixel of each enlarged block
+            tile = grid[y + half:y + th:layout.scale, x + half:x + tw:layout.scale]
             err = np.abs(tile.astype(np.float64) - like).mean()
             if best is None or err < best[0]:
                 best = (err, tile)
@@ -170,8 +172,11 @@ def test_renders_show_the_maps_from_the_same_viewpoints(gt_run, room):
     for c in renders["columns"]:
         assert c["views"] == [v["pose_index"] for v in views]
 
+    from mapping.report import render_grid_layout
+
     grid = cv2.cvtColor(cv2.imread(str(gt_run.files["renders"])), cv2.COLOR_BGR2RGB)
-    assert grid.shape[1] == 30 + 4 * w and grid.shape[0] >= 32 + 3 * h   # labels + 4 columns, 3 rows
+    layout = render_grid_layout(4, 3, w, h)              # 3 methods and the truth, 3 views
+    assert grid.shape[:2] == (layout.height, layout.width) and layout.scale * 3 * w >= 900
     masks, colours = {}, {}
     for col, r in enumerate(gt_run.results):
         g = r.geometry
@@ -184,7 +189,7 @@ def test_renders_show_the_maps_from_the_same_viewpoints(gt_run, room):
             np.testing.assert_array_equal(image[~mask], np.broadcast_to(BACKGROUND, image[~mask].shape))
             # the tile in renders.jpg is this render (JPEG quality 90: measured 2 levels of error; the other
             # methods' renders differ by ~8, other viewpoints by far more)
-            tile = _grid_tile(grid, col, row, w, h, image)
+            tile = _grid_tile(grid, layout, col, row, image)
             assert np.abs(tile.astype(np.float64) - image).mean() < 4.0
             masks[r.method.name, row], colours[r.method.name, row] = mask, image.astype(np.float64)
     for row in range(len(views)):

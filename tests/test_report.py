@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from mapping.report import (MeshRaycaster, ReportFigure, ReportSection, ReportTable, camera_rays, image_data_uri,
-                            pick_viewpoints, raycast_colours, render_scene_truth, save_bar_chart, save_render_grid,
-                            scaled_intrinsics, write_html_report)
+                            pick_viewpoints, raycast_colours, render_grid_layout, render_scene_truth, run_sections,
+                            save_bar_chart, save_render_grid, scaled_intrinsics, write_html_report)
 from radiometry.errors import OutputError
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -201,8 +201,18 @@ def test_render_grid_has_one_tile_per_method_and_view(tmp_path):
     path = save_render_grid(tmp_path / "grid.png", tiles, row_labels=["view 1", "view 2"], title="t")
     img = cv2.imread(str(path))
     assert img is not None
-    # three 80-pixel columns plus a label margin; two 60-pixel rows plus titles
-    assert 240 <= img.shape[1] <= 280 and 120 <= img.shape[0] <= 200
+    # a row per method, a column per view; small renders enlarged (here 4x, the most) towards a 900 px grid
+    layout = render_grid_layout(3, 2, 80, 60, title=True)
+    assert layout.scale == 4 and img.shape[:2] == (layout.height, layout.width)
+    assert 800 <= layout.width <= 1300
+    for j in range(3):
+        for r in range(2):
+            x, y, w, h = layout.tile(j, r)
+            assert (w, h) == (320, 240)
+            np.testing.assert_array_equal(img[y:y + h, x:x + w], 40 * j + 20 * r)   # the tile, nothing over it
+    assert img[:, :layout.label_width].min() < 128      # the method labels are drawn on the left
+    # renders of a full-size sequence stay at their size: 3 views of 320 px already fill the width
+    assert render_grid_layout(5, 3, 320, 240).scale == 1
     with pytest.raises(ValueError, match="same number"):
         save_render_grid(tmp_path / "bad.png", {"a": [tiles["m0"][0]], "b": tiles["m1"]})
     with pytest.raises(ValueError, match="at least one"):
@@ -257,3 +267,129 @@ def test_check_report_catches_a_missing_image(tmp_path):
     (tmp_path / "r2.html").write_text(f"<img src='data:image/png;base64,{bad}'>")
     with pytest.raises((AssertionError, binascii.Error)):
         check_report(tmp_path / "r2.html")
+
+
+def test_table_columns_of_text_are_left_aligned_and_numbers_right(tmp_path):
+    section = ReportSection("r", tables=[ReportTable("t", [
+        {"method": "none", "description": "no correction", "L1 mean": 25.9, "ATE cm": "-", "unit": "levels"},
+        {"method": "lut", "description": "LUT vignetting", "L1 mean": 11.2, "ATE cm": 1.5, "unit": "levels"}])])
+    text = Path(write_html_report(tmp_path / "r.html", title="t", sections=[section])).read_text(encoding="utf-8")
+    header = text.split("<tr>")[1]
+    assert "<th>method</th><th>description</th><th class='num'>L1 mean</th><th class='num'>ATE cm</th>" \
+           "<th>unit</th>" in header
+    assert "<td>LUT vignetting</td><td class='num'>11.20</td><td class='num'>1.50</td><td>levels</td>" in text
+    css = text.split("<style>")[1].split("</style>")[0]
+    assert "text-align: left" in css and "td.num { text-align: right; }" in css.replace("th.num, ", "")
+    assert "figure img { width: 100%;" in css           # figures span the page
+
+
+def test_report_figures_are_drawn_for_the_full_width(tmp_path):
+    import cv2
+
+    from mapping.histogram import DisagreementHistogram
+    from mapping.plots import save_histogram_figure
+
+    save_bar_chart(tmp_path / "bars.png", {"none": 11.56, "response": 11.16, "poly": 3.03, "lut": 2.03},
+                   ylabel="levels")
+    bars = cv2.imread(str(tmp_path / "bars.png"))
+    assert bars.shape[:2] == (400, 1200)
+    hists = {name: DisagreementHistogram(label=name) for name in ("a", "b")}
+    for k, h in enumerate(hists.values()):
+        h.add_distances(np.arange(50, dtype=np.float64) % (10 + k))
+    save_histogram_figure(tmp_path / "h.png", hists, title="t")
+    assert cv2.imread(str(tmp_path / "h.png")).shape[:2] == (520, 1200)
+
+
+def test_bar_labels_stay_inside_the_frame(monkeypatch):
+    import mapping.report as report
+
+    captured = {}
+
+    def keep(fig, path, **kwargs):
+        captured["fig"] = fig
+        return path
+
+    monkeypatch.setattr(report, "_save_figure", keep)
+    save_bar_chart("unused.png", {"none": 11.56, "lut": 2.03}, ylabel="levels")
+    fig = captured["fig"]
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    frame = ax.get_window_extent()
+    labels = [t for t in ax.texts if t.get_text() in ("11.56", "2.03")]
+    assert len(labels) == 2
+    for t in labels:
+        box = t.get_window_extent()
+        assert box.y1 < frame.y1 and box.y0 > frame.y0, t.get_text()
+
+
+def test_histogram_curves_differ_in_line_style_and_markers():
+    from matplotlib.figure import Figure
+
+    from mapping.plots import plot_histograms
+
+    counts = np.zeros(256)
+    counts[5:15] = 1.0
+    ax = Figure().subplots()
+    plot_histograms(ax, {f"m{i}": counts for i in range(4)})   # four identical curves
+    curves = [line for line in ax.get_lines() if line.get_label().startswith("m")]
+    assert len(curves) == 4
+    assert len({line.get_linestyle() for line in curves}) == 4
+    assert len({line.get_marker() for line in curves}) == 4
+    assert len({line.get_color() for line in curves}) == 4
+
+
+def _run_folder(folder: Path, *, exposures: bool, offset: float = 0.0, n: int = 12) -> Path:
+    from mapping.metrics import write_tum_trajectory
+
+    folder.mkdir(parents=True)
+    stamps = 100.0 + np.arange(n) / 30.0
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 0, 3] = np.linspace(0.0, 1.0, n) + offset
+    poses[:, 1, 3] = np.sin(np.linspace(0.0, 3.0, n))
+    poses[:, :3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]     # camera y (down in the image) along world -z
+    write_tum_trajectory(folder / "trajectory.txt", stamps, poses)
+    if exposures:
+        lines = ["# index timestamp k_r k_g k_b correspondences source"]
+        lines += [f"{i} {t:.6f} {1 + 0.01 * i:.4f} {1 + 0.02 * i:.4f} 1.0 {0 if i == 0 else 500} "
+                  f"{'reference' if i == 0 else 'fallback' if i == 5 else 'map'}" for i, t in enumerate(stamps)]
+        (folder / "exposures.txt").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_run_sections_plot_exposures_and_trajectories_when_they_exist(tmp_path):
+    import cv2
+
+    a = _run_folder(tmp_path / "a", exposures=False)
+    b = _run_folder(tmp_path / "b", exposures=True, offset=0.1)
+    n = 12
+    stamps = 100.0 + np.arange(n) / 30.0
+    gt = np.repeat(np.eye(4)[None], n, axis=0)
+    truth = {float(t): np.array([1.0 + 0.01 * i, 1.0, 1.0, 1.0]) for i, t in enumerate(stamps)}
+    sections, files = run_sections(tmp_path, {"raw": a, "lut+ec": b}, ground_truth=(stamps, gt),
+                                   true_exposures=truth)
+    assert [s.heading for s in sections] == ["Exposure estimates per frame", "Trajectory"]
+    assert set(files) == {"exposures", "trajectory"}
+    for path in files.values():
+        img = cv2.imread(str(path))
+        assert img is not None and img.shape[1] == 1200 and 400 <= img.shape[0] <= 600
+    assert "true exposure" in sections[0].paragraphs[0] and "ground truth" in sections[1].paragraphs[0]
+    # no exposure estimates, no ground truth, one shared trajectory: one figure, one line
+    only = tmp_path / "only"
+    only.mkdir()
+    sections, files = run_sections(only, {"raw": a, "again": _run_folder(tmp_path / "c", exposures=False)})
+    assert [s.heading for s in sections] == ["Trajectory"] and not (only / "exposures.png").exists()
+    # nothing to plot: no sections, no files
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert run_sections(empty, {"x": empty}) == ([], {})
+    assert list(empty.iterdir()) == []
+
+
+def test_top_view_drops_the_vertical():
+    from mapping.plots import camera_up, top_view_axes
+
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    poses[:, :3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]     # camera y along world -z: z is up
+    positions = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 2.0], [0.02, 0.01, 1.0]])   # moving mostly in z
+    assert top_view_axes(positions, camera_up(poses)) == (0, 1)
+    assert top_view_axes(positions) == (0, 2)                # without poses: the axis of least spread (y)
