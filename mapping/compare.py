@@ -461,7 +461,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             progress: bool = True, force: bool = False, title: str | None = None,
             report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
             parameters: Mapping[str, Any] | None = None,
-            mesh_formats: Sequence[str] = ("ply",)) -> CompareResult:
+            mesh_formats: Sequence[str] = ("ply", "glb")) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report.
 
     dataset:          an :class:`~mapping.datasets.base.RGBDDataset` (range and stride applied).
@@ -476,8 +476,9 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     views:            viewpoints of the side-by-side renders (0 for none); ``render_width`` pixels wide each.
     report_sections:  extra :class:`mapping.report.ReportSection` s placed before the results (e.g. the demo's
                       calibration accuracy), or a function of the (unfinished) :class:`CompareResult` returning them.
-    mesh_formats:     formats of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj); the
-                      ``mesh_colours.npz`` with map-unit colours is always written.
+    mesh_formats:     formats of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj; PLY and GLB
+                      by default, as :func:`mapping.pipeline.reconstruct` writes); the ``mesh_colours.npz`` with
+                      map-unit colours is always written.
     """
     from mapping._open3d import o3d
     from mapping.export import ResultsFolder, write_mesh

@@ -80,7 +80,7 @@ response (raw-intensity fusion) it is not available. The per-frame estimates are
 ``exposures.txt`` (``index timestamp k_r k_g k_b correspondences source``) and ``exposures.json``
 (everything, including both estimates, their disagreement and the fallback reasons). The histogram is in
 display levels at the first frame's exposure, the mesh at the median exposure of the sequence
-(``--exposure-reference first|median|VALUE``). Frames whose estimate is implausible (a jump of more than 2x
+(``--mesh-exposure first|median|VALUE``). Frames whose estimate is implausible (a jump of more than 2x
 against the last accepted frame, or too few usable pixels) are not fused and are counted; clipped pixels
 (a channel >= 254, or all channels <= 3) are never fused. Measured: on a simulated room with auto exposure
 and auto white balance (160 x 120, 50 frames, exposures falling to 0.34x / 0.50x / 0.63x in R / G / B) the
@@ -325,7 +325,7 @@ def resolve_reference(kind: str | float | Sequence[float], estimates: np.ndarray
 
 
 def parse_reference(text: str | float | Sequence[float]) -> str | float | list[float]:
-    """The ``--exposure-reference`` option: ``"median"``, ``"first"``, ``"0.8"`` or ``"0.8,1,1.2"`` (R, G, B);
+    """The ``--mesh-exposure`` option (reconstruct): ``"median"``, ``"first"``, ``"0.8"`` or ``"0.8,1,1.2"`` (R, G, B);
     validated with :func:`resolve_reference`."""
     if isinstance(text, str):
         value = text.strip().lower()

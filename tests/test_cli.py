@@ -116,3 +116,89 @@ def test_other_runtime_errors_are_bugs_and_keep_their_traceback():
 
     result = _invoke_failing(failing)
     assert result.exit_code == 1 and isinstance(result.exception, RuntimeError)
+
+
+def _visible_options():
+    """{option spelling: [(command, parameter)]} over every subcommand's --help."""
+    import importlib
+
+    import click
+
+    from mapping.cli import SUBCOMMANDS
+
+    seen = {}
+    for name, module in SUBCOMMANDS.items():
+        for param in importlib.import_module(module).command.params:
+            if isinstance(param, click.Option) and not param.hidden:
+                for spelling in param.opts + param.secondary_opts:
+                    seen.setdefault(spelling, []).append((name, param))
+    return seen
+
+
+def test_one_meaning_per_option_name_across_the_cli():
+    """-v is only the top level's --verbose; an option spelled alike in several subcommands has one kind of value
+    (a range, a model file, a layout...): --frames is always A:B:S, --vignetting always a model file."""
+    from mapping.cli import cli
+    from mapping.cli._common import FrameRange
+
+    import click
+
+    seen = _visible_options()
+    assert "-v" not in seen and "-v" in next(p for p in cli.params if p.name == "verbose").opts
+    for spelling, uses in seen.items():
+        kinds = {(type(p.type).__name__, p.is_flag, p.count) for _, p in uses}
+        assert len(kinds) == 1, (spelling, [(c, p.name, p.type) for c, p in uses])
+    assert all(isinstance(p.type, FrameRange) for _, p in seen["--frames"])
+    assert all(isinstance(p.type, click.Path) for _, p in seen["--vignetting"])
+    assert all("tum" in p.type.choices for _, p in seen["--format"])
+    assert [c for c, _ in seen["--num-frames"]] == ["simulate"] and "-n" in seen
+
+
+def test_renamed_options_are_hidden_aliases():
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    for command, old in (("reconstruct", "--reference-exposure"), ("reconstruct", "--exposure-reference"),
+                         ("reconstruct", "-v,"), ("correct", "-v,"), ("correct", "--format"),
+                         ("simulate", "--frames"), ("simulate", "--exposure "), ("simulate", "--vignetting ")):
+        out = CliRunner().invoke(cli, [command, "--help"]).output
+        assert old not in out, (command, old)
+
+
+def test_the_defaults_that_differ_are_the_ones_the_summaries_name():
+    """reconstruct and compare keep different defaults only for poses and exposure compensation (GLB is on in
+    both); the table the summaries quote matches the options."""
+    import importlib
+
+    from mapping.cli._common import DIFFERENT_DEFAULTS
+
+    import click
+
+    def default(command, name):
+        cmd = importlib.import_module(f"mapping.cli.{command}").command
+        return next(p.get_default(click.Context(cmd)) for p in cmd.params if p.name == name)
+
+    assert default("reconstruct", "poses") == DIFFERENT_DEFAULTS["poses"]["reconstruct"] == "icp"
+    assert default("compare", "poses") == DIFFERENT_DEFAULTS["poses"]["compare"] == "gt"
+    assert default("reconstruct", "exposure_compensation") is None     # on with --response
+    assert default("compare", "exposure_compensation") is False and \
+        DIFFERENT_DEFAULTS["exposure_compensation"]["compare"] == "off"
+    assert default("compare", "glb") is True
+    shared = {"backend", "voxel_size", "depth_max", "frames", "depth_scale", "intrinsics", "format"}
+    assert all(default("reconstruct", n) == default("compare", n) for n in shared)
+
+
+def test_simulate_num_frames_and_its_old_spelling(tmp_path):
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    tiny = ["--width", "32", "--height", "24", "--no-progress"]
+    res = CliRunner().invoke(cli, ["simulate", "brackets", "-o", str(tmp_path / "a"), "-n", "3", *tiny])
+    assert res.exit_code == 0, res.output
+    assert len((tmp_path / "a" / "times.txt").read_text().splitlines()) == 3
+    res = CliRunner().invoke(cli, ["simulate", "brackets", "-o", str(tmp_path / "b"), "--frames", "2", *tiny])
+    assert res.exit_code == 0, res.output
+    assert "warning: --frames is deprecated, use --num-frames (a count here; --frames is a range A:B:S" in res.stderr
+    assert len((tmp_path / "b" / "times.txt").read_text().splitlines()) == 2

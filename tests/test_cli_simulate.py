@@ -22,7 +22,7 @@ def run(*args: str):
 
 def test_room(tmp_path):
     out = tmp_path / "room"
-    res = run("room", "-o", str(out), "--seed", "2", "--frames", "3", *TINY)
+    res = run("room", "-o", str(out), "--seed", "2", "--num-frames", "3", *TINY)
     assert res.exit_code == 0, res.output
     assert "room" in res.output and "64x48" in res.output
     manifest = json.loads((out / "radiomap_sequence.json").read_text())
@@ -35,7 +35,7 @@ def test_room(tmp_path):
 
 
 def test_room_is_deterministic_and_refuses_to_overwrite(tmp_path):
-    args = ["--seed", "5", "--frames", "2", "--fixed-exposure", "--light-change", "0.5", *TINY]
+    args = ["--seed", "5", "--num-frames", "2", "--fixed-exposure", "--light-change", "0.5", *TINY]
     assert run("room", "-o", str(tmp_path / "a"), *args).exit_code == 0
     assert run("room", "-o", str(tmp_path / "b"), *args).exit_code == 0
     a = sorted((tmp_path / "a" / "rgb").glob("*.png"))
@@ -48,7 +48,7 @@ def test_room_is_deterministic_and_refuses_to_overwrite(tmp_path):
     assert res.exit_code == 1
     assert "not empty; pass --force" in res.output
     assert "Traceback" not in res.output
-    assert run("room", "-o", str(tmp_path / "a"), *args, "--frames", "1", "--force").exit_code == 0
+    assert run("room", "-o", str(tmp_path / "a"), *args, "--num-frames", "1", "--force").exit_code == 0
     assert len(list((tmp_path / "a" / "rgb").glob("*.png"))) == 1
 
 
@@ -56,7 +56,7 @@ def test_paper_with_real_response_and_lensfun_vignetting(tmp_path):
     pcalib = shared_path("vignetting", "euroc_mt9v034_752x480", "pcalib.txt")
     db = shared_path("lensfun", "db")
     out = tmp_path / "paper"
-    res = run("paper", "-o", str(out), "--frames", "4", "--crf", str(pcalib), "--lensfun", "EF-S 10-22",
+    res = run("paper", "-o", str(out), "--num-frames", "4", "--crf", str(pcalib), "--lensfun", "EF-S 10-22",
               "--lens-focal", "10", "--lens-aperture", "4", "--lensfun-db", str(db), "--flicker", "0.05", *TINY)
     assert res.exit_code == 0, res.output
     spec = CameraSpec.load(out / "truth" / "camera.json")
@@ -71,7 +71,7 @@ def test_paper_with_real_response_and_lensfun_vignetting(tmp_path):
 
 def test_brackets(tmp_path):
     out = tmp_path / "br"
-    res = run("brackets", "-o", str(out), "--frames", "4", "--camera", "mild", "--vignetting", "none",
+    res = run("brackets", "-o", str(out), "--num-frames", "4", "--camera", "mild", "--vignetting-preset", "none",
               "--crf", "gamma", "--jpeg-quality", "90", *TINY)
     assert res.exit_code == 0, res.output
     lines = (out / "times.txt").read_text().split()
@@ -85,11 +85,11 @@ def test_brackets(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["paper", "--flicker", "0.1", "--light-change", "0.5"], "for 'room'"),
     (["room", "--flicker", "0.1"], "--flicker is for 'paper'"),
-    (["room", "--vignetting", "mild", "--lensfun", "x"], "at most one of"),
+    (["room", "--vignetting-preset", "mild", "--lensfun", "x"], "at most one of"),
     (["room", "--crf", "no-such-curve"], "neither a response family"),
     (["room", "--lens-focal", "10"], "need --lensfun"),
     (["room", "--width", "8"], "8 is not in the range"),
-    (["brackets", "--exposure", "0.01"], "--exposure is for room and paper"),
+    (["brackets", "--exposure-time", "0.01"], "--exposure-time is for room and paper"),
     (["cube"], "'cube' is not one of"),
 ])
 def test_bad_options_are_usage_errors(tmp_path, args, message):
@@ -108,7 +108,7 @@ def test_help_lists_kinds_and_examples():
 def test_no_progress_bar_when_stderr_is_not_a_terminal(tmp_path):
     """Without --no-progress but with a stderr that is not a terminal (click's runner, like a pipe or a log), no
     bar is drawn; stdout holds only the summary table. (The bar on a terminal: test_progress.py.)"""
-    res = CliRunner().invoke(cli, ["simulate", "room", "-o", str(tmp_path / "seq"), "--frames", "2",
+    res = CliRunner().invoke(cli, ["simulate", "room", "-o", str(tmp_path / "seq"), "--num-frames", "2",
                                    "--width", "64", "--height", "48"], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     assert "simulate room" not in res.stderr and "\r" not in res.stderr and "0/2" not in res.stderr

@@ -113,26 +113,29 @@ def test_correct_folder_and_irradiance(sweep, model_file, tmp_path):
     src.mkdir()
     for f in frames:
         (src / f.name).write_bytes(f.read_bytes())
-    result = invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "out", "--scale", "0.9")
+    result = invoke("correct", src, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "out",
+                    "--scale", "0.9")
     assert result.exit_code == 0, result.output
     assert "wrote 3 corrected images" in result.stdout and "scale 0.9" in result.stdout
     cor = Corrector(CameraResponse.load(sweep["response"]), load_vignetting(model_file))
     rgb = cv2.cvtColor(cv2.imread(str(frames[0])), cv2.COLOR_BGR2RGB)
     written = cv2.cvtColor(cv2.imread(str(tmp_path / "out" / frames[0].name)), cv2.COLOR_BGR2RGB)
     np.testing.assert_array_equal(written, cor.correct(rgb, scale=0.9))
-    result = invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "irr", "--irradiance")
+    result = invoke("correct", src, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "irr",
+                    "--irradiance")
     assert result.exit_code == 0 and "wrote 3 irradiance maps" in result.stdout
     irr = np.load(tmp_path / "irr" / (frames[0].stem + ".npy"))
     assert irr.dtype == np.float32
     np.testing.assert_array_equal(irr, cor.irradiance(rgb))
-    result = invoke("correct", frames[1], "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "tif",
-                    "--irradiance", "--format", "tiff")
+    result = invoke("correct", frames[1], "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "tif",
+                    "--irradiance", "--irradiance-format", "tiff")
     assert result.exit_code == 0, result.output
     tif = cv2.imread(str(tmp_path / "tif" / (frames[1].stem + ".tiff")), cv2.IMREAD_UNCHANGED)
     rgb1 = cv2.cvtColor(cv2.imread(str(frames[1])), cv2.COLOR_BGR2RGB)
     np.testing.assert_allclose(tif[:, :, ::-1], cor.irradiance(rgb1), rtol=1e-6)
     # outputs are not overwritten silently
-    line = one_line_error(invoke("correct", src, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "out"))
+    line = one_line_error(invoke("correct", src, "-r", sweep["response"], "--vignetting", model_file,
+                                 "-o", tmp_path / "out"))
     assert "exists; pass --force" in line
 
 
@@ -144,19 +147,21 @@ def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
     for f in sorted(sweep["rgb"].iterdir())[:4]:
         writer.write(cv2.imread(str(f)))
     writer.release()
-    result = invoke("correct", video, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "v",
+    result = invoke("correct", video, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "v",
                     "--scale", "auto")
     assert result.exit_code == 0, result.output
     assert "--scale auto:" in result.stdout and "wrote 4 corrected images" in result.stdout
     assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [f"frame_{i:06d}.png" for i in range(4)]
-    result = invoke("correct", video, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "w", "--scale", "-2")
+    result = invoke("correct", video, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "w",
+                    "--scale", "-2")
     assert result.exit_code == 2 and "must be positive" in result.output
 
 
 def test_correct_resolution_mismatch(sweep, model_file, tmp_path):
     img = tmp_path / "square.png"
     cv2.imwrite(str(img), np.full((64, 64, 3), 100, np.uint8))
-    line = one_line_error(invoke("correct", img, "-r", sweep["response"], "-v", model_file, "-o", tmp_path / "o"))
+    line = one_line_error(invoke("correct", img, "-r", sweep["response"], "--vignetting", model_file,
+                                 "-o", tmp_path / "o"))
     assert "calibrated at 96x72" in line and "64x64" in line
 
 

@@ -416,7 +416,7 @@ def test_cli_compare_smoke_with_exposure_compensation(room, models, tmp_path):
     assert names == (["none", "poly", "lut", "poly+ec", "lut+ec"] if ec else ["none", "poly", "lut"])
     assert all(row["frames fused"] == 5 for row in doc["table"])
     config = json.loads((tmp_path / "out" / "config.json").read_text())
-    assert config["command"] == "compare" and config["parameters"]["frames"] == "slice(0, 5, None)"
+    assert config["command"] == "compare" and config["parameters"]["frames"] == "0:5"   # A:B:S, as --frames reads it
     check_report(tmp_path / "out" / "report.html")
     # a second run into the same folder needs --force
     res = CliRunner().invoke(cli, args)

@@ -676,7 +676,7 @@ def test_cli_reconstruct_with_and_without_exposure_compensation(tmp_path):
     assert res.exit_code == 0, res.output
     assert not (tmp_path / "off" / "exposures.txt").exists()
     # explicit reference; and compensation without a response is refused with a one-line reason
-    res = runner.invoke(cli, ["reconstruct", *common, "--exposure-reference", "first", "-o", str(tmp_path / "first")],
+    res = runner.invoke(cli, ["reconstruct", *common, "--mesh-exposure", "first", "-o", str(tmp_path / "first")],
                         catch_exceptions=False)
     assert res.exit_code == 0, res.output
     doc = json.loads((tmp_path / "first" / "exposures.json").read_text())
@@ -688,7 +688,7 @@ def test_cli_reconstruct_with_and_without_exposure_compensation(tmp_path):
 
 def test_cli_mesh_colours_are_exported_at_the_reference_exposure(tmp_path):
     """The mesh's display colours are ``f(E * k_ref)`` of the stored irradiance ``E``: ``k_ref`` the per-channel
-    median of the sequence's estimates by default, the first frame's (1) with ``--exposure-reference first``.
+    median of the sequence's estimates by default, the first frame's (1) with ``--mesh-exposure first``.
     The sequence's auto exposure falls from a 2.5x too long start to ~0.3x, so the two references differ by
     ~2.7x and their displays by tens of levels."""
     import trimesh
@@ -711,7 +711,7 @@ def test_cli_mesh_colours_are_exported_at_the_reference_exposure(tmp_path):
     meshes = {}
     for reference in ("median", "first"):
         out = tmp_path / reference
-        extra = [] if reference == "median" else ["--exposure-reference", "first"]
+        extra = [] if reference == "median" else ["--mesh-exposure", "first"]
         res = CliRunner().invoke(cli, ["reconstruct", *common, *extra, "-o", str(out)], catch_exceptions=False)
         assert res.exit_code == 0, res.output
         est = read_exposures(out / "exposures.txt")

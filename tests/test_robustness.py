@@ -393,7 +393,8 @@ def test_sweep_folder_empty(paper, tmp_path):
 
 def test_correct_folder_empty(models, tmp_path):
     (tmp_path / "empty").mkdir()
-    error_line(run("correct", tmp_path / "empty", "-r", models["response.npz"], "-v", models["vignetting.npz"],
+    error_line(run("correct", tmp_path / "empty", "-r", models["response.npz"],
+                   "--vignetting", models["vignetting.npz"],
                    "-o", tmp_path / "out"), tmp_path / "empty", "no images", "check the folder")
 
 
@@ -515,7 +516,7 @@ RESPONSE_DEFECTS = {
 @pytest.mark.parametrize("kind", sorted(RESPONSE_DEFECTS))
 def test_bad_response_file(kind, models, frames, tmp_path):
     path = make_bad_response(kind, tmp_path, models)
-    error_line(run("correct", frames, "-r", path, "-v", models["vignetting.npz"], "-o", tmp_path / "out"),
+    error_line(run("correct", frames, "-r", path, "--vignetting", models["vignetting.npz"], "-o", tmp_path / "out"),
                path, *RESPONSE_DEFECTS[kind])
     assert not (tmp_path / "out").exists()  # models are checked before any output is made
 
@@ -588,7 +589,7 @@ VIGNETTING_DEFECTS = {
 @pytest.mark.parametrize("kind", sorted(VIGNETTING_DEFECTS))
 def test_bad_vignetting_file(kind, models, frames, tmp_path):
     path = make_bad_vignetting(kind, tmp_path, models)
-    error_line(run("correct", frames, "-r", models["response.npz"], "-v", path, "-o", tmp_path / "out"),
+    error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", path, "-o", tmp_path / "out"),
                path, *VIGNETTING_DEFECTS[kind])
     assert not (tmp_path / "out").exists()
 
@@ -614,7 +615,7 @@ def test_bad_vignetting_array_for_reconstruction(room, models, tmp_path):
     V[3, 4] = np.nan
     path = tmp_path / "vignetting.npy"
     np.save(path, V)
-    error_line(reconstruct(seq, tmp_path / "run", "-r", models["response.npz"], "-v", path), path, "NaN")
+    error_line(reconstruct(seq, tmp_path / "run", "-r", models["response.npz"], "--vignetting", path), path, "NaN")
     assert not (tmp_path / "run").exists()
 
 
@@ -625,7 +626,8 @@ def test_model_of_another_aspect_ratio(models, tmp_path):
     (tmp_path / "square").mkdir()
     image = tmp_path / "square" / "a.png"
     cv2.imwrite(str(image), np.full((64, 64, 3), 100, np.uint8))
-    error_line(run("correct", tmp_path / "square", "-r", models["response.npz"], "-v", models["vignetting.npz"],
+    error_line(run("correct", tmp_path / "square", "-r", models["response.npz"],
+                   "--vignetting", models["vignetting.npz"],
                    "-o", tmp_path / "out"), image, models["vignetting.npz"], "calibrated at 96x72", "64x64",
                "calibrate vignetting at this resolution")
 
@@ -634,7 +636,7 @@ def test_model_of_another_resolution_same_aspect_is_fine(models, tmp_path):
     """Not an error: a 96 x 72 model serves 48 x 36 images (resampled), exit 0."""
     (tmp_path / "half").mkdir()
     cv2.imwrite(str(tmp_path / "half" / "a.png"), np.full((36, 48, 3), 100, np.uint8))
-    result = run("correct", tmp_path / "half", "-r", models["response.npz"], "-v", models["vignetting.npz"],
+    result = run("correct", tmp_path / "half", "-r", models["response.npz"], "--vignetting", models["vignetting.npz"],
                  "-o", tmp_path / "out")
     assert result.exit_code == 0, result.output
     corrected = cv2.imread(str(tmp_path / "out" / "a.png"))
@@ -645,14 +647,14 @@ def test_colour_model_on_grayscale_images(models, tmp_path):
     (tmp_path / "grey").mkdir()
     image = tmp_path / "grey" / "a.png"
     cv2.imwrite(str(image), np.full((VH, VW), 100, np.uint8))
-    error_line(run("correct", tmp_path / "grey", "-r", models["response.npz"], "-v", models["vignetting.npz"],
+    error_line(run("correct", tmp_path / "grey", "-r", models["response.npz"], "--vignetting", models["vignetting.npz"],
                    "-o", tmp_path / "out"), image, models["response.npz"], "channels", "grayscale")
 
 
 def test_model_of_another_aspect_ratio_for_reconstruction(room, models, tmp_path):
     seq = tum_copy(room, tmp_path / "seq")
     square = _vignetting_lut(64, 64).save(tmp_path / "square.npz")
-    line = error_line(reconstruct(seq, tmp_path / "run", "-r", models["response.npz"], "-v", square), square,
+    line = error_line(reconstruct(seq, tmp_path / "run", "-r", models["response.npz"], "--vignetting", square), square,
                       "aspect", "calibrate vignetting at this resolution")
     assert "160x120" in line
     assert not (tmp_path / "run").exists()  # refused before the results folder is made
@@ -711,7 +713,7 @@ def test_output_under_a_file_vignetting(paper, a_file):
 
 
 def test_output_under_a_file_correct(models, frames, a_file):
-    error_line(run("correct", frames, "-r", models["response.npz"], "-v", models["vignetting.npz"], "-o",
+    error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", models["vignetting.npz"], "-o",
                    a_file / "out"), a_file / "out", "Not a directory", "choose another output folder")
 
 
@@ -781,7 +783,7 @@ def test_full_disk_response(brackets, tmp_path, monkeypatch):
 
 def test_full_disk_correct(models, frames, tmp_path, monkeypatch):
     _full_disk_for(monkeypatch, "frame_1.png")
-    error_line(run("correct", frames, "-r", models["response.npz"], "-v", models["vignetting.npz"], "-o",
+    error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", models["vignetting.npz"], "-o",
                    tmp_path / "out"), tmp_path / "out" / "frame_1.png", "the disk is full", "free some space")
     assert not (tmp_path / "out" / "frame_1.png").exists()
     no_temporaries(tmp_path / "out")

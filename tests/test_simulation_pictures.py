@@ -218,7 +218,7 @@ def run(*args: str):
 def test_cli_picture_end_to_end(tmp_path):
     pic = block_picture(tmp_path / "blocks.png")
     out = tmp_path / "seq"
-    res = run("room", "-o", str(out), "--seed", "2", "--frames", "2", "--width", "64", "--height", "48",
+    res = run("room", "-o", str(out), "--seed", "2", "--num-frames", "2", "--width", "64", "--height", "48",
               "--no-progress", "--picture", str(pic), "--picture", str(pic))
     assert res.exit_code == 0, res.output
     data = json.loads((out / "truth" / "room.json").read_text())
@@ -232,7 +232,7 @@ def test_cli_picture_end_to_end(tmp_path):
                                    atol=5e-5)
     assert len(list((out / "rgb").glob("*.png"))) == 2
     # errors: a missing picture is one line, exit 1, and leaves no output folder
-    res = run("room", "-o", str(tmp_path / "bad"), "--frames", "1", "--width", "64", "--height", "48",
+    res = run("room", "-o", str(tmp_path / "bad"), "--num-frames", "1", "--width", "64", "--height", "48",
               "--no-progress", "--picture", str(tmp_path / "missing.png"))
     assert res.exit_code == 1
     lines = [ln for ln in res.output.splitlines() if ln.strip()]

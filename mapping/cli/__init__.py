@@ -42,6 +42,13 @@ Examples:
       remove vignetting from images or a video
   radiomap reconstruct room_seq --response crf.npz --vignetting vignetting.npz --poses gt -o run1
       fuse irradiance into a TSDF map, export a mesh and the colour-disagreement histogram
+  radiomap reconstruct --config run1/config.json -o run2 --voxel-size 0.02
+      replay run1 with its recorded options, one of them changed (compare --config likewise)
+\b
+Option names mean one thing everywhere: -o output, -r response, --vignetting a model file, --frames a
+range A:B:S, -n/--num-frames a count, --format a sequence layout; -v is only 'radiomap -v COMMAND'
+(verbose). Old spellings (-v FILE, --reference-exposure, --exposure-reference, simulate --frames N, ...)
+still work and warn.
 
 Run 'radiomap COMMAND --help' for the options of a command.
 """
@@ -89,7 +96,8 @@ class LazyGroup(click.Group):
 @click.group(cls=LazyGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"],
                                                              "max_content_width": 100})
 @click.version_option(__version__, "--version", "-V", prog_name="radiomap", message="%(prog)s %(version)s")
-@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
+@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug), before the command: "
+                                                   "radiomap -v reconstruct ...")
 def cli(verbose: int) -> None:
     """radiomap: radiometric calibration and irradiance fusion for RGB-D maps.
 

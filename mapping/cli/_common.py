@@ -1,8 +1,17 @@
-"""Shared pieces of the subcommands: option types, result folders, summary tables."""
+"""Shared pieces of the subcommands: option types, deprecated option spellings, run manifests and their
+replay (``--config RUN/config.json``), summary tables.
+
+Option naming (one meaning per name and per short option across the whole CLI): ``-o`` output, ``-r``
+response, ``-v`` only ``radiomap -v`` (verbose), ``-n`` a count of frames; ``--frames`` is always a range
+``A:B:S``; ``--vignetting`` always a model file; ``--format`` always a sequence layout. A renamed option keeps
+its old spelling as a hidden alias (:func:`deprecated_alias`) that warns in one line.
+"""
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import platform
 import sys
 import time
@@ -10,9 +19,26 @@ from pathlib import Path
 from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from radiometry import __version__
+from radiometry.errors import RadiomapError
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
+
+# the version of config.json's replay contract ("parameters" = the command's options by their Python names)
+CONFIG_VERSION = 1
+# options that never come from a config.json: what to overwrite and how to show progress are the caller's
+NOT_REPLAYED = frozenset({"config", "force", "no_progress", "progress", "help"})
+# keys of config.json besides "parameters": what the run was and where it ran (read by people, not replayed)
+CONFIG_INFO_KEYS = ("command", "config_version", "parameters", "argv", "replay_of", "radiomap_version", "python",
+                    "platform", "started", "dataset", "colour_model", "pipeline", "methods_run")
+_META_CONFIG = "radiomap.config"
+_META_ARGV = "radiomap.argv"
+_META_ALIAS_VALUES = "radiomap.alias_values"
+
+
+class ConfigFileError(RadiomapError):
+    """A ``--config`` file cannot be replayed (not JSON, another command or version, an unknown key)."""
 
 
 class FrameRange(click.ParamType):
@@ -39,17 +65,247 @@ class FrameRange(click.ParamType):
         return slice(*nums)
 
 
+def frame_range_text(frames: slice | None) -> str | None:
+    """``slice`` -> ``"A:B:S"`` (the ``--frames`` syntax, :class:`FrameRange` reads it back); None -> None."""
+    if frames is None or frames == slice(None):
+        return None
+    text = f"{'' if frames.start is None else frames.start}:{'' if frames.stop is None else frames.stop}"
+    return text if frames.step is None else f"{text}:{frames.step}"
+
+
+def plain_value(value: Any) -> Any:
+    """A parameter value as plain JSON that the option reads back: Paths absolute strings, slices ``A:B:S``,
+    tuples lists; anything else that is not JSON-plain is a TypeError (never a Python repr)."""
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise TypeError(f"{value!r} is not a finite number; config.json holds plain JSON")
+        return value
+    if isinstance(value, os.PathLike):
+        return os.path.abspath(os.fspath(value))
+    if isinstance(value, slice):
+        return frame_range_text(value)
+    if isinstance(value, (list, tuple)):
+        return [plain_value(v) for v in value]
+    if hasattr(value, "item") and callable(value.item):  # numpy scalars
+        return plain_value(value.item())
+    raise TypeError(f"cannot record a {type(value).__name__} ({value!r}) in config.json as plain JSON")
+
+
 def run_manifest(command: str, params: dict[str, Any]) -> dict[str, Any]:
     """What a results folder records about the run that made it."""
     return {
         "command": command,
         "argv": sys.argv,
-        "parameters": {k: (str(v) if isinstance(v, (Path, slice)) else v) for k, v in params.items()},
+        "parameters": {k: plain_value(v) for k, v in params.items()},
         "radiomap_version": __version__,
         "python": sys.version.split()[0],
         "platform": platform.platform(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+
+
+def replay_manifest(ctx: click.Context, *, files: tuple[str, ...] = (), **info: Any) -> dict[str, Any]:
+    """config.json of a replayable command: its options as plain values under "parameters" (``--config``
+    reads them back), ``info`` (keys of :data:`CONFIG_INFO_KEYS`) beside them. ``files``: text options that
+    may name a file (e.g. ``--intrinsics``), recorded absolute when they do."""
+    params = {}
+    for param in ctx.command.params:
+        if not _replayable(param) or param.name not in ctx.params:
+            continue
+        value = ctx.params[param.name]
+        if param.name in files and isinstance(value, str) and Path(value).is_file():
+            value = Path(value)
+        if isinstance(value, list) and not getattr(param, "multiple", False):
+            value = ",".join(map(str, value))        # a comma-separated option the callback split
+        params[param.name] = plain_value(value)
+    unknown = set(info) - set(CONFIG_INFO_KEYS)
+    if unknown:
+        raise ValueError(f"config.json info keys must be among CONFIG_INFO_KEYS, got {sorted(unknown)}")
+    manifest = {"command": ctx.command.name, "config_version": CONFIG_VERSION, "parameters": params,
+                "argv": ctx.meta.get(_META_ARGV, sys.argv)}
+    if ctx.meta.get(_META_CONFIG) is not None:
+        manifest["replay_of"] = os.path.abspath(ctx.meta[_META_CONFIG])
+    manifest.update({"radiomap_version": __version__, "python": sys.version.split()[0],
+                     "platform": platform.platform(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    manifest.update(info)
+    return manifest
+
+
+def _replayable(param: click.Parameter) -> bool:
+    return param.name not in NOT_REPLAYED and not isinstance(param, DeprecatedAlias) and param.expose_value
+
+
+# --------------------------------------------------------------------------------------------------
+# --config RUN/config.json: the options of an earlier run as click's default_map
+# --------------------------------------------------------------------------------------------------
+def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[str, Any]:
+    """The ``parameters`` of a config.json written by ``command``, checked: JSON, the same command, this
+    version of the contract, only known keys. Values None (= the option's default) are left out."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigFileError(f"{path}: cannot read it ({exc.strerror or exc}); pass RUN/config.json of an earlier "
+                              "run") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigFileError(f"{path}: not a JSON file ({exc}); pass the config.json a radiomap run wrote") from None
+    if not isinstance(doc, dict):
+        raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes")
+    if "config_version" not in doc:
+        raise ConfigFileError(f"{path}: no key 'config_version' (written before radiomap replayed runs, or not by "
+                              "radiomap); it cannot be replayed: give its options on the command line")
+    if doc["config_version"] != CONFIG_VERSION:
+        raise ConfigFileError(f"{path}: key 'config_version' is {doc['config_version']!r}, this radiomap "
+                              f"{__version__} replays version {CONFIG_VERSION}; run the radiomap that wrote it, or "
+                              "give the options on the command line")
+    if doc.get("command") != command.name:
+        raise ConfigFileError(f"{path}: key 'command' is {doc.get('command')!r}, not {command.name!r}; replay it "
+                              f"with 'radiomap {doc.get('command')} --config {path}'")
+    for key in doc:
+        if key not in CONFIG_INFO_KEYS:
+            where = " (options go under 'parameters')" if key in {p.name for p in command.params} else ""
+            raise ConfigFileError(f"{path}: unknown key {key!r}{where}; remove it")
+    params = doc.get("parameters")
+    if not isinstance(params, dict):
+        raise ConfigFileError(f"{path}: key 'parameters' must be an object of options, got {type(params).__name__}")
+    names = {p.name for p in command.params if _replayable(p)}
+    renamed = {p.old.lstrip("-").replace("-", "_"): p.target for p in command.params if isinstance(p, DeprecatedAlias)}
+    for key in params:
+        if key not in names:
+            hint = (f" (renamed {renamed[key]!r})" if key in renamed else
+                    " (not replayed: give it on the command line)" if key in NOT_REPLAYED else "")
+            raise ConfigFileError(f"{path}: unknown key 'parameters.{key}' for radiomap {command.name}{hint}; "
+                                  "remove or rename it")
+    return {k: v for k, v in params.items() if v is not None}
+
+
+def _load_config(ctx: click.Context, param: click.Parameter, value):
+    if value is None or ctx.resilient_parsing:
+        return value
+    ctx.default_map = {**(ctx.default_map or {}), **load_replay_config(value, ctx.command),
+                       **ctx.meta.get(_META_ALIAS_VALUES, {})}   # an old spelling given here beats the file
+    ctx.meta[_META_CONFIG] = value
+    return value
+
+
+def config_option(f):
+    """``--config RUN/config.json``: replay a run (its options as defaults; the command line overrides them)."""
+    return click.option("--config", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+                        is_eager=True, callback=_load_config, expose_value=False, metavar="RUN/config.json",
+                        help="Replay a run: take every option from the config.json it wrote (options given on the "
+                             "command line override it; -o defaults to the run's own folder, refused without "
+                             "--force).")(f)
+
+
+def replayed_from(ctx: click.Context, name: str) -> str | None:
+    """The config file an option's value came from (None: given or a default)."""
+    if ctx.get_parameter_source(name) is ParameterSource.DEFAULT_MAP:
+        return ctx.meta.get(_META_CONFIG)
+    return None
+
+
+# --------------------------------------------------------------------------------------------------
+# renamed options: the old spelling stays as a hidden alias that warns
+# --------------------------------------------------------------------------------------------------
+class DeprecatedAlias(click.Option):
+    """A hidden option spelling ``old`` that sets the option named ``target`` (its value converted and checked
+    by the target's type and callback) and warns in one line. Needs :class:`RadiomapCommand`."""
+
+    def __init__(self, param_decls, *, target: str, new: str, note: str = "", **attrs) -> None:
+        super().__init__(param_decls, hidden=True, **attrs)
+        self.old, self.target, self.new, self.note = param_decls[0], target, new, note
+
+
+def deprecated_alias(old: str, target: str, new: str, note: str = ""):
+    """Decorator: ``old`` (e.g. ``--reference-exposure``) keeps working as a hidden, deprecated spelling of the
+    option whose parameter is ``target`` and whose spelling is ``new``."""
+    name = f"deprecated_{old.lstrip('-').replace('-', '_')}"
+    return click.option(old, name, cls=DeprecatedAlias, target=target, new=new, note=note, default=None,
+                        metavar="VALUE")
+
+
+class RadiomapCommand(click.Command):
+    """A subcommand that resolves :class:`DeprecatedAlias` options, records its argv for config.json and names
+    the config file and key when a ``--config`` value is refused."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta[_META_ARGV] = ["radiomap", ctx.info_name, *args]
+        aliased = self._resolve_aliases(ctx, args)
+        try:
+            rest = super().parse_args(ctx, args)
+        except click.BadParameter as exc:
+            if exc.param is not None and exc.param.name in aliased:
+                raise click.BadParameter(exc.message, ctx=ctx, param_hint=aliased[exc.param.name]) from None
+            config = ctx.meta.get(_META_CONFIG)
+            if config is None or exc.param is None or \
+                    ctx.get_parameter_source(exc.param.name) is not ParameterSource.DEFAULT_MAP:
+                raise
+            spelling = exc.param.opts[0] if isinstance(exc.param, click.Option) else exc.param.human_readable_name
+            raise ConfigFileError(f"{config}: key 'parameters.{exc.param.name}': {exc.format_message()} (fix it "
+                                  f"there or give {spelling} on the command line)") from None
+        for alias in self.params:
+            if isinstance(alias, DeprecatedAlias):
+                ctx.params.pop(alias.name, None)
+        for name in aliased:
+            ctx.set_parameter_source(name, ParameterSource.COMMANDLINE)
+        return rest
+
+    def _resolve_aliases(self, ctx: click.Context, args: list[str]) -> dict[str, str]:
+        """Old spellings on the command line become the new option's value (through the default map, below the
+        command line and above a config file, so that the new option's type, callback and required check
+        apply); returns {target parameter: old spelling}."""
+        aliases = [p for p in self.params if isinstance(p, DeprecatedAlias)]
+        if not aliases or ctx.resilient_parsing:
+            return {}
+        opts, _, _ = self.make_parser(ctx).parse_args(args=list(args))  # a dry run: nothing is processed
+        aliased = {}
+        unset = getattr(click.core, "UNSET", None)  # click >= 8.3 marks a value not given
+        for alias in aliases:
+            if opts.get(alias.name, unset) in (None, unset):
+                continue
+            if opts.get(alias.target, unset) not in (None, unset):
+                raise click.UsageError(f"{alias.old} is the old spelling of {alias.new}; give only {alias.new}", ctx)
+            click.echo(f"warning: {alias.old} is deprecated, use {alias.new}"
+                       + (f" ({alias.note})" if alias.note else ""), err=True)
+            aliased[alias.target] = alias.old
+            ctx.meta.setdefault(_META_ALIAS_VALUES, {})[alias.target] = opts[alias.name]
+        ctx.default_map = {**(ctx.default_map or {}), **ctx.meta.get(_META_ALIAS_VALUES, {})}
+        return aliased
+
+
+def settings_line(ctx: click.Context, settings: list[tuple]) -> str:
+    """``settings: poses gt (compare's default; reconstruct's is icp), ...``: each ``(label, parameter, shown
+    value[, what the default is called])`` with where the value came from (given, a config file, the default);
+    for the defaults that differ between reconstruct and compare (:data:`DIFFERENT_DEFAULTS`) the other
+    command's default is named. A parameter None: no source (a fixed behaviour)."""
+    parts = []
+    for label, name, shown, *default_name in settings:
+        if name is None:
+            parts.append(f"{label} {shown}")
+            continue
+        source = ctx.get_parameter_source(name)
+        if source is ParameterSource.DEFAULT_MAP:
+            how = f"from {ctx.meta.get(_META_CONFIG)}"
+        elif source in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT):
+            how = "given"
+        else:
+            how = default_name[0] if default_name else f"{ctx.command.name}'s default"
+            if name in DIFFERENT_DEFAULTS:
+                other = next(c for c in DIFFERENT_DEFAULTS[name] if c != ctx.command.name)
+                how += f"; {other}'s is {DIFFERENT_DEFAULTS[name][other]}"
+        parts.append(f"{label} {shown} ({how})")
+    return "settings: " + ", ".join(parts)
+
+
+# Defaults that stay different between reconstruct and compare, as the summaries name them (a test checks
+# them against the options): reconstruct maps real sequences (often without ground truth) and fuses what is
+# best; compare measures corrections, so it keeps poses and method count fixed unless asked.
+DIFFERENT_DEFAULTS = {
+    "poses": {"reconstruct": "icp", "compare": "gt"},
+    "exposure_compensation": {"reconstruct": "on with --response", "compare": "off"},
+}
 
 
 def format_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
@@ -79,5 +335,7 @@ def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2)
                    "was neither fused nor tracked; raise --depth-max if the scene is deeper", err=True)
 
 
-__all__ = ["FrameRange", "run_manifest", "format_table", "warn_far_depth", "atomic_write_json",
-           "atomic_write_text", "ensure_dir", "json"]
+__all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
+           "RadiomapCommand", "config_option", "deprecated_alias", "format_table", "frame_range_text",
+           "load_replay_config", "plain_value", "replay_manifest", "replayed_from", "run_manifest", "settings_line",
+           "warn_far_depth", "atomic_write_json", "atomic_write_text", "ensure_dir", "json"]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FrameRange, warn_far_depth
+from mapping.cli._common import FrameRange, RadiomapCommand, config_option, settings_line, warn_far_depth
 
 EPILOG = """\b
 Examples:
@@ -22,11 +22,14 @@ Examples:
       --poses icp --frames 0:200:2 -o kitchen_cmp
       real data of a camera whose response is unknown (the gamma 2.2 assumption) and not calibrated for
       vignetting: tracked once (ICP), raw colours vs response vs response with exposure compensation
+  radiomap compare --config cmp/config.json -o cmp_surfel --backend surfel
+      replay a comparison with the options it recorded, here with another backend
 \b
 OUT/report.html holds everything (figures embedded); OUT/compare.csv/.json/.txt the table;
 OUT/histograms.png the histograms (Fig. 9 of Alexandrov et al.); OUT/renders.jpg the meshes side by
-side; OUT/<method>/ one results folder per method (mesh.ply [and .glb with --glb], mesh_colours.npz
-with the map-unit colours, histogram, trajectory, metrics).
+side; OUT/<method>/ one results folder per method (mesh.ply and .glb [not with --no-glb],
+mesh_colours.npz with the map-unit colours, histogram, trajectory, metrics); OUT/summary.txt what was
+printed, with the settings used; OUT/config.json the options (replayable with --config).
 """
 
 
@@ -49,7 +52,7 @@ def _methods(ctx, param, value):
     return names
 
 
-@click.command("compare", epilog=EPILOG)
+@click.command("compare", cls=RadiomapCommand, epilog=EPILOG)
 @click.argument("sequence", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-r", "--response", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True,
               help="Camera response (radiomap .npz, radical .crf, DSO pcalib.txt).")
@@ -62,12 +65,13 @@ def _methods(ctx, param, value):
 @click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
               help="Fusion backend.")
 @click.option("--exposure-compensation", is_flag=True,
-              help="Also run every corrected method with exposure compensation.")
+              help="Also run every corrected method with exposure compensation (reconstruct's default with "
+                   "--response is on; here it adds methods).")
 @click.option("--methods", callback=_methods, default=None, metavar="LIST",
               help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
                    "response, poly, lut, and response+ec, poly+ec, lut+ec.")
 @click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
-              help="Ground-truth poses, or ICP tracked once and reused by every method.")
+              help="Ground-truth poses, or ICP tracked once and reused by every method (reconstruct's default).")
 @click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2).")
 @click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=_positive,
               help="TSDF voxel size in metres.")
@@ -79,32 +83,36 @@ def _methods(ctx, param, value):
 @click.option("--depth-scale", type=float, default=None, callback=_positive,
               help="Raw depth units per metre [format default].")
 @click.option("--intrinsics", type=str, default=None, help="fx,fy,cx,cy or a file [default: the sequence's own].")
-@click.option("--format", "fmt", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
+@click.option("--format", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
               help="Sequence layout [default: detected].")
 @click.option("--views", type=click.IntRange(0, 6), default=3, show_default=True,
               help="Viewpoints of the side-by-side renders (0: none).")
 @click.option("--render-width", type=click.IntRange(32, 1920), default=320, show_default=True,
               help="Width of each render in pixels.")
-@click.option("--glb", is_flag=True, help="Also write each mesh as binary glTF (mesh.glb) for web viewers.")
+@click.option("--glb/--no-glb", default=True, show_default=True,
+              help="Also write each mesh as binary glTF (mesh.glb) for web viewers, as reconstruct does.")
+@config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None, output: Path,
             backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, frames: slice | None,
             voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
-            fmt: str | None, views: int, render_width: int, glb: bool, force: bool, no_progress: bool) -> None:
+            format: str | None, views: int, render_width: int, glb: bool, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
     optionally with exposure compensation) at identical poses, and compare the colour disagreement
-    histograms, the meshes and (for simulated sequences) the colours against the true radiance."""
-    from mapping.cli._common import run_manifest
+    histograms, the meshes and (for simulated sequences) the colours against the true radiance.
+
+    With --config RUN/config.json, SEQUENCE and every option default to the recorded comparison's."""
+    from mapping.cli._common import replay_manifest
     from mapping.compare import compare, make_methods
     from mapping.datasets import open_dataset
     from mapping.pipeline import load_vignetting_option
-    from radiometry.fileio import atomic_write_json
+    from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.formats import load_response
 
     if methods is not None and exposure_compensation:
         raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
-    dataset = open_dataset(sequence, format=fmt, depth_scale=depth_scale, intrinsics=intrinsics,
+    dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
     resp = load_response(response)
     lut = load_vignetting_option(vignetting_lut) if vignetting_lut is not None else None
@@ -119,19 +127,22 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
                      depth_max=depth_max, brightness=brightness, scene=scene, views=views,
                      render_width=render_width, progress=not no_progress, force=force,
                      title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",))
-    atomic_write_json(output / "config.json", run_manifest("compare", {
-        "sequence": sequence, "response": response, "vignetting_lut": vignetting_lut,
-        "vignetting_poly": vignetting_poly, "output": output, "backend": backend,
-        "exposure_compensation": exposure_compensation, "methods": [m.name for m in method_list], "poses": poses,
-        "frames": frames, "voxel_size": voxel_size, "depth_max": depth_max, "brightness": brightness,
-        "depth_scale": depth_scale, "intrinsics": intrinsics, "format": fmt, "views": views,
-        "render_width": render_width, "glb": glb}))
-    click.echo(result.table_text())
+    ctx = click.get_current_context()
+    atomic_write_json(output / "config.json", replay_manifest(ctx, files=("intrinsics",),
+                                                               methods_run=[m.name for m in method_list]))
+    lines = [result.table_text()]
     if result.ate is not None:
-        click.echo(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
+        lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
     if scene is None:
-        click.echo("(no ground truth: colour error not measured)")
-    click.echo(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+        lines.append("(no ground truth: colour error not measured)")
+    lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+    ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
+    lines.append(settings_line(ctx, [("poses", "poses", poses),
+                                     ("exposure compensation", "exposure_compensation", ec) if methods is None
+                                     else ("exposure compensation", None, f"{ec}, as --methods lists"),
+                                     ("glb", "glb", "on" if glb else "off")]))
+    atomic_write_text(output / "summary.txt", "\n".join(lines) + "\n")
+    click.echo("\n".join(lines))
     click.echo(f"report: {result.files['report']}")
     warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
 

@@ -7,13 +7,15 @@ from pathlib import Path
 
 import click
 
+from mapping.cli._common import RadiomapCommand, deprecated_alias
+
 EPILOG = """\b
 Examples:
   radiomap correct frames/ --response crf.npz --vignetting vignetting.npz -o corrected/
-  radiomap correct clip.mp4 -r crf.npz -v xtion.vgn -o corrected/ --scale 0.8
+  radiomap correct clip.mp4 -r crf.npz --vignetting xtion.vgn -o corrected/ --scale 0.8
       (--scale < 1 darkens the result so that bright corners do not clip; --scale auto picks the
        scale that keeps 99.5% of the first frames' pixels unclipped)
-  radiomap correct frame.png -r pcalib.txt -v vignette.png -o irr/ --irradiance --format tiff
+  radiomap correct frame.png -r pcalib.txt --vignetting vignette.png -o irr/ --irradiance --irradiance-format tiff
       (32-bit float irradiance f^-1(I)/V, RGB, for fusion or measurement)
 """
 
@@ -57,7 +59,8 @@ def _write_float(path: Path, data, fmt: str) -> None:
     else:
         reason = "the encoder refused"
     if not ok:
-        raise OutputError(f"{path}: OpenCV cannot write 32-bit float {fmt.upper()} ({reason}); use --format npy")
+        raise OutputError(f"{path}: OpenCV cannot write 32-bit float {fmt.upper()} ({reason}); "
+                          "use --irradiance-format npy")
     from radiometry.fileio import atomic_write_bytes
 
     atomic_write_bytes(path, buf.tobytes())
@@ -75,21 +78,23 @@ def _models_must_fit(what, response_path: str, vignetting_path: str):
             from None
 
 
-@click.command("correct", epilog=EPILOG)
+@click.command("correct", cls=RadiomapCommand, epilog=EPILOG)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
 @click.option("-r", "--response", "response_path", required=True, type=click.Path(dir_okay=False),
               help="Camera response: radiomap .npz, radical .crf or DSO pcalib.txt.")
-@click.option("-v", "--vignetting", "vignetting_path", required=True, type=click.Path(dir_okay=False),
+@click.option("--vignetting", "vignetting_path", required=True, type=click.Path(dir_okay=False),
               help="Vignetting model: radiomap .npz, radical .vgn or DSO vignette.png.")
 @click.option("-o", "--output", "outdir", required=True, type=click.Path(file_okay=False),
               help="Output folder.")
 @click.option("--scale", default="1.0", show_default=True, type=str,
               help="Brightness factor of the uint8 output (< 1 avoids clipping at the corners), or 'auto'.")
 @click.option("--irradiance", is_flag=True, help="Write float irradiance f^-1(I)/V instead of 8-bit images.")
-@click.option("--format", "fmt", type=click.Choice(["npy", "tiff", "exr"]), default="npy", show_default=True,
-              help="File format of --irradiance output.")
+@click.option("--irradiance-format", "fmt", type=click.Choice(["npy", "tiff", "exr"]), default="npy",
+              show_default=True, help="File format of --irradiance output.")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
+@deprecated_alias("-v", "vignetting_path", "--vignetting", "-v is radiomap's --verbose: radiomap -v correct ...")
+@deprecated_alias("--format", "fmt", "--irradiance-format", "--format is a sequence layout elsewhere")
 def command(input_path: str, response_path: str, vignetting_path: str, outdir: str, scale: str,
             irradiance: bool, fmt: str, force: bool, no_progress: bool) -> None:
     """Correct INPUT (an image, a folder of images or a video): I' = f(scale * f^-1(I) / V(x)).

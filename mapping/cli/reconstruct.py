@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FrameRange, warn_far_depth
+from mapping.cli._common import (FrameRange, RadiomapCommand, config_option, deprecated_alias, settings_line,
+                                 warn_far_depth)
 
 EPILOG = """\b
 Examples:
@@ -18,13 +19,15 @@ Examples:
   radiomap reconstruct redkitchen/seq-01 --frames 0:300:2 --voxel-size 0.01 -o kitchen
       a 7-Scenes sequence, every second of the first 300 frames
   radiomap reconstruct rgbd_dataset_freiburg1_desk --depth-scale 5000 --intrinsics 517.3,516.5,318.6,255.3 -o desk
+  radiomap reconstruct --config run_corrected/config.json -o run_again
+      replay a run with the options it recorded (options given here override them)
 \b
-The results folder holds mesh.ply/.glb (colours through the response at --reference-exposure; with
---backend surfel surfels.ply, and surfels_mesh.ply with --surfel-mesh),
-trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9 of
-Alexandrov et al.), metrics.json, frames.csv, config.json and summary.txt; with exposure compensation
-exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source map|frame|fallback) and
-mesh colours at --exposure-reference. A RUNNING file marks a run that has not finished.
+The results folder holds mesh.ply/.glb (colours through the response at --display-exposure, or with
+exposure compensation at --mesh-exposure; with --backend surfel surfels.ply, and surfels_mesh.ply with
+--surfel-mesh), trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9
+of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --config) and summary.txt;
+with exposure compensation exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source
+map|frame|fallback). A RUNNING file marks a run that has not finished.
 """
 
 
@@ -34,18 +37,30 @@ def _positive(ctx, param, value):
     return value
 
 
-@click.command("reconstruct", epilog=EPILOG)
+def _mesh_exposure(ctx, param, value):
+    if value is None:
+        return None
+    from mapping.exposure_compensation import parse_reference
+
+    try:
+        parse_reference(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+    return value
+
+
+@click.command("reconstruct", cls=RadiomapCommand, epilog=EPILOG)
 @click.argument("sequence", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Results folder (created).")
 @click.option("-r", "--response", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Camera response (radiomap .npz, radical .crf, DSO pcalib.txt). Without it the map "
                    "averages raw intensities (no correction).")
-@click.option("-v", "--vignetting", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+@click.option("--vignetting", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Vignetting model (radiomap .npz, radical .vgn, DSO vignette.png) or a V array (.npy, "
                    "H x W x C). Needs --response.")
 @click.option("--poses", type=click.Choice(["icp", "gt"]), default="icp", show_default=True,
-              help="Track with frame-to-model ICP, or take the sequence's ground-truth poses.")
+              help="Track with frame-to-model ICP, or take the sequence's ground-truth poses (compare's default).")
 @click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=_positive,
               help="TSDF voxel size in metres.")
 @click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2).")
@@ -59,66 +74,82 @@ def _positive(ctx, param, value):
 @click.option("--surfel-mesh", is_flag=True,
               help="With --backend surfel: also write surfels_mesh.ply, a Poisson mesh of the stable surfels "
                    "(Open3D; beside surfels.ply).")
-@click.option("--format", "fmt", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
+@click.option("--format", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
               help="Sequence layout [default: detected].")
 @click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
               help="Depth beyond this many metres is neither tracked nor fused.")
-@click.option("--reference-exposure", type=float, default=1.0, show_default=True, callback=_positive,
-              help="Exposure k_ref at which map irradiance is shown (mesh colours, histogram units; with exposure "
-                   "compensation the histogram's, relative to the first frame).")
+@click.option("--display-exposure", type=float, default=1.0, show_default=True, callback=_positive, metavar="K",
+              help="Exposure k at which map irradiance becomes display levels: the histogram's units and, without "
+                   "exposure compensation, the mesh colours (with it, k relative to the first frame; the mesh "
+                   "then follows --mesh-exposure).")
 @click.option("--exposure-compensation/--no-exposure-compensation", default=None,
               help="Estimate every frame's exposure and white balance against the map and fuse f^-1(I)/V/k; "
-                   "writes exposures.txt/.json [default: on with --response, off without].")
-@click.option("--exposure-reference", default="median", show_default=True,
-              help="With exposure compensation: the exposure of the mesh colours, relative to the first frame: "
-                   "median (of the sequence's estimates), first, a number or r,g,b.")
+                   "writes exposures.txt/.json [default: on with --response, off without; compare's: off].")
+@click.option("--mesh-exposure", default=None, callback=_mesh_exposure, metavar="median|first|K|R,G,B",
+              help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
+                   "median (of the sequence's estimates; the default), first, a number or r,g,b.")
+@config_option
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
+@deprecated_alias("-v", "vignetting", "--vignetting", "-v is radiomap's --verbose: radiomap -v reconstruct ...")
+@deprecated_alias("--reference-exposure", "display_exposure", "--display-exposure")
+@deprecated_alias("--exposure-reference", "mesh_exposure", "--mesh-exposure")
 def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
-            backend: str, surfel_mesh: bool, fmt: str | None, depth_max: float, reference_exposure: float,
-            exposure_compensation: bool | None, exposure_reference: str, force: bool, no_progress: bool) -> None:
+            backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
+            exposure_compensation: bool | None, mesh_exposure: str | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
-    irradiance (or raw intensities), recording the colour disagreement of every fused sample."""
-    from mapping.cli._common import format_table, run_manifest
+    irradiance (or raw intensities), recording the colour disagreement of every fused sample.
+
+    With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
+    from dataclasses import asdict
+
+    from mapping.cli._common import format_table, plain_value, replay_manifest
     from mapping.export import ResultsFolder
     from mapping.pipeline import ReconstructConfig, build_run, reconstruct
 
+    ctx = click.get_current_context()
     if vignetting is not None and response is None:
         raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
     if exposure_compensation and response is None:
         raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
+    compensate = exposure_compensation if exposure_compensation is not None else response is not None
+    if mesh_exposure is not None and not compensate:
+        raise click.BadParameter("applies with exposure compensation only; without it the mesh colours are at "
+                                 "--display-exposure", param_hint="--mesh-exposure")
     if surfel_mesh and backend != "surfel":
         raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
-    from mapping.exposure_compensation import parse_reference
-
-    try:
-        parse_reference(exposure_reference)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--exposure-reference") from None
     config = ReconstructConfig(sequence=sequence, output=output, response=response, vignetting=vignetting,
                                poses=poses, voxel_size=voxel_size, frames=frames or slice(None),
                                depth_scale=depth_scale, intrinsics=intrinsics, backend=backend,
-                               surfel_mesh=surfel_mesh, format=fmt,
-                               depth_max=depth_max, reference_exposure=reference_exposure,
-                               exposure_compensation=exposure_compensation, exposure_reference=exposure_reference,
+                               surfel_mesh=surfel_mesh, format=format,
+                               depth_max=depth_max, reference_exposure=display_exposure,
+                               exposure_compensation=exposure_compensation,
+                               exposure_reference=mesh_exposure or "median",
                                force=force, progress=not no_progress)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
     dataset = kwargs["dataset"]
     folder = ResultsFolder(output, force=force)
-    params = {k: v for k, v in vars(config).items()}
-    manifest = run_manifest("reconstruct", params)
-    manifest["dataset"] = {"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
-                           "height": dataset.height, "K": dataset.K.tolist(),
-                           "depth_scale": getattr(dataset, "depth_scale", None),
-                           "intrinsics_source": getattr(dataset, "intrinsics_source", None)}
-    manifest["colour_model"] = kwargs["colour_model"].describe()
+    manifest = replay_manifest(
+        ctx, files=("intrinsics",),
+        dataset={"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
+                 "height": dataset.height, "K": dataset.K.tolist(),
+                 "depth_scale": getattr(dataset, "depth_scale", None),
+                 "intrinsics_source": plain_value(getattr(dataset, "intrinsics_source", None))},
+        colour_model=kwargs["colour_model"].describe(),
+        pipeline={k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")})
     folder.write_json("config.json", manifest)
     run = reconstruct(**kwargs, output=folder)
-    table = format_table([run.summary_row()])
-    click.echo(table)
+    settings = [("poses", "poses", poses),
+                ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
+                 f"reconstruct's default {'with' if response is not None else 'without'} --response")]
+    if backend == "tsdf":
+        settings.append(("glb", None, "on"))
+    summary = format_table([run.summary_row()]) + "\n" + settings_line(ctx, settings)
+    folder.write_text("summary.txt", summary + "\n")
+    click.echo(summary)
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
         click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",

@@ -8,19 +8,21 @@ from pathlib import Path
 
 import click
 
+from mapping.cli._common import RadiomapCommand, deprecated_alias
+
 KIND_DEFAULT_FRAMES = {"room": 100, "paper": 300, "brackets": 9}
 
 EPILOG = """\b
 Examples:
   radiomap simulate room -o room_seq --seed 1
       100 frames of a furnished room, 640x480, auto exposure and white balance, TUM layout + truth
-  radiomap simulate room -o room_fixed --seed 1 --fixed-exposure --frames 300 --light-change 0.5
+  radiomap simulate room -o room_fixed --seed 1 --fixed-exposure -n 300 --light-change 0.5
       fixed exposure; the light dims to half its brightness in the middle of the sequence
   radiomap simulate room -o room_art --seed 1 --picture holiday.jpg --picture map.png
       your own pictures hung on the walls (image textures; the paths are recorded in truth/room.json)
   radiomap simulate paper -o paper_seq --seed 1 --flicker 0.05
       a white-paper sweep for vignetting calibration (fixed exposure), light flickering by 5 %
-  radiomap simulate brackets -o brackets --seed 1 --frames 11
+  radiomap simulate brackets -o brackets --seed 1 -n 11
       11 exposures of an HDR chart, 1/1000 s doubling to 1.024 s, and times.txt
   radiomap simulate paper -o euroc_paper --crf ../shared/data/vignetting/euroc_mt9v034_752x480/pcalib.txt \\
       --vignette-png ../shared/data/vignetting/euroc_mt9v034_752x480/vignette.png
@@ -34,19 +36,19 @@ DIR/truth/; DIR/radiomap_sequence.json describes the sequence.
 """
 
 
-@click.command("simulate", epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"]})
+@click.command("simulate", cls=RadiomapCommand, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("kind", type=click.Choice(["brackets", "paper", "room"]))
 @click.option("-o", "--output", "output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Folder for the sequence (must be empty or absent unless --force).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Seed of everything random (scene, trajectory, noise): same seed, same bytes.")
-@click.option("--frames", type=click.IntRange(min=1), default=None,
-              help="Frames (room: 100, paper: 300) or exposures (brackets: 9).")
+@click.option("-n", "--num-frames", type=click.IntRange(min=1), default=None, metavar="N",
+              help="How many frames (room: 100, paper: 300) or exposures (brackets: 9) to render.")
 @click.option("--width", type=click.IntRange(min=16, max=8192), default=640, show_default=True)
 @click.option("--height", type=click.IntRange(min=12, max=8192), default=480, show_default=True)
 @click.option("--camera", "camera_preset", type=click.Choice(["xtion", "mild", "ideal"]), default="xtion",
               show_default=True, help="Camera preset (CRF, vignetting, noise, auto exposure).")
-@click.option("--vignetting", "vignetting_preset", type=click.Choice(["xtion", "mild", "none"]), default=None,
+@click.option("--vignetting-preset", type=click.Choice(["xtion", "mild", "none"]), default=None,
               help="Vignetting preset replacing the camera's.")
 @click.option("--vignette-png", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
               help="Use a DSO 16-bit vignette.png (resampled to the image size) as the vignetting.")
@@ -60,7 +62,7 @@ DIR/truth/; DIR/radiomap_sequence.json describes the sequence.
               help="Response: linear, gamma, s_curve, or a pcalib.txt / radiomap .npz response file.")
 @click.option("--auto-exposure/--fixed-exposure", default=True, show_default=True,
               help="Room: auto exposure and white balance, or both fixed (metered on the first frame).")
-@click.option("--exposure", "exposure_time", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--exposure-time", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
               help="Exposure time in seconds (room: the start or fixed value; paper: the fixed value).")
 @click.option("--light-change", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Room: the light switches to this factor of its brightness halfway through.")
@@ -78,7 +80,11 @@ DIR/truth/; DIR/radiomap_sequence.json describes the sequence.
 @click.option("--force", is_flag=True, help="Overwrite a non-empty output folder (an earlier simulation there "
               "is removed first).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def command(kind: str, output: Path, seed: int, frames: int | None, width: int, height: int, camera_preset: str,
+@deprecated_alias("--frames", "num_frames", "--num-frames", "a count here; --frames is a range A:B:S elsewhere")
+@deprecated_alias("--vignetting", "vignetting_preset", "--vignetting-preset",
+                  "--vignetting is a model file elsewhere")
+@deprecated_alias("--exposure", "exposure_time", "--exposure-time")
+def command(kind: str, output: Path, seed: int, num_frames: int | None, width: int, height: int, camera_preset: str,
             vignetting_preset: str | None, vignette_png: Path | None, lensfun_lens: str | None,
             lens_focal: float | None, lens_aperture: float | None, lensfun_db: Path | None, crf: str | None,
             auto_exposure: bool, exposure_time: float | None, light_change: float | None, flicker: float,
@@ -93,14 +99,14 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
 
     n_sources = sum(v is not None for v in (vignetting_preset, vignette_png, lensfun_lens))
     if n_sources > 1:
-        raise click.UsageError("give at most one of --vignetting, --vignette-png and --lensfun")
+        raise click.UsageError("give at most one of --vignetting-preset, --vignette-png and --lensfun")
     if kind != "room" and (light_change is not None or supersample != 1 or not auto_exposure or pictures):
         raise click.UsageError("--light-change, --supersample, --fixed-exposure and --picture are for 'room' "
                                "(paper and brackets always use a fixed exposure)")
     if kind != "paper" and flicker:
         raise click.UsageError("--flicker is for 'paper'")
     if kind == "brackets" and exposure_time is not None:
-        raise click.UsageError("brackets use 1/1000 s doubling; --exposure is for room and paper")
+        raise click.UsageError("brackets use 1/1000 s doubling; --exposure-time is for room and paper")
     if (lens_focal is not None or lens_aperture is not None or lensfun_db is not None) and lensfun_lens is None:
         raise click.UsageError("--lens-focal, --lens-aperture and --lensfun-db need --lensfun LENS")
 
@@ -131,7 +137,7 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
 
-    n = frames if frames is not None else KIND_DEFAULT_FRAMES[kind]
+    n = num_frames if num_frames is not None else KIND_DEFAULT_FRAMES[kind]
     progress = not no_progress
     t0 = time.perf_counter()
     if kind == "room":
@@ -145,7 +151,7 @@ def command(kind: str, output: Path, seed: int, frames: int | None, width: int, 
                                        flicker=flicker, jpeg_quality=jpeg_quality, force=force, progress=progress)
     else:
         if n < 2:
-            raise click.BadParameter("brackets need at least 2 exposures", param_hint="--frames")
+            raise click.BadParameter("brackets need at least 2 exposures", param_hint="--num-frames")
         out = sequences.simulate_brackets(output, camera=spec, seed=seed, n_exposures=n, scene=bracket_scene,
                                           jpeg_quality=jpeg_quality, force=force, progress=progress)
     elapsed = time.perf_counter() - t0
