@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import re
+
 import numpy as np
 import pytest
 
@@ -135,27 +138,105 @@ def test_arguments():
     assert not view.valid.any()
 
 
-def test_range_map_buffer_is_reserved_on_the_empty_grid():
-    """The one-off ray cast that sizes Open3D's range-map buffer runs before the first integration, when no
-    ray can read a voxel (on a filled grid that cast, which no weight stops, crashed Open3D 0.20 now and
-    then); once per camera, and later casts see the whole view."""
+def _open3d_range_log(text: str) -> list[tuple[bool, int]]:
+    """(overflowed, fragments needed) of every ray cast in Open3D's debug output, in order."""
+    found = re.findall(r"(Could not generate full range map; allocated|EstimateRange Allocated) \d+ fragments "
+                       r"(?:but|and) needed (\d+)", text)
+    return [(kind.startswith("Could"), int(n)) for kind, n in found]
+
+
+class _RecordingGrid:
+    """Forwards to Open3D's grid and records the arguments of every ray cast."""
+
+    def __init__(self, grid):
+        self._grid, self.casts = grid, []
+
+    def __getattr__(self, name):
+        return getattr(self._grid, name)
+
+    def ray_cast(self, blocks, K, extrinsic, width, height, attrs, *args):
+        self.casts.append((blocks.numpy().copy(), K.numpy(), extrinsic.numpy(), height, width, list(attrs)))
+        return self._grid.ray_cast(blocks, K, extrinsic, width, height, attrs, *args)
+
+
+def test_no_ray_cast_reads_an_unwritten_range_fragment(monkeypatch, capfd):
+    """Open3D's ray cast crashed (issue 13) when its fragment buffer overflowed: the block straddling the end of
+    the buffer writes none of its fragments, yet the slots below the end are read back as pixel coordinates.
+    Every cast the backend makes must fit the buffer, except the casts that grow it, whose blocks take one
+    fragment each (nothing unwritten is read). Checked on Open3D's own report of each cast (debug log): the
+    first frames, a far wall, then a smaller view with another camera on the same grid. The former one-off
+    reservation cast (blocks of up to 6 fragments, 3256 needed, 1800 allocated) fails here."""
+    from mapping._open3d import o3d
+    from mapping.fusion import tsdf
+
+    monkeypatch.setattr(tsdf, "_quiet", contextlib.nullcontext)     # keep Open3D's debug report
+    K640 = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0)
+    grid = backend.grid = _RecordingGrid(backend.grid)
+    u = np.arange(640, dtype=np.float32)[None, :].repeat(480, axis=0)
+    frames = [(1.5 + 1.3 * u / 640).astype(np.float32)] * 3 + [np.full((480, 640), 2.9, np.float32)]
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Debug):
+        capfd.readouterr()
+        for i, depth in enumerate(frames):
+            pose = np.eye(4)
+            pose[0, 3] = 0.03 * i
+            backend.integrate(depth, np.ones((480, 640, 3), np.float32), K640, pose,
+                              view=backend.render_for_frame(depth, K640, pose))
+        first = backend.render_for_frame(frames[0], K640, np.eye(4))
+        small = backend.render_for_frame(frames[0][::2, ::2], K640 / 2 + np.diag([0, 0, 0.5]), np.eye(4))
+        log = _open3d_range_log(capfd.readouterr().out)
+    assert len(log) == len(grid.casts) >= 6
+    assert (first.depth > 0).mean() > 0.95 and (small.depth > 0).mean() > 0.95        # complete views
+    for (overflowed, needed), (blocks, K, extrinsic, height, width, attrs) in zip(log, grid.casts):
+        per_block = tsdf.range_map_fragments(blocks, K, extrinsic, height, width, block_resolution=16,
+                                             voxel_size=0.01, depth_min=backend.depth_min, depth_max=3.0)
+        assert per_block.sum() == needed                                   # the count matches Open3D's
+        if "color" in attrs:
+            assert not overflowed                                          # renders are complete
+        if overflowed:
+            assert per_block.max() == 1                                    # no fragment slot left unwritten
+
+
+def test_range_map_fragments_match_open3d(capfd):
+    """The backend's count of a cast's range-map fragments is Open3D's, for frustum walls near and far, at
+    another pose, and at a view size that is not a multiple of 16 range-map pixels."""
+    from mapping._open3d import o3d
+    from mapping.fusion.tsdf import range_map_fragments
+
     K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
     backend = TSDFBackend(voxel_size=0.02, depth_max=4.0)
-    blocks_at_reservation = []                  # map size whenever a camera's buffer was actually reserved
-    original = backend._reserve_range_fragments
-
-    def reserve(*args):
-        size, before = int(backend.grid.hashmap().size()), len(backend._range_reserved)
-        original(*args)
-        if len(backend._range_reserved) > before:
-            blocks_at_reservation.append(size)
-
-    backend._reserve_range_fragments = reserve
-    depth = np.full((480, 640), 2.0, np.float32)
-    for z in (0.0, 0.05):
+    cases = []
+    for depth, shift, (h, w) in ((0.3, 0.0, (480, 640)), (3.5, 0.0, (480, 640)), (1.2, 0.7, (480, 640)),
+                                 (2.0, -0.4, (232, 312))):
         pose = np.eye(4)
-        pose[2, 3] = z
-        view = backend.render_for_frame(depth, K, pose)
-        backend.integrate(depth, np.ones((480, 640, 3), np.float32), K, pose, view=view)
-    assert blocks_at_reservation == [0]
-    assert (backend.render(np.eye(4), K, 480, 640).depth > 0).mean() > 0.9      # measured 0.944
+        pose[:3, 3] = [shift, 0.5 * shift, 0.0]
+        pose[:3, :3] = np.array([[np.cos(shift), 0, np.sin(shift)], [0, 1, 0], [-np.sin(shift), 0, np.cos(shift)]])
+        extrinsic = np.linalg.inv(pose)
+        Kc = K * np.array([[w / 640], [h / 480], [1]])
+        wall = o3d.t.geometry.Image(o3d.core.Tensor(np.full((h, w), depth, np.float32)))
+        blocks = backend.grid.compute_unique_block_coordinates(wall, o3d.core.Tensor(Kc),
+                                                               o3d.core.Tensor(extrinsic), 1.0, 4.0, 8.0)
+        cases.append((blocks, Kc, extrinsic, h, w))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Debug):
+        capfd.readouterr()
+        for blocks, Kc, extrinsic, h, w in cases:
+            backend.grid.ray_cast(blocks, o3d.core.Tensor(Kc), o3d.core.Tensor(extrinsic), w, h, ["depth"], 1.0,
+                                  0.1, 4.0, 1.0, 8.0, 8)
+        log = _open3d_range_log(capfd.readouterr().out)
+    ours = [int(range_map_fragments(b.numpy(), Kc, e, h, w, block_resolution=16, voxel_size=0.02, depth_min=0.1,
+                                    depth_max=4.0).sum()) for b, Kc, e, h, w in cases]
+    assert [n for _, n in log] == ours and min(ours) > 10
+
+
+@pytest.mark.parametrize("height, width", [(6, 8), (8, 8), (12, 20), (17, 9)])
+def test_tiny_views_render(height, width):
+    """Views whose range map has a side under 2 pixels take no fragment: cast without growing anything."""
+    backend = TSDFBackend(voxel_size=0.02, depth_max=3.0)
+    depth = _plane()
+    for _ in range(2):
+        backend.integrate(depth, np.ones((H, W, 3), np.float32), K, np.eye(4))
+    capacity = backend.fragment_capacity
+    Ks = K * np.array([[width / W], [height / H], [1]])
+    view = backend.render_for_frame(np.full((height, width), 1.5, np.float32), Ks, np.eye(4))
+    assert view.depth.shape == (height, width) and backend.ray_casts == 2 and capacity > 0
+    assert backend.fragment_capacity == capacity

@@ -158,3 +158,45 @@ def refine(depth, vertex, fx, fy, cx, cy, R, o, tsdf, weight, index, lo, shift, 
             vertex[v, u, 2] = t
             n += 1
     return n
+
+
+@njit(cache=True, nogil=True)
+def range_fragments(blocks, R, t, fx, fy, cx, cy, down, res, voxel_size, h_down, w_down, depth_min, depth_max,
+                    out):  # pragma: no cover
+    """Per block: the fragments Open3D's ``EstimateRange`` (pass 0) allots it, in its float32 arithmetic: the
+    eight corners in front of the camera projected into the 1/``down`` range map, their floored / ceiled
+    rectangle clipped to ``h_down`` x ``w_down`` and cut into 16 x 16 fragments (0 for an empty rectangle or
+    depth interval). Coordinates beyond the map are clipped before the int conversion (Open3D's overflows to
+    INT_MIN and widens nothing, so the count here is never the smaller). Returns the total."""
+    total = 0
+    one = np.float32(1.0)
+    for k in range(blocks.shape[0]):
+        u_min, v_min, u_max, v_max = w_down - 1, h_down - 1, 0, 0
+        z_min, z_max = depth_max, depth_min
+        for i in range(8):
+            xw = np.float32((blocks[k, 0] + (i & 1)) * res) * voxel_size
+            yw = np.float32((blocks[k, 1] + ((i >> 1) & 1)) * res) * voxel_size
+            zw = np.float32((blocks[k, 2] + ((i >> 2) & 1)) * res) * voxel_size
+            zc = R[2, 0] * xw + R[2, 1] * yw + R[2, 2] * zw + t[2]
+            if zc <= 0:
+                continue
+            xc = R[0, 0] * xw + R[0, 1] * yw + R[0, 2] * zw + t[0]
+            yc = R[1, 0] * xw + R[1, 1] * yw + R[1, 2] * zw + t[1]
+            inv_z = one / zc
+            u = (xc * fx * inv_z + cx) / down
+            v = (yc * fy * inv_z + cy) / down
+            u_lo = int(min(max(np.floor(u), -1.0), w_down))
+            u_hi = int(min(max(np.ceil(u), -1.0), w_down))
+            v_lo = int(min(max(np.floor(v), -1.0), h_down))
+            v_hi = int(min(max(np.ceil(v), -1.0), h_down))
+            u_min, u_max = min(u_lo, u_min), max(u_hi, u_max)
+            v_min, v_max = min(v_lo, v_min), max(v_hi, v_max)
+            z_min, z_max = min(z_min, zc), max(z_max, zc)
+        u_min, v_min = max(0, u_min), max(0, v_min)
+        u_max, v_max = min(w_down - 1, u_max), min(h_down - 1, v_max)
+        n = 0
+        if v_min < v_max and u_min < u_max and z_min < z_max:
+            n = ((v_max - v_min + 16) // 16) * ((u_max - u_min + 16) // 16)
+        out[k] = n
+        total += n
+    return total

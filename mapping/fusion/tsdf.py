@@ -32,8 +32,16 @@ Corrections of Open3D's kernels (measured in ``tests/test_tsdf.py``):
   640x480 frame. Colours (interpolated at the crossing, which lies on the right ray) are unaffected.
 - The cast's range map is built at 1/8 resolution and read out of bounds unless both image sides are
   multiples of 8 (hangs or empty views): odd sizes are cast padded and cropped.
-- The range map's fragment buffer grows lazily, and the cast that triggers the growth comes back incomplete:
-  the buffer is reserved once per camera for the whole viewing frustum.
+- The range map (the depth interval to march, per 8x8 pixels) is built from "fragments", 16x16 range-map pixel
+  pieces of each listed block's projected rectangle, in a buffer that Open3D sizes lazily: a cast that needs
+  more fragments than the buffer holds comes back incomplete (parts of the view silently empty), and only then
+  is the buffer reallocated. Worse, in that cast the block whose fragments straddle the end of the buffer
+  writes none of them, yet every slot below the end is read back: slots of uninitialised memory become pixel
+  coordinates of a write into the range map, a segmentation fault when the leftover bytes are not small
+  floats (issue 13: 6 of 6 runs under load). The backend therefore counts each cast's fragments exactly as
+  Open3D does (:func:`range_map_fragments`) and, before a cast that would not fit, grows the buffer with a
+  cast in which every listed block takes exactly one fragment, so that no slot is left unwritten: no cast
+  overflows but these, and they cannot read garbage.
 """
 
 from __future__ import annotations
@@ -51,7 +59,8 @@ from mapping.fusion.base import ColourPairs, ModelView
 log = logging.getLogger(__name__)
 
 _NAN = float("nan")
-_RANGE_FACTOR = 8
+_RANGE_FACTOR = 8          # Open3D's range map: one pixel per 8x8 image pixels
+_FRAGMENT = 16             # its fragments: 16x16 range-map pixels
 _ATTRS = ("tsdf", "weight", "color")
 SURFACES = ("debias", "refine", "open3d")
 _BYTES_PER_VOXEL = 4 + 4 + 12
@@ -70,6 +79,24 @@ class MeshData:
 def _padded(height: int, width: int) -> tuple[int, int]:
     """The image size Open3D's ray cast is given: both sides rounded up to multiples of the range-map factor."""
     return -(-int(height) // _RANGE_FACTOR) * _RANGE_FACTOR, -(-int(width) // _RANGE_FACTOR) * _RANGE_FACTOR
+
+
+def range_map_fragments(blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int, width: int, *,
+                        block_resolution: int, voxel_size: float, depth_min: float, depth_max: float) -> np.ndarray:
+    """The fragments Open3D's ``VoxelBlockGrid.ray_cast`` allots each block of ``blocks`` (N x 3 block
+    coordinates) when it builds its range map for a ``height`` x ``width`` image (both multiples of 8) seen
+    with ``K`` and ``extrinsic`` (world to camera): pass 0 of ``EstimateRange`` (Open3D 0.16-0.20), its
+    float32 arithmetic in a Numba kernel (:func:`mapping.fusion._tsdf_kernels.range_fragments`)."""
+    b = np.ascontiguousarray(np.asarray(blocks).reshape(-1, 3), dtype=np.int32)
+    E = np.asarray(extrinsic, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    f32 = np.float32
+    out = np.empty(len(b), np.int64)
+    _kernels().range_fragments(b, np.ascontiguousarray(E[:3, :3], f32), np.ascontiguousarray(E[:3, 3], f32),
+                               f32(K[0, 0]), f32(K[1, 1]), f32(K[0, 2]), f32(K[1, 2]), f32(_RANGE_FACTOR),
+                               int(block_resolution), f32(voxel_size), int(height) // _RANGE_FACTOR,
+                               int(width) // _RANGE_FACTOR, f32(depth_min), f32(depth_max), out)
+    return out
 
 
 def _tensor(array: np.ndarray, dtype=np.float32):
@@ -142,7 +169,7 @@ class TSDFBackend:
         self._last_blocks = None          # block coordinates of the last fused frame (for render())
         self._pending = None              # (depth array, pose, K, blocks, depth image) from render_for_frame
         self.ray_casts = 0
-        self._range_reserved: set = set()
+        self.fragment_capacity = 0        # fragments Open3D's range-map buffer is known to hold (module doc)
 
     def _integration_intrinsics(self, K: np.ndarray) -> np.ndarray:
         """Open3D's integration kernel looks a voxel up at pixel ``int(u)`` (truncation) while every other
@@ -172,11 +199,11 @@ class TSDFBackend:
         # Open3D's ray cast builds its range map at 1/8 resolution and reads it out of bounds (hanging or
         # returning nothing) unless both sides are multiples of 8: cast a padded image and crop it
         hp, wp = _padded(height, width)
-        self._reserve_range_fragments(K, hp, wp)   # normally done before the first integration (a no-op here)
-        with _quiet():  # Open3D reports growing its range-map buffer as a warning on stdout
-            result = self.grid.ray_cast(blocks, Kt, self._extrinsic(pose), wp, hp, ["depth", "color"], 1.0,
-                                        self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
-                                        _RANGE_FACTOR)
+        extrinsic = np.linalg.inv(np.asarray(pose, dtype=np.float64))
+        self._fit_range_fragments(blocks.numpy(), K, extrinsic, hp, wp)
+        result = self.grid.ray_cast(blocks, Kt, o3d.core.Tensor(extrinsic), wp, hp, ["depth", "color"], 1.0,
+                                    self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
+                                    _RANGE_FACTOR)
         self.ray_casts += 1
         depth = result["depth"].numpy()[:, :, 0]
         colour = result["color"].numpy()
@@ -195,32 +222,39 @@ class TSDFBackend:
             self._refine(blocks, K, pose, depth, vertex)
         return ModelView(depth=depth, colour=colour, vertex=vertex, normal=normal)
 
-    def _reserve_range_fragments(self, K: np.ndarray, height: int, width: int) -> None:
-        """Open3D sizes the ray cast's range-map buffer lazily: a cast that needs more fragments than allocated
-        returns an incomplete range map (parts of the view silently empty) and only then grows the buffer.
-        Once per camera, cast against the blocks of fronto-parallel walls filling the viewing frustum from
-        ``depth_min`` to ``depth_max`` (as Open3D itself lists them), a superset of any frame's blocks, so that
-        the buffer never has to grow during the run. Done before the first frame is integrated (see
-        :meth:`integrate`): on an empty grid the rays find no block and read no voxel. On a filled grid this
-        cast (which no weight stops) marches every ray through the whole frustum, and Open3D 0.20 then
-        occasionally crashed (a segmentation fault in ``ray_cast``, once in about ten full test runs)."""
-        key = (int(height), int(width), tuple(np.round(np.asarray(K, dtype=np.float64).ravel(), 6)))
-        if key in self._range_reserved:
-            return
-        Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
-        eye = o3d.core.Tensor(np.eye(4))
-        step = max(self.truncation, self.voxel_size)  # walls 2 truncations apart: their bands touch
-        lists = []
-        with _quiet():
-            depths = np.arange(max(self.depth_min, step), self.depth_max + 1e-9, step).astype(np.float32)
-            for d in depths[depths < np.float32(self.depth_max)]:  # a wall at depth_max touches no block
-                wall = o3d.t.geometry.Image(o3d.core.Tensor(np.full((height, width), d, np.float32)))
-                lists.append(self.grid.compute_unique_block_coordinates(wall, Kt, eye, 1.0, self.depth_max,
-                                                                         self.trunc_voxel_multiplier).numpy())
-            blocks = np.unique(np.concatenate(lists), axis=0).astype(np.int32)
-            self.grid.ray_cast(o3d.core.Tensor(blocks), Kt, eye, int(width), int(height), ["depth"], 1.0,
-                               self.depth_min, self.depth_max, 1e9, self.trunc_voxel_multiplier, _RANGE_FACTOR)
-        self._range_reserved.add(key)
+    def _fragments(self, blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int,
+                   width: int) -> np.ndarray:
+        return range_map_fragments(blocks, K, extrinsic, height, width, block_resolution=self.block_resolution,
+                                   voxel_size=self.voxel_size, depth_min=self.depth_min, depth_max=self.depth_max)
+
+    def _fit_range_fragments(self, blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int,
+                             width: int) -> None:
+        """Make sure the cast of ``blocks`` fits Open3D's fragment buffer (module doc): if its fragments, with
+        an eighth to spare for rounding, reach the known capacity, first grow the buffer to twice as many."""
+        needed = int(self._fragments(blocks, K, extrinsic, height, width).sum())
+        if needed and needed + needed // 8 + _FRAGMENT >= self.fragment_capacity:  # 0 fits, reads nothing
+            self._grow_range_fragments(K, height, width, 2 * needed + 256)
+
+    def _grow_range_fragments(self, K: np.ndarray, height: int, width: int, count: int) -> None:
+        """Grow Open3D's fragment buffer to ``count`` fragments with a cast that cannot read an unwritten one:
+        ``count`` copies of block (0, 0, 0), placed on the ray through the image centre so far away that its
+        projection spans about two range-map pixels, i.e. exactly one fragment per copy. Open3D then writes
+        every fragment slot it reads back, however small its buffer was, and reallocates it to ``count``."""
+        K = np.asarray(K, dtype=np.float64)
+        size = self.block_resolution * self.voxel_size
+        distance = max(K[0, 0], K[1, 1]) * size / (2.0 * _RANGE_FACTOR) + size
+        extrinsic = np.eye(4)
+        extrinsic[:3, 3] = distance * np.array([(width / 2 - K[0, 2]) / K[0, 0], (height / 2 - K[1, 2]) / K[1, 1],
+                                                1.0]) - size / 2
+        blocks = np.zeros((int(count), 3), np.int32)
+        if self._fragments(blocks[:1], K, extrinsic, height, width)[0] != 1:
+            # cannot happen once a cast needs fragments (both range-map sides >= 2); never risk an unsafe growth
+            raise RuntimeError(f"cannot size Open3D's ray-cast buffer for a {width}x{height} view with K={K.tolist()}")
+        with _quiet():  # Open3D reports the overflow and the reallocation as a warning and a note on stdout
+            self.grid.ray_cast(o3d.core.Tensor(blocks), o3d.core.Tensor(K), o3d.core.Tensor(extrinsic), int(width),
+                               int(height), ["depth"], 1.0, self.depth_min, self.depth_max, 1e9,
+                               self.trunc_voxel_multiplier, _RANGE_FACTOR)
+        self.fragment_capacity = max(self.fragment_capacity, int(count))
 
     def _block_index(self, blocks) -> tuple[np.ndarray, np.ndarray]:
         """A dense (X, Y, Z) table of hash-map buffer indices (-1 = unallocated) over the given blocks and their
@@ -309,8 +343,6 @@ class TSDFBackend:
             raise ValueError(f"colour must be (H, W, 3) matching depth {depth.shape}, got {colour.shape}")
         _, _, blocks, depth_image, extrinsic = self._prepare(depth, K, pose)
         self._pending = None
-        if self.frames_integrated == 0:
-            self._reserve_range_fragments(K, *_padded(*depth.shape))
         pairs = None
         if self.frames_integrated:
             if view is None:
