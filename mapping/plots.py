@@ -115,21 +115,23 @@ FULL_WIDTH_INCHES = 12.0
 DPI = 100
 
 
-def _save(fig, path) -> None:
+def _save(fig, path, *, layout: bool = True) -> None:
     from mapping.report import _save_figure
 
-    fig.tight_layout()
+    if layout:
+        fig.tight_layout()
     _save_figure(fig, path, dpi=DPI)
 
 
 def plot_exposures(axes, exposures: Mapping[str, Mapping[str, np.ndarray]], *,
-                   truth: tuple[np.ndarray, np.ndarray] | None = None):
+                   truth: tuple[np.ndarray, np.ndarray] | None = None, legend: bool = True):
     """Per-frame exposure estimates, one panel per channel (R, G, B), one curve per run.
 
     axes:      three matplotlib axes.
     exposures: ``{label: read_exposures(...) dict}`` (``index``, ``k`` (N, 3), ``source``); frames whose source
                is ``fallback`` are drawn as crosses.
     truth:     ``(frame indices, (N, 3) true k)`` relative to the first frame, or None.
+    legend:    a legend in the first panel.
     """
     if len(axes) != 3:
         raise ValueError(f"plot_exposures draws R, G and B on three axes, got {len(axes)}")
@@ -149,7 +151,8 @@ def plot_exposures(axes, exposures: Mapping[str, Mapping[str, np.ndarray]], *,
         ax.set_xlabel("frame")
         ax.grid(True, alpha=0.3)
     axes[0].set_ylabel("exposure k (first frame = 1)")
-    axes[0].legend(fontsize="small", loc="best")
+    if legend:
+        axes[0].legend(fontsize="small", loc="best")
     return axes
 
 
@@ -160,12 +163,15 @@ def save_exposure_figure(path, exposures: Mapping[str, Mapping[str, np.ndarray]]
 
     if not exposures:
         raise ValueError("exposures must name at least one run's estimates")
-    fig = Figure(figsize=(FULL_WIDTH_INCHES, 4.2))
+    fig = Figure(figsize=(FULL_WIDTH_INCHES, 4.8))
     axes = fig.subplots(1, 3, sharey=True)
-    plot_exposures(axes, exposures, truth=truth)
+    plot_exposures(axes, exposures, truth=truth, legend=False)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), frameon=False)   # below, off the data
     if title:
         fig.suptitle(title, fontsize=13)
-    _save(fig, path)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    _save(fig, path, layout=False)
 
 
 def top_view_axes(positions: np.ndarray, up: np.ndarray | None = None) -> tuple[int, int]:

@@ -498,7 +498,8 @@ def run_sections(output: str | os.PathLike, runs: Mapping[str, str | os.PathLike
         save_trajectory_figure(files["trajectory"], shown, ground_truth=gt,
                                up=camera_up(np.concatenate(list(trajectories.values()))))
         sections.append(ReportSection("Trajectory", [
-            "Camera positions seen from above (the two world axes of largest extent; equal scales)."
+            "Camera positions seen from above (the world's vertical axis is the one closest to the cameras' mean up "
+            "direction; equal scales)."
             + (" Grey band: the sequence's ground truth." if gt is not None else "")
             + " Runs that fused at the same poses share one line."],
             figures=[ReportFigure(files["trajectory"], "Camera trajectory, top view")]))
