@@ -117,6 +117,22 @@ def test_command_line_overrides_the_config_and_a_replay_does_not_overwrite(first
     assert "exposure compensation off (given)" in (out / "summary.txt").read_text()
 
 
+def test_a_recorded_value_the_command_line_contradicts_is_dropped_with_a_note(first_run, tmp_path):
+    """The command line cannot unset a recorded --mesh-exposure or --surfel-mesh: an override that contradicts
+    one drops it (a note names the file and the key); the same contradiction typed out is still refused."""
+    recorded = rewrite(first_run / "config.json", tmp_path,
+                       lambda d: d["parameters"].update(mesh_exposure="first", frames="0:3"))
+    out = tmp_path / "no_ec"
+    res = invoke("reconstruct", "--config", recorded, "-o", out, "--no-exposure-compensation", "--no-progress")
+    assert res.exit_code == 0, res.output
+    assert f"note: {recorded}: mesh_exposure 'first' is not used (no exposure compensation)" in res.stderr
+    p = json.loads((out / "config.json").read_text())["parameters"]
+    assert p["mesh_exposure"] is None and p["exposure_compensation"] is False
+    res = invoke("reconstruct", "--config", recorded, "-o", tmp_path / "typed", "--no-exposure-compensation",
+                 "--mesh-exposure", "first")
+    assert res.exit_code == 2 and "applies with exposure compensation only" in res.output
+
+
 def test_compare_replay_gives_the_same_table(room, tmp_path):
     out = tmp_path / "cmp"
     res = invoke("compare", room, "-r", room / "truth" / "response.npz", "--vignetting-lut",

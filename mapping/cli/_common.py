@@ -199,6 +199,17 @@ def config_option(f):
                              "--force).")(f)
 
 
+def drop_replayed(ctx: click.Context, name: str, default: Any, why: str) -> bool:
+    """A value from ``--config`` that an option given on the command line contradicts (``--surfel-mesh`` of a
+    surfel run replayed with ``--backend tsdf``) is dropped with a note on stderr, since the command line has
+    no way to unset it; True if it was. A contradiction on the command line itself stays an error."""
+    if ctx.get_parameter_source(name) is not ParameterSource.DEFAULT_MAP:
+        return False
+    click.echo(f"note: {ctx.meta.get(_META_CONFIG)}: {name} {ctx.params.get(name)!r} is not used ({why})", err=True)
+    ctx.params[name] = default
+    return True
+
+
 def replayed_from(ctx: click.Context, name: str) -> str | None:
     """The config file an option's value came from (None: given or a default)."""
     if ctx.get_parameter_source(name) is ParameterSource.DEFAULT_MAP:
@@ -336,6 +347,6 @@ def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2)
 
 
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
-           "RadiomapCommand", "config_option", "deprecated_alias", "format_table", "frame_range_text",
+           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "format_table", "frame_range_text",
            "load_replay_config", "plain_value", "replay_manifest", "replayed_from", "run_manifest", "settings_line",
            "warn_far_depth", "atomic_write_json", "atomic_write_text", "ensure_dir", "json"]

@@ -103,20 +103,23 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded comparison's."""
-    from mapping.cli._common import replay_manifest
+    from mapping.cli._common import drop_replayed, replay_manifest
     from mapping.compare import compare, make_methods
     from mapping.datasets import open_dataset
     from mapping.pipeline import load_vignetting_option
     from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.formats import load_response
 
-    if methods is not None and exposure_compensation:
+    ctx = click.get_current_context()
+    if methods is not None and exposure_compensation and \
+            not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
         raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
     resp = load_response(response)
     lut = load_vignetting_option(vignetting_lut) if vignetting_lut is not None else None
     poly = load_vignetting_option(vignetting_poly) if vignetting_poly is not None else None
+    exposure_compensation = ctx.params["exposure_compensation"]
     try:
         method_list = make_methods(resp, vignetting_poly=_as_model(poly), vignetting_lut=_as_model(lut),
                                    exposure_compensation=exposure_compensation, names=methods)
@@ -127,7 +130,6 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
                      depth_max=depth_max, brightness=brightness, scene=scene, views=views,
                      render_width=render_width, progress=not no_progress, force=force,
                      title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",))
-    ctx = click.get_current_context()
     atomic_write_json(output / "config.json", replay_manifest(ctx, files=("intrinsics",),
                                                                methods_run=[m.name for m in method_list]))
     lines = [result.table_text()]

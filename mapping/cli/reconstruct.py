@@ -104,7 +104,7 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
     from dataclasses import asdict
 
-    from mapping.cli._common import format_table, plain_value, replay_manifest
+    from mapping.cli._common import drop_replayed, format_table, plain_value, replay_manifest
     from mapping.export import ResultsFolder
     from mapping.pipeline import ReconstructConfig, build_run, reconstruct
 
@@ -114,13 +114,15 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     if exposure_compensation and response is None:
         raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
     compensate = exposure_compensation if exposure_compensation is not None else response is not None
-    if mesh_exposure is not None and not compensate:
+    if mesh_exposure is not None and not compensate and \
+            not drop_replayed(ctx, "mesh_exposure", None, "no exposure compensation"):
         raise click.BadParameter("applies with exposure compensation only; without it the mesh colours are at "
                                  "--display-exposure", param_hint="--mesh-exposure")
-    if surfel_mesh and backend != "surfel":
+    if surfel_mesh and backend != "surfel" and not drop_replayed(ctx, "surfel_mesh", False, f"--backend {backend}"):
         raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
+    mesh_exposure, surfel_mesh = ctx.params["mesh_exposure"], ctx.params["surfel_mesh"]
     config = ReconstructConfig(sequence=sequence, output=output, response=response, vignetting=vignetting,
                                poses=poses, voxel_size=voxel_size, frames=frames or slice(None),
                                depth_scale=depth_scale, intrinsics=intrinsics, backend=backend,
@@ -141,14 +143,14 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
         colour_model=kwargs["colour_model"].describe(),
         pipeline={k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")})
     folder.write_json("config.json", manifest)
-    run = reconstruct(**kwargs, output=folder)
     settings = [("poses", "poses", poses),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
         settings.append(("glb", None, "on"))
+    run = reconstruct(**kwargs, output=folder)
     summary = format_table([run.summary_row()]) + "\n" + settings_line(ctx, settings)
-    folder.write_text("summary.txt", summary + "\n")
+    folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
     click.echo(summary)
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
