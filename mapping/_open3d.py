@@ -12,7 +12,6 @@ dynamic loader resolve it. Use ``from mapping._open3d import o3d`` everywhere in
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import os
 import platform
@@ -20,6 +19,7 @@ import re
 import sys
 from pathlib import Path
 
+from mapping._libusb import preload_libusb as _preload_libusb  # the one loader (import mapping runs it too)
 from radiometry.errors import RadiomapError
 
 log = logging.getLogger(__name__)
@@ -31,29 +31,6 @@ if sys.platform == "linux" and platform.machine() == "x86_64":  # the wheel pypr
               "Open3D's CUDA build)")
 else:
     SWITCH = "'pip uninstall -y open3d open3d-cpu', then 'pip install open3d'"
-
-
-def _preload_libusb() -> str | None:
-    """Load libusb-1.0 globally: the system's if the loader finds it, else libusb-package's. Returns what was
-    loaded (a soname or a path), None if neither could be."""
-    try:
-        ctypes.CDLL("libusb-1.0.so.0", mode=ctypes.RTLD_GLOBAL)
-        return "libusb-1.0.so.0"
-    except OSError:
-        pass
-    try:
-        import libusb_package
-
-        path = libusb_package.get_library_path()
-    except Exception:  # pragma: no cover - depends on the machine
-        path = None
-    if path is not None:
-        try:
-            ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
-            return str(path)
-        except OSError as exc:  # pragma: no cover
-            log.debug("could not load %s: %s", path, exc)
-    return None
 
 
 def open3d_wheels(site: str | os.PathLike | None = None) -> list[str]:
