@@ -18,6 +18,8 @@ per case and a final line with the totals; exits 1 when any run crashed or faile
     python scripts/stress_tsdf.py --runs 40 --json stress.json
     python scripts/stress_tsdf.py --pythonpath /tmp/old_tree   # the radiomap code of another checkout
 
+Ctrl-C (or SIGTERM) stops after the current run and reports the finished runs.
+
 ``--pythonpath`` puts a source tree (folders ``mapping`` and ``radiometry``, e.g. ``git archive OLD mapping
 radiometry | tar -x -C /tmp/old_tree``) first on the runs' import path, to measure older code the same way.
 """
@@ -174,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: a temporary folder, removed at the end)")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds before a run counts as hung")
     parser.add_argument("--pythonpath", help="import radiomap from this source tree (to measure other code)")
+    parser.add_argument("--offset", type=int, default=0, help="start at this case (to split the runs over "
+                        "several processes)")
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error("--runs must be at least 1")
@@ -188,9 +192,16 @@ def main(argv: list[str] | None = None) -> int:
         cases = build_cases(rooms)
         records = []
         started = time.perf_counter()
+        signal.signal(signal.SIGTERM, signal.default_int_handler)   # SIGTERM too: stop and report
+        interrupted = False
         for i in range(args.runs):
-            case, loaded = cases[(i // 2) % len(cases)], i % 2 == 1
-            record = run_once(case, work / "out", loaded, args.timeout, args.pythonpath)
+            case, loaded = cases[(i // 2 + args.offset) % len(cases)], i % 2 == 1
+            try:
+                record = run_once(case, work / "out", loaded, args.timeout, args.pythonpath)
+            except KeyboardInterrupt:
+                interrupted = True
+                print(f"interrupted: reporting the {len(records)} finished runs", file=sys.stderr)
+                break
             records.append(record)
             note = f" {record['signal'] or record['returncode']}: {record['stderr_tail'][-120:]}" \
                 if record["outcome"] != "ok" else ""
@@ -206,11 +217,12 @@ def main(argv: list[str] | None = None) -> int:
     summary = {"runs": len(records), "under_load": loaded_runs, "ok": sum(r["outcome"] == "ok" for r in records),
                "crashes": crashes, "crashes_under_load": sum(r["outcome"] == "crash" and r["loaded"] for r in records),
                "failures": failures, "cases": len({r["case"] for r in records}),
-               "minutes": round((time.perf_counter() - started) / 60, 1), "pythonpath": args.pythonpath}
+               "minutes": round((time.perf_counter() - started) / 60, 1), "pythonpath": args.pythonpath,
+               "interrupted": interrupted}
     print(table(records, cases))
     print(f"TOTAL runs {summary['runs']} ({loaded_runs} under load) over {summary['cases']} cases: "
           f"{summary['ok']} ok, {crashes} crashes ({summary['crashes_under_load']} under load), {failures} other "
-          f"failures, {summary['minutes']} min")
+          f"failures, {summary['minutes']} min" + (" (interrupted)" if interrupted else ""))
     if args.json:
         from radiometry.fileio import atomic_write_json
 
