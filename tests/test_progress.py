@@ -203,7 +203,7 @@ COMMANDS = {
     "vignetting": lambda i, out: ["vignetting", i["paper"], "-r", i["paper_response"], "-o", out / "v.npz",
                                   "--min-samples", "5", "--no-plots"],
     "correct": lambda i, out: ["correct", i["frames"], "-r", i["gamma"], "--vignetting", i["flat"], "-o", out],
-    "simulate": lambda i, out: ["simulate", "room", "-o", out / "seq", "--frames", "2", "--width", "64",
+    "simulate": lambda i, out: ["simulate", "room", "-o", out / "seq", "--num-frames", "2", "--width", "64",
                                 "--height", "48"],
     "reconstruct": lambda i, out: ["reconstruct", i["room"], "-o", out / "run", "--poses", "gt", "--voxel-size",
                                    "0.04"],
