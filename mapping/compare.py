@@ -143,9 +143,29 @@ def make_methods(response: CameraResponse | None, *, vignetting_poly: Vignetting
         vig = models.get(base)
         if base in models and vig is None:
             raise ValueError(f"method {name!r} needs the {base} vignetting model (--vignetting-{base})")
+        if vig is not None:
+            _check_model_kind(base, vig)
         label = LABELS[base] + (" + exposure comp." if ec else "")
         out.append(Method(name, label, response, vig, ec))
     return out
+
+
+def _check_model_kind(base: str, model: VignettingModel) -> None:
+    """The ``poly`` method needs a polynomial model and ``lut`` a look-up table: a model of the other kind would be
+    compared under the wrong label."""
+    from radiometry.vignetting import LUTVignetting, PolynomialVignetting
+
+    wanted = {"poly": PolynomialVignetting, "lut": LUTVignetting}[base]
+    if isinstance(model, wanted):
+        return
+    kind = "polynomial" if isinstance(model, PolynomialVignetting) else "look-up table (LUT)" \
+        if isinstance(model, LUTVignetting) else type(model).__name__
+    other = "lut" if base == "poly" else "poly"
+    source = model.info.get("source") if isinstance(getattr(model, "info", None), dict) else None
+    where = f" ({source})" if source else ""
+    raise ValueError(f"--vignetting-{base} holds a {kind} vignetting model{where}, not a "
+                     f"{'polynomial' if base == 'poly' else 'look-up table'}; pass it as --vignetting-{other}, or "
+                     f"calibrate the other kind with 'radiomap vignetting --model {base}'")
 
 
 def equal_brightness(model: VignettingModel, height: int, width: int) -> LUTVignetting:
@@ -507,6 +527,11 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     if display_response is None:
         display_response = next((m.response for m in methods if m.response is not None), None)
 
+    from mapping.validation import check_run
+
+    check_run(dataset, backend=backend, voxel_size=voxel_size, depth_max=depth_max, poses=poses,
+              **{k: v for k, v in dict(backend_options or {}).items()
+                 if k in ("block_resolution", "trunc_voxel_multiplier", "depth_min")})
     output = Path(output)
     _check_output(output, force)
     ensure_dir(output)

@@ -154,7 +154,9 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     :class:`DatasetError` naming the file and the line."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        from radiometry.textlists import read_list_text  # byte-order marks, CRLF, non-UTF-8 bytes
+
+        text = read_list_text(path)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read the trajectory ({exc.strerror}); check the path") from None
     stamps, rows = [], []

@@ -185,6 +185,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         for i in range(len(dataset)):
             loop.step(i)
             _advance(bar, loop.records, len(dataset))
+        loop.check_fused()  # a run that fused nothing (or too little) fails: mapping/validation.py
         status = "complete"
     except KeyboardInterrupt:
         status = "interrupted"
@@ -334,6 +335,14 @@ class _Loop:
         if view is None or np.count_nonzero(view.depth > 0) < self.refresh_coverage * valid:
             view = self.backend.render(pose, frame.K, frame.height, frame.width)
         self.track_view = (view, pose)
+
+    def check_fused(self) -> None:
+        from mapping.validation import check_fused
+
+        fused = sum(r.fused for r in self.records)
+        reasons = Counter(_reason_kind(r.reason) for r in self.records if not r.fused)
+        check_fused(fused, len(self.records), dict(reasons),
+                    str(getattr(self.dataset, "root", None) or getattr(self.dataset, "name", "the sequence")))
 
     def drop_unfinished(self) -> None:
         """Forget the frame an interruption cut short (neither fused nor skipped for a reason): it was not
@@ -503,6 +512,10 @@ def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0,
             raise ValueError(f"surfel_mesh applies to the surfel backend only, got backend {name!r} (the TSDF "
                              "backend always writes mesh.ply); pass backend='surfel' or surfel_mesh=False")
         kwargs["mesh"] = True
+    from mapping.validation import check_fusion
+
+    check_fusion(backend=name, voxel_size=voxel_size, depth_max=depth_max, block_resolution=block_resolution,
+                 trunc_voxel_multiplier=trunc_voxel_multiplier, depth_min=kwargs.get("depth_min", 0.1))
     module_name, class_name = BACKENDS[name]
     try:
         import importlib
@@ -549,10 +562,13 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     """The keyword arguments of :func:`reconstruct` for a configuration (the dataset opened, the models
     loaded, backend and tracker built)."""
     from mapping.datasets import open_dataset
+    from mapping.validation import check_config, check_run, config_options
     from radiometry.formats import load_response
 
+    check_config(config)  # the option ranges (mapping/validation.py), before anything is read
     dataset = open_dataset(config.sequence, format=config.format, depth_scale=config.depth_scale,
                            intrinsics=config.intrinsics, frames=config.frames)
+    check_run(dataset, poses=config.poses, **config_options(config))  # intrinsics, ground truth, memory
     # a file is loaded; a model object (mapping.reconstruct_sequence) is used as it is
     response = load_response(config.response) if isinstance(config.response, (str, Path)) else config.response
     vignetting = load_vignetting_option(config.vignetting) if isinstance(config.vignetting, (str, Path)) \

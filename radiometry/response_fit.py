@@ -565,9 +565,11 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str, float]]:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: no such times file; pass --times FILE with lines 'image_name seconds'")
+    from radiometry.textlists import read_list_text  # byte-order marks, CRLF, non-UTF-8 file names
+
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        text = read_list_text(path)
+    except OSError as exc:
         raise DatasetError(f"{path}: cannot read the times file ({exc}); it must be a text file") from None
     entries: list[tuple[str, float]] = []
     seen: dict[str, int] = {}

@@ -52,6 +52,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationError, CalibrationFileError, ImageError
 from radiometry.fileio import IMAGE_EXTENSIONS, list_images, read_rgb, save_model_file
+from radiometry.quorum import rule_text, too_little
 from radiometry.response import CameraResponse, validate_inverse_table
 from radiometry.vignetting import (LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal,
                                    read_model_file)
@@ -226,7 +227,7 @@ def open_frames(source: Any, *, max_frames: int | None = None) -> FrameSource:
 @dataclass(frozen=True)
 class SheetDetection:
     """The sheet in one frame: ``status`` is ``"ok"`` or why the frame is skipped (``"saturated"``,
-    ``"too dark"``, ``"too small"``, ``"no sheet"``, ``"textured"``); ``mask`` (bool ``(H, W)``) and ``centre`` ``(x, y)``
+    ``"too dark"``, ``"too small"``, ``"no sheet"``, ``"textured"``, ``"low contrast"``); ``mask`` (bool ``(H, W)``) and ``centre`` ``(x, y)``
     are set when it is ``"ok"``."""
 
     status: str
@@ -286,7 +287,8 @@ def _find_seed(blurred: np.ndarray, seed: tuple[int, int], min_pixels: int, dark
 
 def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, saturation: int = 250,
                  dark: int = 20, min_area: float = 0.02, max_saturated: float = 0.2,
-                 noise_factor: float = 4.0, max_noise: float = 3.0, border: int | None = None) -> SheetDetection:
+                 noise_factor: float = 4.0, max_noise: float = 3.0, border: int | None = None,
+                 min_contrast: float = 1.5) -> SheetDetection:
     """Segment the white sheet in one frame (see the module doc).
 
     Parameters
@@ -302,6 +304,9 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
         grey image, in levels) is no plain sheet but texture or random noise: ``"textured"``. Simulated
         sweeps measure 0.2-0.9; Gaussian noise of 40 levels around 128 measures 4.4.
     border : pixels eroded from the sheet's edge; default 1% of the larger image side (at least 2).
+    min_contrast : when the background covers at least 10% of the image, the sheet's median grey level must be
+        at least this many times the background's, else ``"low contrast"``: a white sheet on a darker background
+        (simulated sweeps: 2.0-2.4) rather than a plain part of a room (a wall: 1.3).
     """
     import cv2
 
@@ -342,8 +347,15 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     if sat_fraction > max_saturated:
         return SheetDetection("saturated", area_fraction=area / n_pixels, saturated_fraction=sat_fraction,
                               tolerance=tolerance)
-    if float(np.median(grey[region][::4])) < dark:
+    sheet_level = float(np.median(grey[region][::4]))
+    if sheet_level < dark:
         return SheetDetection("too dark", area_fraction=area / n_pixels, saturated_fraction=sat_fraction,
+                              tolerance=tolerance)
+    outside = ~region
+    if np.count_nonzero(outside) >= 0.1 * n_pixels \
+            and sheet_level < min_contrast * max(float(np.median(grey[outside][::4])), 1.0):
+        # a white sheet on a darker background (simulated sweeps: 2.0-2.4x); a wall in a room: 1.3x
+        return SheetDetection("low contrast", area_fraction=area / n_pixels, saturated_fraction=sat_fraction,
                               tolerance=tolerance)
     # clean-up: close small holes (specks on the paper), open thin leaks, erode the edge
     m = region.astype(np.uint8)
@@ -797,6 +809,8 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
 
     acc: VignettingAccumulator | None = None
     skipped: Counter[str] = Counter()
+    sizes: Counter[str] = Counter()      # frames per size ("WxH" or "WxH grey"): the first frame's must prevail
+    first_size = ""
     seed: tuple[int, int] | None = None
     n_seen = 0
     total = frames.length if max_frames is None or frames.length is None else min(frames.length, max_frames)
@@ -812,7 +826,9 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
                                  "needs 8-bit frames")
             if frame.ndim == 3 and frame.shape[2] == 1:
                 frame = frame[:, :, 0]
+            sizes[_size_text(frame)] += 1
             if acc is None:
+                first_size = _size_text(frame)
                 ch = 1 if frame.ndim == 2 else frame.shape[2]
                 acc = VignettingAccumulator(frame.shape[0], frame.shape[1], ch, response, block=block,
                                             saturation=saturation)
@@ -833,8 +849,15 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
         bar.close()
     if acc is None:
         raise CalibrationError(f"{frames.name}: no frames; record a sweep over a white sheet")
+    if len(sizes) > 1:
+        _check_sizes(frames.name, sizes, first_size)
     if acc.frames == 0:
         raise CalibrationError(_no_frames_message(frames.name, n_seen, skipped, saturation))
+    if too_little(acc.frames, n_seen):
+        reasons = ", ".join(f"{k}: {v}" for k, v in skipped.most_common())
+        raise CalibrationError(
+            f"{frames.name}: a sheet was found in only {acc.frames} of {n_seen} frames ({reasons}); a model needs "
+            f"{rule_text()}, so these are not a white-sheet sweep; {_SWEEP_FIX}")
     if skipped.get("saturated", 0) > acc.frames:
         log.warning("%d of %d frames were skipped as saturated; lowering the exposure would use them",
                     skipped["saturated"], n_seen)
@@ -842,6 +865,29 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     log.info("vignetting data: %d frames used, %d skipped %s", result.frames_used, result.frames_skipped,
              dict(skipped))
     return result
+
+
+#: a model is fitted only when the sheet was seen at this fraction of the image at least (simulated sweeps of
+#: 30-40 frames: 100 %; ordinary room frames where a plain wall passed for a sheet: 15 %)
+MIN_OBSERVED_FRACTION = 0.5
+_SWEEP_FIX = ("point the camera at an evenly lit white sheet that fills a good part of the view, on a darker "
+              "background, and sweep it across the whole image")
+
+
+def _size_text(frame: np.ndarray) -> str:
+    return f"{frame.shape[1]}x{frame.shape[0]}" + (" grey" if frame.ndim == 2 else "")
+
+
+def _check_sizes(name: str, sizes: Counter, first: str) -> None:
+    """Frames of another size than the first are skipped; when they outnumber the first frame's size, the first
+    frame was the odd one and the model would rest on the few: refuse with the counts."""
+    listing = ", ".join(f"{n} at {size}" for size, n in sizes.most_common())
+    if sizes[first] < max(n for size, n in sizes.items() if size != first):
+        raise CalibrationError(f"{name}: the frames have different sizes ({listing}); the first frame's size "
+                               f"({first}) is the rarer one; remove the frames of other sizes, or record the sweep at "
+                               "one resolution")
+    log.warning("%s: skipped %d frames of another size than the first (%s)", name,
+                sum(sizes.values()) - sizes[first], listing)
 
 
 def _no_frames_message(name: str, n_seen: int, skipped: Counter, saturation: int) -> str:
@@ -856,11 +902,12 @@ def _no_frames_message(name: str, n_seen: int, skipped: Counter, saturation: int
     if reason == "textured":
         return (f"{name}: the view is textured or noisy, not a plain sheet, in {count} of {n_seen} frames; point "
                 "the camera at an evenly lit plain white sheet (matte paper, no print) and record again")
+    if reason == "low contrast":
+        return (f"{name}: the plain region found is hardly brighter than its surroundings in {count} of {n_seen} "
+                f"frames (a wall or a table, not a white sheet on a darker background); {_SWEEP_FIX}")
     if reason == "different size":
         return f"{name}: the frames have different sizes; record the sweep at one resolution"
-    return (f"{name}: no white sheet found in any of the {n_seen} frames ({dict(skipped)}); point the camera at "
-            "an evenly lit white sheet that fills a good part of the view, on a darker background, and sweep it "
-            "across the whole image")
+    return f"{name}: no white sheet found in any of the {n_seen} frames ({dict(skipped)}); {_SWEEP_FIX}"
 
 
 # ==================================================================================================
@@ -1047,6 +1094,12 @@ def fit_vignetting(accumulation: VignettingAccumulation, *, model: str = "lut", 
     ``options`` go to the method (``joint_scale``, ``min_samples``, ...)."""
     if model not in MODELS:
         raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
+    observed = float(np.mean(accumulation.count.max(axis=2) > 0))
+    if observed < MIN_OBSERVED_FRACTION:  # the rest of V would be extrapolated from a corner of the image
+        raise CalibrationError(
+            f"{accumulation.source or 'the sweep'}: the sheet was seen at only {observed:.0%} of the image in "
+            f"{accumulation.frames_used} frames; a model needs it swept over at least {MIN_OBSERVED_FRACTION:.0%} "
+            f"(the rest would be guessed); {_SWEEP_FIX}")
     return MODELS[model](accumulation, **options)
 
 

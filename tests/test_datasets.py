@@ -327,3 +327,93 @@ def test_array_dataset_and_trajectory_file(tmp_path):
         ArrayDataset([])
     write_tum_trajectory(tmp_path / "gt.txt", np.arange(3.0), np.repeat(np.eye(4)[None], 3, 0))
     assert (tmp_path / "gt.txt").read_text().count("\n") == 4
+
+
+# --------------------------------------------------------------------------------------------------
+# lists written by other tools (radiometry/textlists.py, tidy_stamped) and poses of the wrong kind
+# --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("data", [
+    b"\xef\xbb\xbf1.0 rgb/a.png\r\n2.0 rgb/b.png\r\n",                 # UTF-8 byte-order mark, CRLF
+    "1.0 rgb/a.png\r\n2.0 rgb/b.png\r\n".encode("utf-16"),            # UTF-16 with its mark (Windows tools)
+    b"1.0 rgb/a.png\r2.0 rgb/b.png",                                  # old Mac line ends, no final newline
+])
+def test_stamped_list_encodings_and_line_ends(tmp_path, data):
+    from mapping.datasets._common import read_stamped_list
+
+    (tmp_path / "rgb.txt").write_bytes(data)
+    assert read_stamped_list(tmp_path / "rgb.txt") == [(1.0, "rgb/a.png", 1), (2.0, "rgb/b.png", 2)]
+
+
+def test_non_utf8_names_open_the_same_file(tmp_path, caplog):
+    from mapping.datasets._common import read_stamped_list
+
+    name = b"caf\xe9.png".decode("utf-8", "surrogateescape")   # a Latin-1 name, as the file system gives it
+    (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "rgb.txt").write_bytes(b"1.0 caf\xe9.png\n")
+    rows = read_stamped_list(tmp_path / "rgb.txt")
+    assert (tmp_path / rows[0][1]).read_bytes() == b"x"
+    assert "1 line(s) are not UTF-8" in caplog.text
+
+
+def test_binary_list_is_not_text(tmp_path):
+    from mapping.datasets._common import read_stamped_list
+
+    (tmp_path / "rgb.txt").write_bytes(b"1.0 a.png\n\x00\x01\x02")
+    with pytest.raises(DatasetError, match=r"rgb\.txt: not a text file"):
+        read_stamped_list(tmp_path / "rgb.txt")
+
+
+def test_stamped_list_sorted_and_repeats_dropped_with_counts(tmp_path, caplog):
+    from mapping.datasets._common import read_stamped_list
+
+    (tmp_path / "rgb.txt").write_text("3.0 c.png\n1.0 a.png\n2.0 b.png\n2.0 b2.png\n4.0 a.png\n")
+    rows = read_stamped_list(tmp_path / "rgb.txt")
+    assert [(t, n) for t, n, _ in rows] == [(1.0, "a.png"), (2.0, "b.png"), (3.0, "c.png")]
+    assert ("1 line(s) out of time order (sorted by timestamp); 1 line(s) repeating a timestamp (dropped; the first "
+            "line kept); 1 line(s) listing a file again at another time (dropped; the first kept); 3 of 5 frames "
+            "kept") in caplog.text
+
+
+def test_tum_pairing_drops_are_warned(tmp_path, caplog):
+    root = _tum_folder(tmp_path, stamps_rgb=[1.0, 1.0333, 1.0667], stamps_depth=[1.005, 1.0700])
+    assert len(open_dataset(root)) == 2
+    assert "1 of 3 colour frames have no depth frame within 0.02 s and are dropped; 2 frames kept" in caplog.text
+
+
+def test_redwood_log_with_bom_and_crlf(tmp_path):
+    poses = [np.eye(4), np.diag([1.0, -1.0, -1.0, 1.0])]
+    text = write_log_trajectory(tmp_path / "t.log", poses).read_text()
+    (tmp_path / "t.log").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    read = read_log_trajectory(tmp_path / "t.log")
+    np.testing.assert_allclose(read[1], poses[1])
+
+
+def test_reflection_is_not_a_pose(tmp_path):
+    """A rotation with determinant -1 (another handedness) would fuse the scene mirrored."""
+    from mapping.datasets._common import check_pose
+
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(DatasetError, match=r"reflection \(determinant -1\)"):
+        check_pose(mirror, "t.log:2")
+    write_log_trajectory(tmp_path / "t.log", [np.eye(4), mirror])
+    with pytest.raises(DatasetError, match=r"t\.log:7: the rotation is a reflection"):
+        read_log_trajectory(tmp_path / "t.log")
+
+
+def test_a_list_that_is_a_folder_is_refused(tmp_path):
+    root = _tum_folder(tmp_path, stamps_rgb=[1.0], stamps_depth=[1.0])
+    (root / "groundtruth.txt").mkdir()
+    with pytest.raises(DatasetError, match=r"groundtruth\.txt: the ground truth is a folder"):
+        open_dataset(root)
+
+
+def test_grey_frames_in_a_colour_sequence_are_refused(tmp_path):
+    root = _tum_folder(tmp_path, stamps_rgb=[1.0, 2.0], stamps_depth=[1.0, 2.0])
+    grey = root / "rgb" / "2.000000.png"
+    write_image(grey, np.full((480, 640), 128, np.uint8))
+    ds = open_dataset(root)
+    with pytest.raises(DatasetError, match=r"2\.000000\.png: a grey \(single-channel\) image in a sequence of colour"):
+        ds[1]
+    write_image(root / "rgb" / "1.000000.png", np.full((480, 640), 90, np.uint8))
+    ds = open_dataset(root)  # all grey: fused as R = G = B
+    assert ds[1].rgb.shape == (480, 640, 3) and np.all(ds[1].rgb == 128)

@@ -29,7 +29,9 @@ def _scale_type(value: str) -> float | str:
         raise click.BadParameter(f"{value!r} is neither a number nor 'auto'") from None
     if not number > 0:
         raise click.BadParameter(f"must be positive, got {value}")
-    return number
+    from mapping.validation import check_exposure_factor
+
+    return check_exposure_factor(number, "--scale")  # 1e-4..1e4 (mapping/validation.py)
 
 
 def _write_float(path: Path, data, fmt: str) -> None:

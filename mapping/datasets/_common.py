@@ -19,6 +19,7 @@ import numpy as np
 from mapping.datasets.base import RGBDFrame
 from radiometry.errors import DatasetError, ImageError
 from radiometry.fileio import read_depth, read_rgb
+from radiometry.textlists import read_list_text
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +32,13 @@ PLAUSIBLE_MEDIAN_DEPTH = (0.05, 20.0)
 # --------------------------------------------------------------------------------------------------
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """The (3, 3) float64 pinhole matrix of ``fx, fy, cx, cy``."""
+    from mapping.validation import ImplausibleValueError  # a ValueError the CLI prints as one line
+
     values = np.array([fx, fy, cx, cy], dtype=np.float64)
     if not np.all(np.isfinite(values)) or fx <= 0 or fy <= 0:
-        raise ValueError(f"intrinsics must be finite with positive focal lengths, got fx={fx}, fy={fy}, "
-                         f"cx={cx}, cy={cy}")
+        raise ImplausibleValueError(f"--intrinsics must be finite with positive focal lengths, got fx={fx:g}, "
+                                    f"fy={fy:g}, cx={cx:g}, cy={cy:g}; pass the camera's fx,fy,cx,cy in pixels "
+                                    "(e.g. 525,525,319.5,239.5 for a 640x480 Kinect)")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
@@ -54,7 +58,10 @@ def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: no such intrinsics file; check the path or pass --intrinsics fx,fy,cx,cy")
-    text = path.read_text(encoding="utf-8", errors="replace")
+    try:
+        text = read_list_text(path)
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read the intrinsics ({exc.strerror}); check the file") from None
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
         try:
             doc = json.loads(text)
@@ -178,7 +185,22 @@ def check_pose(pose: np.ndarray, source: str) -> np.ndarray | None:
     if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
         raise DatasetError(f"{source}: not a rigid camera-to-world transform (rotation not orthonormal or last "
                            "row not 0 0 0 1); fix or remove the pose")
+    if np.linalg.det(R) < 0:  # orthonormal with det -1: a mirror image, which would fuse the scene mirrored
+        raise DatasetError(f"{source}: the rotation is a reflection (determinant -1), not a camera pose; the "
+                           "trajectory uses another handedness: negate one axis of the rotation (fix the export)")
     return pose
+
+
+def optional_file(path: Path, what: str) -> Path | None:
+    """``path`` when it is a regular file, None when there is nothing there, :class:`DatasetError` when it is a
+    folder or something else (which would otherwise be silently ignored, e.g. a run without its ground truth)."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not os.path.lexists(path):
+        return None
+    kind = "a folder" if path.is_dir() else "not a regular file (a broken link?)"
+    raise DatasetError(f"{path}: the {what} is {kind}; replace it with the text file or remove it")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -219,6 +241,7 @@ class FileSequence:
         self.depth_scale = float(depth_scale)
         self._invalid_raw_depth = invalid_raw_depth
         self._all_files = files
+        self._grey: bool | None = None   # grey or colour images: set by the first frame read
         if not files:
             raise DatasetError(f"{self.root}: the {self.format_name} sequence has no frames; check the folder")
         picked = select(len(files), frames)
@@ -289,7 +312,16 @@ class FileSequence:
             depth = read_depth(f.depth, self.depth_scale)
         except ImageError as exc:
             raise DatasetError(f"{exc} (frame {f.index} of {self.root})") from None
-        if rgb.ndim == 2:
+        grey = rgb.ndim == 2
+        if getattr(self, "_grey", None) is None:
+            self._grey = grey  # the first frame read (frame 0 of the selection) sets the sequence's kind
+            if grey:
+                log.info("%s: grey (single-channel) colour images; fused as R = G = B", self.root)
+        elif grey != self._grey:
+            kinds = ("grey (single-channel)", "colour") if grey else ("colour", "grey (single-channel)")
+            raise DatasetError(f"{f.rgb}: a {kinds[0]} image in a sequence of {kinds[1]} images (frame {f.index} of "
+                               f"{self.root}); convert it or remove the frame: one map cannot mix both")
+        if grey:
             rgb = np.repeat(rgb[:, :, None], 3, axis=2)
         if self._invalid_raw_depth is not None:
             depth[depth >= np.float32(self._invalid_raw_depth / self.depth_scale) - 1e-6] = 0.0
@@ -319,11 +351,12 @@ class FileSequence:
                 f"(raw units per metre, e.g. --depth-scale {suggestion:g})")
 
     def _check_intrinsics(self, frame: RGBDFrame) -> None:
-        cx, cy = self.K[0, 2], self.K[1, 2]
-        if not (0 < cx < self.width and 0 < cy < self.height):
-            raise DatasetError(
-                f"{self.root}: the principal point ({cx:g}, {cy:g}) lies outside the {self.width}x{self.height} "
-                "images; the intrinsics belong to another resolution, pass the right --intrinsics")
+        """The principal point at opening (the field of view is checked before a run: mapping.validation)."""
+        from mapping.validation import principal_point_problem
+
+        problem = principal_point_problem(self.K, self.width, self.height)
+        if problem:
+            raise DatasetError(f"{self.root}: {problem}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -333,7 +366,7 @@ def read_pose_matrix_file(path: Path) -> np.ndarray | None:
     """A 4 x 4 camera-to-world matrix in a text file (7-Scenes ``frame-NNNNNN.pose.txt``)."""
     rows = []
     try:
-        text = Path(path).read_text(encoding="utf-8", errors="replace")
+        text = read_list_text(path)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read the pose ({exc.strerror}); check the file") from None
     for lineno, line in enumerate(text.splitlines(), 1):
@@ -353,13 +386,15 @@ def read_pose_matrix_file(path: Path) -> np.ndarray | None:
 
 
 def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
-    """TUM ``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line, ``#`` comments.
+    """TUM ``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line, ``#`` comments (read by
+    :func:`radiometry.textlists.read_list_text`: byte-order marks, CRLF, non-UTF-8 names).
 
-    Returns ``(timestamp, filename, line number)`` tuples; malformed lines raise :class:`DatasetError`
-    with file and line."""
+    Returns ``(timestamp, filename, line number)`` tuples sorted by timestamp, repeated lines dropped
+    (:func:`tidy_stamped`, which warns with the counts); malformed lines raise :class:`DatasetError` with
+    file and line."""
     out = []
     try:
-        text = Path(path).read_text(encoding="utf-8", errors="replace")
+        text = read_list_text(path)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read ({exc.strerror}); check the sequence folder") from None
     for lineno, line in enumerate(text.splitlines(), 1):
@@ -377,4 +412,34 @@ def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
         if not np.isfinite(stamp):
             raise DatasetError(f"{path}:{lineno}: timestamp {parts[0]!r} is not finite")
         out.append((stamp, parts[1], lineno))
-    return out
+    return tidy_stamped(out, path)
+
+
+def tidy_stamped(rows: list[tuple[float, str, int]], path) -> list[tuple[float, str, int]]:
+    """``(timestamp, name, line)`` rows in time order: rows out of order are sorted (other tools append or merge
+    lists), a timestamp or a file listed again is dropped (the first line wins); one warning says what was done,
+    with counts, so that no frame is reordered or dropped silently."""
+    late = sum(1 for a, b in zip(rows, rows[1:]) if b[0] < a[0])
+    kept: list[tuple[float, str, int]] = []
+    stamps: set[float] = set()
+    names: dict[str, int] = {}
+    repeated_stamp = repeated_name = 0
+    for row in sorted(rows, key=lambda r: (r[0], r[2])):
+        if row[0] in stamps:
+            repeated_stamp += 1
+        elif row[1] in names:
+            repeated_name += 1
+        else:
+            stamps.add(row[0])
+            names[row[1]] = row[2]
+            kept.append(row)
+    notes = []
+    if late:
+        notes.append(f"{late} line(s) out of time order (sorted by timestamp)")
+    if repeated_stamp:
+        notes.append(f"{repeated_stamp} line(s) repeating a timestamp (dropped; the first line kept)")
+    if repeated_name:
+        notes.append(f"{repeated_name} line(s) listing a file again at another time (dropped; the first kept)")
+    if notes:
+        log.warning("%s: %s; %d of %d frames kept", path, "; ".join(notes), len(kept), len(rows))
+    return kept

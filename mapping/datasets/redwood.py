@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, check_pose, parse_intrinsics, \
+from mapping.datasets._common import FileSequence, FrameFiles, check_pose, optional_file, parse_intrinsics, \
     read_intrinsics_file
 from radiometry.errors import DatasetError
 from radiometry.fileio import IMAGE_EXTENSIONS, atomic_write_text
+from radiometry.textlists import list_lines, read_list_text
 
 DEFAULT_INTRINSICS = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1.0]])
 DEFAULT_DEPTH_SCALE = 1000.0
@@ -40,7 +41,7 @@ def read_log_trajectory(path: str | os.PathLike) -> dict[int, np.ndarray]:
     Malformed blocks raise :class:`DatasetError` naming the file and line."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        lines = read_list_text(path).splitlines()
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read the trajectory ({exc.strerror})") from None
     rows = [(i + 1, ln.strip()) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
@@ -105,10 +106,10 @@ class RedwoodDataset(FileSequence):
             raise DatasetError(f"{root}: not a Redwood/Open3D folder (needs depth/ and color/); "
                                "pass the sequence folder or --format")
         colour_dir = next(root / c for c in COLOUR_FOLDERS if (root / c).is_dir())
-        match = root / "rgbd.match"
+        match = optional_file(root / "rgbd.match", "frame pairing (rgbd.match)")
         pairs: list[tuple[Path, Path]] = []
-        if match.is_file():
-            for lineno, line in enumerate(match.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        if match is not None:
+            for lineno, line in list_lines(match):
                 line = line.strip()
                 if not line or line.startswith("#"):
                     continue
@@ -126,7 +127,7 @@ class RedwoodDataset(FileSequence):
         traj = Path(trajectory) if trajectory is not None else root / "trajectory.log"
         if trajectory is not None and not traj.is_file():
             raise DatasetError(f"{traj}: no such trajectory file")
-        if traj.is_file():
+        if optional_file(traj, "ground-truth trajectory") is not None:
             gt = read_log_trajectory(traj)
             if gt and max(gt) >= len(pairs):
                 raise DatasetError(f"{traj}: has a pose for frame {max(gt)} but the sequence has {len(pairs)} "

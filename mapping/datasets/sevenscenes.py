@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, parse_intrinsics, read_intrinsics_file
+from mapping.datasets._common import FileSequence, FrameFiles, optional_file, parse_intrinsics, \
+    read_intrinsics_file
 from radiometry.errors import DatasetError
 
 DEFAULT_INTRINSICS = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1.0]])
@@ -64,7 +65,7 @@ class SevenScenesDataset(FileSequence):
                 raise DatasetError(f"{p}: no matching depth image {depth.name}; every colour frame needs one")
             pose = folder / f"{stem}.pose.txt"
             files.append(FrameFiles(index=number, timestamp=number / FRAME_RATE, rgb=p, depth=depth,
-                                    pose_file=pose if pose.is_file() else None, name=stem))
+                                    pose_file=optional_file(pose, "pose"), name=stem))
         files.sort(key=lambda f: f.index)
         numbers = [f.index for f in files]
         if len(set(numbers)) != len(numbers):

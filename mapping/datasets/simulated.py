@@ -85,6 +85,7 @@ class SimulatedDataset(TUMDataset):
         if not (root / MANIFEST).is_file():
             raise DatasetError(f"{root}: no {MANIFEST}; not a simulated sequence (try --format tum)")
         self.manifest = manifest = read_manifest(root / MANIFEST)
+        source = "option" if intrinsics is not None else None
         if intrinsics is None and "K" in manifest:
             intrinsics = _check_matrix(_manifest_value(manifest, "K", root / MANIFEST, _matrix3), str(root / MANIFEST))
         if depth_scale is None:
@@ -93,7 +94,7 @@ class SimulatedDataset(TUMDataset):
         super().__init__(root, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames,
                          max_difference=max_difference)
         if intrinsics is not None:
-            self.intrinsics_source = "manifest" if "K" in self.manifest else "option"
+            self.intrinsics_source = source or "manifest"
         w, h = self.manifest.get("width"), self.manifest.get("height")
         if w is not None and h is not None and (_manifest_value(manifest, "width", root / MANIFEST, int),
                                                 _manifest_value(manifest, "height", root / MANIFEST, int)) \

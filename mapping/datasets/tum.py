@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, parse_intrinsics, read_intrinsics_file, \
-    read_stamped_list
+from mapping.datasets._common import FileSequence, FrameFiles, optional_file, parse_intrinsics, \
+    read_intrinsics_file, read_stamped_list
 from mapping.metrics import associate_timestamps, interpolate_poses, read_tum_trajectory
 from radiometry.errors import DatasetError
 
@@ -41,8 +41,8 @@ DEFAULT_DEPTH_SCALE = 5000.0
 def tum_default_intrinsics(root: Path) -> tuple[np.ndarray, str]:
     """Intrinsics of a TUM folder: ``intrinsics.txt`` if present, else by the 'freiburgN' in its name, else fr1."""
     root = Path(root)
-    own = root / "intrinsics.txt"
-    if own.is_file():
+    own = optional_file(root / "intrinsics.txt", "camera intrinsics")
+    if own is not None:
         return read_intrinsics_file(own), str(own)
     for key, (fx, fy, cx, cy) in TUM_INTRINSICS.items():
         if key in root.name or key.replace("reiburg", "r") + "_" in root.name:
@@ -83,14 +83,14 @@ class TUMDataset(FileSequence):
             raise DatasetError(f"{root}: no colour frame has a depth frame within {max_difference} s; "
                                "check rgb.txt and depth.txt (same clock?)")
         if len(ia) < len(rgb_list):
-            log.info("%s: %d of %d colour frames paired with depth within %g s", root, len(ia), len(rgb_list),
-                     max_difference)
+            log.warning("%s: %d of %d colour frames have no depth frame within %g s and are dropped; %d frames kept",
+                        root, len(rgb_list) - len(ia), len(rgb_list), max_difference, len(ia))
         self.pairing = {"max_difference": max_difference, "paired": int(len(ia)), "colour_frames": len(rgb_list),
                         "depth_frames": len(depth_list)}
 
         gt_poses = None
-        gt_file = root / "groundtruth.txt"
-        if gt_file.is_file():
+        gt_file = optional_file(root / "groundtruth.txt", "ground truth")
+        if gt_file is not None:
             gt_t, gt_p = read_tum_trajectory(gt_file)
             if len(gt_t):
                 valid, poses = interpolate_poses(gt_t, gt_p, rgb_t[ia], max_gap=gt_max_gap,
