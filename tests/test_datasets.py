@@ -405,6 +405,11 @@ def test_a_list_that_is_a_folder_is_refused(tmp_path):
     (root / "groundtruth.txt").mkdir()
     with pytest.raises(DatasetError, match=r"groundtruth\.txt: the ground truth is a folder"):
         open_dataset(root)
+    (root / "groundtruth.txt").rmdir()
+    (root / "rgb.txt").unlink()
+    (root / "rgb.txt").mkdir()  # not taken for another layout (a Redwood folder has rgb/ and depth/ too)
+    with pytest.raises(DatasetError, match=r"rgb\.txt: the colour list is a folder"):
+        open_dataset(root)
 
 
 def test_grey_frames_in_a_colour_sequence_are_refused(tmp_path):

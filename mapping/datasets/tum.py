@@ -17,6 +17,7 @@ between motion-capture samples at most ``gt_max_gap`` s apart.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -59,8 +60,8 @@ class TUMDataset(FileSequence):
 
     @classmethod
     def detect(cls, path: Path) -> bool:
-        path = Path(path)
-        return (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
+        path = Path(path)  # a list that exists but is no file is refused by __init__, not taken for another layout
+        return os.path.lexists(path / "rgb.txt") and os.path.lexists(path / "depth.txt")
 
     def __init__(self, path: str | Path, *, depth_scale: float | None = None, intrinsics=None,
                  frames: slice | Sequence[int] | None = None, max_difference: float = 0.02,
@@ -69,8 +70,8 @@ class TUMDataset(FileSequence):
         if not self.detect(root):
             raise DatasetError(f"{root}: not a TUM RGB-D folder (needs rgb.txt and depth.txt); "
                                "pass the sequence folder or --format")
-        rgb_list = read_stamped_list(root / "rgb.txt")
-        depth_list = read_stamped_list(root / "depth.txt")
+        rgb_list = read_stamped_list(optional_file(root / "rgb.txt", "colour list"))
+        depth_list = read_stamped_list(optional_file(root / "depth.txt", "depth list"))
         if not rgb_list or not depth_list:
             empty = "rgb.txt" if not rgb_list else "depth.txt"
             raise DatasetError(f"{root / empty}: lists no frames; the sequence is empty; list one 'timestamp "
