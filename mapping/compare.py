@@ -474,14 +474,25 @@ def _csv_text(rows: list[dict[str, Any]], columns: list[str]) -> str:
     return buf.getvalue()
 
 
-def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: str = "tsdf", poses: str = "gt",
-            voxel_size: float = 0.01, depth_max: float = 3.0, backend_options: Mapping[str, Any] | None = None,
-            tracker_options: Mapping[str, Any] | None = None, brightness: str = "mean", scene=None,
-            display_response: CameraResponse | None = None, views: int = 3, render_width: int = 320,
-            progress: bool = True, force: bool = False, title: str | None = None,
-            report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
-            parameters: Mapping[str, Any] | None = None,
-            mesh_formats: Sequence[str] = ("ply", "glb")) -> CompareResult:
+def compare(dataset, methods: Sequence[Method], *, output: str | Path, **options) -> CompareResult:
+    """Compare ``methods`` on ``dataset`` into the folder ``output`` (see :func:`_compare`); the folder is locked
+    against a second run (:class:`mapping.export.FolderLock`) from its creation until the comparison ends."""
+    locks: list = []  # the folder's FolderLock, then each method's ResultsFolder
+    try:
+        return _compare(dataset, methods, output=output, _locks=locks, **options)
+    finally:
+        for lock in reversed(locks):
+            lock.release()
+
+
+def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: list, backend: str = "tsdf",
+             poses: str = "gt", voxel_size: float = 0.01, depth_max: float = 3.0,
+             backend_options: Mapping[str, Any] | None = None, tracker_options: Mapping[str, Any] | None = None,
+             brightness: str = "mean", scene=None, display_response: CameraResponse | None = None, views: int = 3,
+             render_width: int = 320, progress: bool = True, force: bool = False, title: str | None = None,
+             report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
+             parameters: Mapping[str, Any] | None = None,
+             mesh_formats: Sequence[str] = ("ply", "glb")) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report.
 
     dataset:          an :class:`~mapping.datasets.base.RGBDDataset` (range and stride applied).
@@ -501,9 +512,9 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                       map-unit colours is always written.
     """
     from mapping._open3d import o3d
-    from mapping.export import ResultsFolder, write_mesh
+    from mapping.export import FolderLock, ResultsFolder, write_mesh
     from mapping.pipeline import POSE_SOURCES, make_backend, make_tracker, reconstruct
-    from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
+    from radiometry.fileio import atomic_write_json, atomic_write_text
 
     methods = list(methods)
     if not methods:
@@ -534,7 +545,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                  if k in ("block_resolution", "trunc_voxel_multiplier", "depth_min")})
     output = Path(output)
     _check_output(output, force)
-    ensure_dir(output)
+    _locks.append(FolderLock(output, what="comparison"))  # creates the folder
     atomic_write_text(output / RUNNING, f"comparison started {time.strftime('%Y-%m-%dT%H:%M:%S%z')}\n")
     start = time.perf_counter()
     height, width = dataset.height, dataset.width
@@ -555,6 +566,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                 track = poses == "icp" and fixed is None
                 view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed, on_frame=bar.update)
                 folder = ResultsFolder(output / method.name, force=True)
+                _locks.append(folder)  # released (and its files listed) when the comparison ends
                 t0 = time.perf_counter()
                 run = reconstruct(view, colour_model=colour_model, backend=fusion,
                                   tracker=make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track

@@ -2,7 +2,9 @@
 
 Layout (``radiomap reconstruct ... -o OUT``)::
 
+    OUT/LOCK                         present while a process writes the folder: its pid (FolderLock)
     OUT/RUNNING                      present while the run is in progress (or was interrupted / crashed)
+    OUT/.radiomap-files.json         the files the run wrote (removed by the next --force run)
     OUT/config.json                  the configuration the run started with (cli/_common.run_manifest)
     OUT/metrics.json                 "status": "running" -> "complete" | "interrupted" | "failed"
     OUT/trajectory.txt               estimated camera-to-world poses, TUM format
@@ -16,9 +18,13 @@ Layout (``radiomap reconstruct ... -o OUT``)::
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import errno
 import json
 import logging
 import os
+import socket
 import struct
 import time
 from collections.abc import Callable
@@ -27,29 +33,237 @@ from pathlib import Path
 import numpy as np
 
 from radiometry.errors import OutputError, RadiomapError
-from radiometry.fileio import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text, ensure_dir
+from radiometry.fileio import (TEMP_TAG, atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text,
+                               ensure_dir, pid_alive, remove_strays)
 
 log = logging.getLogger(__name__)
 
 RUNNING_MARKER = "RUNNING"
+LOCK_NAME = "LOCK"
+MANIFEST = ".radiomap-files.json"
 MESH_FORMATS = ("ply", "glb", "obj")
+#: The files a run writes (the layout above, the surfel backend's, exposure compensation's, a comparison's per
+#: method). ``--force`` removes these and the files listed in the previous run's MANIFEST before a new run starts;
+#: any other file in the folder (the user's notes, say) is left alone.
+RESULT_NAMES = frozenset({
+    RUNNING_MARKER, "config.json", "metrics.json", "trajectory.txt", "frames.csv", "summary.txt", "histogram.json",
+    "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz", "surfels.ply",
+    "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", MANIFEST})
+
+_HELD: dict[str, "FolderLock"] = {}   # resolved folder -> the lock this process holds on it
+
+
+def _process_start(pid: int) -> str | None:
+    """When the process started (clock ticks since boot, Linux), to tell a reused pid from the lock's owner."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+class FolderLock:
+    """One radiomap run at a time writes a folder: ``FOLDER/LOCK`` holds the owner's pid, created atomically
+    (a hard link of the written record, which fails like ``O_EXCL`` when LOCK exists) and removed when the run
+    ends (:meth:`release`, or at exit).
+
+    A second run gets a one-line :class:`OutputError` naming the folder and the owner's pid. A lock whose owner
+    no longer runs (killed: SIGKILL, a crash, a power cut) is taken over with a warning. The same process may
+    lock a folder again (a second run in one Python session)."""
+
+    def __init__(self, folder: str | os.PathLike, *, what: str = "run") -> None:
+        self.folder = ensure_dir(folder)
+        self.path = self.folder / LOCK_NAME
+        self.key = os.path.realpath(self.folder)
+        previous = _HELD.pop(self.key, None)
+        if previous is not None:          # this process locked it before (and did not release): it stays ours
+            previous.released = True
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
+        record = {"pid": os.getpid(), "start": _process_start(os.getpid()), "host": socket.gethostname(),
+                  "what": what, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        # the record is written to a temporary first and hard-linked to LOCK: like O_EXCL, the link fails if LOCK
+        # exists, and a LOCK that exists is never empty or half written
+        draft = self.path.with_name(f".{LOCK_NAME}{TEMP_TAG}{os.getpid()}-draft")
+        try:
+            draft.write_text(json.dumps(record))
+            for _attempt in range(20):
+                try:
+                    _create_exclusive(self.path, draft)
+                except FileExistsError:
+                    self._take_over_if_stale()
+                    continue
+                break
+            else:
+                raise OutputError(f"cannot lock {self.folder}: {self.path} keeps changing; remove it if no radiomap "
+                                  "run writes the folder")
+        except OSError as exc:
+            raise OutputError(f"cannot lock {self.folder} ({exc.filename}: {exc.strerror}); choose a writable "
+                              "output folder") from None
+        finally:
+            with contextlib.suppress(OSError):
+                draft.unlink()
+        self.released = False
+        _HELD[self.key] = self
+
+    def _owner(self) -> dict:
+        try:
+            owner = json.loads(self.path.read_text())
+            return owner if isinstance(owner, dict) else {}
+        except FileNotFoundError:
+            return {"gone": True}
+        except (OSError, ValueError):  # written half by a process killed in between: no live owner wrote it
+            return {}
+
+    def _take_over_if_stale(self) -> None:
+        """Remove the lock of an owner that no longer runs (the caller retries), or raise naming a live owner."""
+        owner = self._owner()
+        if owner.get("gone"):
+            return
+        pid = owner.get("pid")
+        same_host = owner.get("host") in (None, socket.gethostname())
+        if owner.get("pid") == os.getpid() and owner.get("start") == _process_start(os.getpid()):
+            alive = False      # our own, left by a lock object of this process that was never released
+        elif isinstance(pid, int) and same_host:
+            alive = pid_alive(pid) and (owner.get("start") is None or owner.get("start") == _process_start(pid))
+        else:
+            alive = not same_host or not owner and self._young()
+        if alive:
+            where = "" if same_host else f" on {owner.get('host')}"
+            raise OutputError(f"{self.folder} is in use by another radiomap {owner.get('what', 'run')} (pid {pid}"
+                              f"{where}, started {owner.get('started', '?')}); wait for it to finish or choose "
+                              f"another output folder (remove {self.path} if that process is gone)")
+        stale = self.path.with_name(f".{LOCK_NAME}{TEMP_TAG}{os.getpid()}-stale")
+        try:
+            os.rename(self.path, stale)       # atomic: of two runs taking over, one wins, the other retries
+        except FileNotFoundError:
+            return
+        try:
+            moved = json.loads(stale.read_text())
+        except (OSError, ValueError):
+            moved = {}
+        if isinstance(moved, dict) and moved.get("pid") not in (pid, None):  # a run took it over meanwhile: undo
+            with contextlib.suppress(OSError):
+                os.link(stale, self.path)
+            with contextlib.suppress(OSError):
+                stale.unlink()
+            return
+        if owner.get("pid") != os.getpid():
+            log.warning("%s: taking over the lock of radiomap pid %s (started %s), which no longer runs", self.folder,
+                        pid if pid is not None else "?", owner.get("started", "?"))
+        with contextlib.suppress(OSError):
+            stale.unlink()
+
+    def _young(self) -> bool:
+        """An unreadable lock file written in the last seconds may be a live owner's, still being written."""
+        try:
+            return time.time() - self.path.stat().st_mtime < 5
+        except OSError:
+            return False
+
+    def release(self) -> None:
+        """Remove the lock (once; a lock this process took again since is left alone)."""
+        if self.released:
+            return
+        self.released = True
+        if _HELD.get(self.key) is self:
+            del _HELD[self.key]
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+
+    def __enter__(self) -> "FolderLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _create_exclusive(path: Path, draft: Path) -> None:
+    """``path`` with the content of ``draft``, or FileExistsError: a hard link; where the file system has none,
+    ``O_EXCL`` and a write (an empty LOCK read meanwhile counts as a live owner's for a few seconds)."""
+    try:
+        os.link(draft, path)
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV):
+            raise
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(draft.read_text())
+
+
+@atexit.register
+def _release_all() -> None:
+    for lock in list(_HELD.values()):
+        lock.release()
 
 
 class ResultsFolder:
-    """A run's output folder; marked incomplete (``RUNNING``) until :meth:`complete` is called.
+    """A run's output folder: locked while the run writes it (:class:`FolderLock`), marked incomplete
+    (``RUNNING``, and ``"status": "running"`` in ``metrics.json``) until :meth:`complete` is called.
 
-    An existing folder holding results (``metrics.json`` or ``RUNNING``) is refused unless ``force``."""
+    An existing folder holding results (``metrics.json`` or ``RUNNING``) is refused unless ``force``; with
+    ``force`` the previous run's files (:data:`RESULT_NAMES` and those its ``.radiomap-files.json`` lists) are
+    removed before the new run starts, so that no file of the previous run (a TSDF mesh beside new surfels, an
+    old ``metrics.json`` saying "complete") outlives it; other files in the folder are left alone. When the run
+    ends (:meth:`complete` or :meth:`release`) ``.radiomap-files.json`` lists every file it wrote."""
 
     def __init__(self, path: str | os.PathLike, *, force: bool = False) -> None:
         self.path = Path(path)
-        if self.path.is_dir() and not force and any((self.path / n).exists() for n in ("metrics.json", RUNNING_MARKER)):
-            raise OutputError(f"{self.path} already holds the results of a run; pass --force to overwrite them or "
-                              "choose another output folder")
-        ensure_dir(self.path)
-        self.started = time.time()
-        atomic_write_text(self.path / RUNNING_MARKER,
-                          f"started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
-                          "this run has not finished (interrupted or crashed if no process runs it)\n")
+        if self.path.exists() and not self.path.is_dir():
+            raise OutputError(f"output folder {self.path} is an existing file; choose a folder name")
+        self.lock = FolderLock(self.path)
+        try:
+            if not force and any((self.path / n).exists() for n in ("metrics.json", RUNNING_MARKER)):
+                raise OutputError(f"{self.path} already holds the results of a run; pass --force to overwrite them "
+                                  "or choose another output folder")
+            remove_strays(self.path)
+            self._remove_previous_run()
+            self.started = time.time()
+            self._before = self._inodes()
+            atomic_write_text(self.path / RUNNING_MARKER,
+                              f"started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
+                              "this run has not finished (interrupted or crashed if no process runs it)\n")
+            atomic_write_json(self.path / "metrics.json", {"status": "running", "pid": os.getpid(), "started":
+                                                           time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        except BaseException:
+            self.lock.release()
+            raise
+
+    def _remove_previous_run(self) -> None:
+        names = set(RESULT_NAMES)
+        try:
+            listed = json.loads((self.path / MANIFEST).read_text()).get("files", [])
+            names.update(n for n in listed if isinstance(n, str) and n == Path(n).name and n != LOCK_NAME)
+        except (OSError, ValueError, AttributeError):
+            pass
+        removed = []
+        for name in sorted(names):
+            try:
+                (self.path / name).unlink()
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                raise OutputError(f"cannot remove {self.path / name} of the previous run ({exc.strerror}); remove "
+                                  "it by hand or choose another output folder") from None
+            removed.append(name)
+        if removed:
+            log.info("%s: removed the previous run's %s", self.path, ", ".join(removed))
+
+    def _inodes(self) -> dict[str, tuple[int, int]]:
+        out = {}
+        for entry in os.scandir(self.path):
+            if entry.is_file(follow_symlinks=False):
+                st = entry.stat(follow_symlinks=False)
+                out[entry.name] = (st.st_ino, st.st_mtime_ns)
+        return out
+
+    def _write_manifest(self) -> None:
+        """``.radiomap-files.json``: the files this run wrote (every write is atomic: a new inode)."""
+        try:
+            written = sorted(name for name, ident in self._inodes().items()
+                             if self._before.get(name) != ident and name not in (LOCK_NAME, MANIFEST))
+            atomic_write_json(self.path / MANIFEST, {"files": written})
+        except (OSError, OutputError) as exc:
+            log.warning("could not list the files of the run in %s: %s", self.path / MANIFEST, exc)
 
     def file(self, name: str) -> Path:
         return self.path / name
@@ -60,12 +274,25 @@ class ResultsFolder:
 
     def complete(self) -> None:
         """Remove the ``RUNNING`` marker: every result is in place."""
+        self._write_manifest()
         try:
             (self.path / RUNNING_MARKER).unlink()
         except FileNotFoundError:
             pass
         except OSError as exc:
             raise OutputError(f"cannot remove {self.path / RUNNING_MARKER}: {exc.strerror}") from None
+
+    def release(self) -> None:
+        """The run is over (complete or not): list its files and unlock the folder."""
+        if not self.lock.released:
+            self._write_manifest()
+        self.lock.release()
+
+    def __enter__(self) -> "ResultsFolder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
     def write_json(self, name: str, obj) -> Path:
         return atomic_write_json(self.path / name, obj)
@@ -75,9 +302,14 @@ class ResultsFolder:
 
 
 def is_complete(folder: str | os.PathLike) -> bool:
-    """True when a results folder exists and its run finished (no ``RUNNING`` marker)."""
+    """True when a results folder exists and its run finished (no ``RUNNING`` marker, ``metrics.json`` says so)."""
     folder = Path(folder)
-    return folder.is_dir() and (folder / "metrics.json").is_file() and not (folder / RUNNING_MARKER).exists()
+    if not (folder.is_dir() and (folder / "metrics.json").is_file() and not (folder / RUNNING_MARKER).exists()):
+        return False
+    try:
+        return json.loads((folder / "metrics.json").read_text()).get("status") == "complete"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def display_colours_uint8(colours: np.ndarray, to_display: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

@@ -462,10 +462,10 @@ def _write_results(run: RunResult, dataset, colour_model, backend, tracker, outp
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()
     metrics["files"] = {k: Path(v).name for k, v in files.items()}
-    output.write_json("metrics.json", metrics)
     from mapping.cli._common import format_table
 
     output.write_text("summary.txt", format_table([run.summary_row()]) + "\n")
+    output.write_json("metrics.json", metrics)
     output.complete()
 
 

@@ -13,19 +13,24 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import logging
 import os
+import re
+import shutil
 import struct
 import tempfile
 import tokenize
 import zipfile
 import zlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from radiometry.errors import CalibrationFileError, ImageError, OutputError
+
+log = logging.getLogger(__name__)
 
 MODEL_FORMAT = "radiomap"
 MODEL_FORMAT_VERSION = 1
@@ -68,6 +73,38 @@ def check_overwrite(path: str | os.PathLike, *, force: bool) -> None:
         raise OutputError(f"{path} exists; pass --force to overwrite it or choose another name")
 
 
+def check_outputs(pairs: Sequence[tuple[str | os.PathLike, str | os.PathLike]], *, fix_input: str,
+                  fix_shared: str) -> None:
+    """Refuse, before anything is written, ``(input, output)`` pairs where an output is one of the inputs (it would
+    overwrite an original) or two inputs share one output (one result would silently replace the other).
+
+    Raises :class:`OutputError` naming the first collision and ending with ``fix_input`` or ``fix_shared``."""
+    inputs: dict[str, Path] = {}
+    for source, _target in pairs:
+        inputs.setdefault(_identity(source), Path(source))
+    outputs: dict[str, Path] = {}
+    for source, target in pairs:
+        key = _identity(target)
+        original = inputs.get(key) or next((p for p in inputs.values() if _same_file(p, target)), None)
+        if original is not None:
+            raise OutputError(f"{target} is the input {original}: writing it would overwrite the original; {fix_input}")
+        first = outputs.setdefault(key, Path(source))
+        if first != Path(source):
+            raise OutputError(f"{first} and {source} would both be written to {target} (one result would replace "
+                              f"the other); {fix_shared}")
+
+
+def _identity(path: str | os.PathLike) -> str:
+    return os.path.normcase(os.path.realpath(path))
+
+
+def _same_file(a: Path, b: str | os.PathLike) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # the output does not exist yet
+        return False
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it into place only if the block succeeds.
@@ -79,19 +116,20 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     ensure_dir(path.parent if str(path.parent) else Path("."))
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}{TEMP_TAG}{os.getpid()}-", suffix=path.suffix,
+                                   dir=path.parent)
     except OSError as exc:
-        raise OutputError(_os_error_message(path, exc)) from None
+        raise OutputError(_os_error_message(_published_name(path), exc)) from None
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp creates 0600; follow the user's umask like open() does
     try:
         yield tmp_path
         if not tmp_path.exists() or tmp_path.stat().st_size == 0 and not _allow_empty(path):
-            raise OutputError(f"writing {path} produced no data; nothing was replaced")
+            raise OutputError(f"writing {_published_name(path)} produced no data; nothing was replaced")
         os.replace(tmp_path, path)
     except OSError as exc:
-        raise OutputError(_os_error_message(path, exc)) from None
+        raise OutputError(_os_error_message(_published_name(path), exc)) from None
     finally:
         with contextlib.suppress(OSError):
             tmp_path.unlink()
@@ -126,6 +164,278 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
+
+
+# --------------------------------------------------------------------------------------------------
+# publication of a set of files (a calibration and its companions): all or nothing
+# --------------------------------------------------------------------------------------------------
+#: Every temporary radiomap creates is named ``.<something>.tmp-radiomap-<pid>-<random>[<suffix>]`` (an atomic
+#: write's file) or ``.tmp-radiomap-<pid>-<random>`` (a publication's staging folder): recognisable, and the pid
+#: tells whether the process that made it still runs (:func:`remove_strays`).
+TEMP_TAG = ".tmp-radiomap-"
+_TEMP_RE = re.compile(r"^\.(?:.*\.)?tmp-radiomap-(\d+)-")
+_JOURNAL = ".radiomap-journal.json"    # in a staging folder: its renames have begun (roll back if found)
+_BACKUPS = ".radiomap-old"             # in a staging folder: hard links to the files the set replaces
+_STAGES: dict[Path, Path] = {}         # staging folder -> destination folder, of this process's open sets
+
+
+def _published_name(path: Path) -> Path:
+    """``path`` as the user will see it: a file in a staging folder is named by its destination."""
+    dest = _STAGES.get(path.parent)
+    return dest / path.name if dest is not None else path
+
+
+def pid_alive(pid: int) -> bool:
+    """True when a process with this id runs (or may run: one of another user)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OverflowError:
+        return False
+    return True
+
+
+def remove_strays(folder: str | os.PathLike) -> list[str]:
+    """Remove the temporaries of radiomap processes that no longer run from ``folder``; return their names.
+
+    Atomic-write files and publication staging folders are recognised by name (``TEMP_TAG`` and the pid); a
+    staging folder that holds a journal was killed half-way through its renames: the files it replaced are put
+    back first (:class:`FileSet`), so the folder holds the old set again. Temporaries of live processes (a
+    concurrent run) are left alone."""
+    folder = Path(folder)
+    removed: list[str] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _TEMP_RE.match(entry.name)
+        if match is None or pid_alive(int(match.group(1))):
+            continue
+        path = Path(entry.path)
+        try:
+            if entry.is_dir(follow_symlinks=False):
+                if (path / _JOURNAL).is_file():
+                    _roll_back(path, folder)
+                    log.warning("%s: a calibration interrupted while it was being published was rolled back "
+                                "(the previous files are in place again)", folder)
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+        except OSError as exc:
+            log.warning("could not remove the stray temporary %s: %s", path, exc)
+            continue
+        removed.append(entry.name)
+    if removed:
+        log.info("removed %d temporaries of interrupted runs from %s: %s", len(removed), folder, ", ".join(removed))
+    return removed
+
+
+def _roll_back(stage: Path, dest: Path) -> None:
+    """Undo the renames of a staging folder whose journal lists them: every replaced file is restored from its
+    backup, every file the set added is removed."""
+    try:
+        entries = json.loads((stage / _JOURNAL).read_text("utf-8"))["files"]
+    except FileNotFoundError:  # the journal was never written: no rename had begun
+        return
+    except (ValueError, KeyError, TypeError):  # cut short while written: no rename had begun
+        entries = []
+    for name, existed in reversed(entries):
+        backup = stage / _BACKUPS / name
+        if existed:
+            if backup.exists():
+                os.replace(backup, dest / name)
+        elif not (stage / name).exists():  # it was renamed into place: the set added it
+            with contextlib.suppress(FileNotFoundError):
+                (dest / name).unlink()
+    (stage / _JOURNAL).unlink()
+
+
+def _fsync_path(path: Path, *, directory: bool = False) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class FileSet:
+    """Files published together or not at all: see :func:`publish_set`."""
+
+    def __init__(self, primary: Path | None) -> None:
+        self.primary = None if primary is None else Path(primary)
+        self._stages: dict[Path, Path] = {}   # destination folder -> staging folder
+        self._committed: list[tuple[Path, Path]] = []
+        self._kept: set[Path] = set()         # staging folders whose roll-back failed: the next run finishes it
+
+    def path(self, final: str | os.PathLike) -> Path:
+        """Where to write the file (or file-name prefix) ``final``: the same name in a staging folder beside it."""
+        final = Path(final)
+        dest = final.parent if str(final.parent) else Path(".")
+        key = Path(os.path.abspath(dest))
+        stage = self._stages.get(key)
+        if stage is None:
+            ensure_dir(dest)
+            remove_strays(dest)
+            try:
+                stage = Path(tempfile.mkdtemp(prefix=f"{TEMP_TAG}{os.getpid()}-", dir=dest))
+            except OSError as exc:
+                raise OutputError(_os_error_message(final, exc)) from None
+            self._stages[key] = stage
+            _STAGES[stage] = dest
+        return stage / final.name
+
+    def final(self, staged: str | os.PathLike) -> Path:
+        """The destination of a path :meth:`path` returned (for records that name the published files)."""
+        staged = Path(staged)
+        dest = _STAGES.get(staged.parent)
+        return dest / staged.name if dest is not None else staged
+
+    # ---- commit / abort
+    def _names(self, stage: Path) -> list[str]:
+        names = sorted(e.name for e in os.scandir(stage) if e.is_file(follow_symlinks=False)
+                       and not _TEMP_RE.match(e.name) and e.name != _JOURNAL)
+        if self.primary is not None and _same_folder(_STAGES[stage], self.primary.parent) and \
+                self.primary.name in names:  # the model last: its companions are in place before it changes
+            names.remove(self.primary.name)
+            names.append(self.primary.name)
+        return names
+
+    def _order(self) -> list[Path]:
+        """Staging folders, the primary file's last."""
+        stages = list(self._stages.values())
+        if self.primary is not None:
+            stages.sort(key=lambda s: _same_folder(_STAGES[s], self.primary.parent))
+        return stages
+
+    def commit(self) -> None:
+        current = None
+        try:
+            plans = []
+            for stage in self._order():
+                dest = _STAGES[stage]
+                names = self._names(stage)
+                entries = []
+                for name in names:
+                    current = dest / name
+                    _fsync_path(stage / name)
+                    existed = _backup(dest / name, stage / _BACKUPS / name)
+                    entries.append([name, existed])
+                plans.append((stage, dest, names, entries))
+            for stage, dest, names, entries in plans:
+                current = dest / names[0] if names else dest
+                self._committed.append((stage, dest))
+                with open(stage / _JOURNAL, "w", encoding="utf-8") as fh:
+                    json.dump({"pid": os.getpid(), "files": entries}, fh)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                for name in names:
+                    current = dest / name
+                    os.replace(stage / name, dest / name)
+                current = dest
+                _fsync_path(dest, directory=True)
+        except OSError as exc:
+            raise OutputError(_os_error_message(current, exc)) from None
+        for stage, _dest in self._committed:  # the commit point: from here on the new set stands
+            with contextlib.suppress(OSError):
+                (stage / _JOURNAL).unlink()
+        self._committed.clear()
+
+    def abort(self) -> None:
+        """Put back what a failed commit replaced and remove every staging folder (never raises)."""
+        for stage, dest in reversed(self._committed):
+            try:
+                _roll_back(stage, dest)
+            except OSError as exc:  # the next run in this folder retries (remove_strays)
+                self._kept.add(stage)
+                log.warning("could not roll back the publication in %s: %s", dest, exc)
+        self._committed.clear()
+
+    def cleanup(self) -> None:
+        for stage in self._stages.values():
+            if stage not in self._kept:
+                shutil.rmtree(stage, ignore_errors=True)
+            _STAGES.pop(stage, None)
+        self._stages.clear()
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    return os.path.abspath(a if str(a) else ".") == os.path.abspath(b if str(b) else ".")
+
+
+def _backup(path: Path, backup: Path) -> bool:
+    """Hard-link ``path`` (if it exists) to ``backup``, a copy where links are not supported; True if it existed."""
+    try:
+        backup.parent.mkdir(exist_ok=True)
+        os.link(path, backup)
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP):
+            raise
+        shutil.copy2(path, backup)
+    return True
+
+
+@contextlib.contextmanager
+def publish_set(primary: str | os.PathLike | None = None) -> Iterator[FileSet]:
+    """Publish a calibration and its companions (figures, JSON, summaries) together or not at all.
+
+    Write every file to ``fs.path(final)`` (the same name in a hidden staging folder beside ``final``); when the
+    block succeeds every file is renamed into place, ``primary`` (the model) last. If the block or the renames
+    fail (disk full, Ctrl-C), the files the set replaced are put back and nothing of the new set remains: the
+    old set stands byte for byte. A process killed during the renames leaves a journal that the next
+    publication into the folder (:func:`remove_strays`) rolls back; stray temporaries of dead processes are
+    removed there too. SIGINT/SIGTERM wait while the renames run (a few system calls)::
+
+        with publish_set(out) as fs:
+            model.save(fs.path(out))
+            save_figure(fig, fs.path(out.with_suffix(".png")))
+    """
+    fs = FileSet(None if primary is None else Path(primary))
+    try:
+        yield fs
+        with _signals_deferred():
+            try:
+                fs.commit()
+            except BaseException:
+                fs.abort()
+                raise
+    except OutputError as exc:
+        raise OutputError(_unstage(str(exc))) from None
+    except OSError as exc:  # a writer that does not go through atomic_path
+        name = _published_name(Path(exc.filename)) if exc.filename else primary or "the output"
+        raise OutputError(_os_error_message(Path(name), exc)) from None
+    finally:
+        fs.cleanup()
+
+
+def _unstage(message: str) -> str:
+    for stage, dest in _STAGES.items():
+        message = message.replace(str(stage) + os.sep, str(dest) + os.sep)
+    return message
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Block SIGINT and SIGTERM (delivered when the block ends) in the main thread, where Python handles them."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -237,3 +239,57 @@ def test_complex_response_through_the_cli_is_one_line(tmp_path):
         f"radiomap: error: {tmp_path / 'complex.npz'}: array 'inverse_table' holds complex values (complex128) where "
         "real numbers (bool, integer or float) are needed; re-create the response file with radiomap"]
     assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------------
+# publication of a set (a calibration and its companions) and output collisions
+# --------------------------------------------------------------------------------------------------
+def _set(folder, tag):
+    with fileio.publish_set(folder / "m.npz") as fs:
+        for name in ("a.json", "m.npz", "b.png"):
+            fileio.atomic_write_text(fs.path(folder / name), f"{tag} {name}")
+    return fs
+
+
+def test_publish_set_renames_the_model_last(tmp_path, monkeypatch):
+    _set(tmp_path, "old")
+    order, replace = [], os.replace
+    monkeypatch.setattr(os, "replace", lambda a, b: (order.append(Path(b)), replace(a, b))[1])
+    _set(tmp_path, "new")
+    published = [p.name for p in order if p.parent == tmp_path]        # not the writes into the staging folder
+    assert published[-1] == "m.npz" and sorted(published) == ["a.json", "b.png", "m.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.png", "m.npz"]
+    assert (tmp_path / "a.json").read_text() == "new a.json"
+
+
+def test_a_journal_left_by_a_killed_publication_is_rolled_back(tmp_path):
+    """A process killed half-way through the renames: its staging folder holds the journal and the backups; the
+    next run in the folder puts the old set back and removes the staging folder."""
+    _set(tmp_path, "old")
+    dead = 2 ** 22 + 777                                                   # above pid_max: not running
+    stage = tmp_path / f"{fileio.TEMP_TAG}{dead}-abc"
+    (stage / ".radiomap-old").mkdir(parents=True)
+    for name in ("a.json", "m.npz"):
+        os.link(tmp_path / name, stage / ".radiomap-old" / name)
+    (stage / "m.npz").write_text("new m.npz")                             # not renamed yet
+    (tmp_path / "a.json").unlink()
+    (tmp_path / "a.json").write_text("new a.json")                        # renamed already
+    (tmp_path / "c.txt").write_text("new c.txt")                          # a file the new set added
+    (stage / ".radiomap-journal.json").write_text(json.dumps(
+        {"pid": dead, "files": [["c.txt", False], ["a.json", True], ["m.npz", True]]}))
+    assert fileio.remove_strays(tmp_path) == [stage.name]
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == {"a.json": "old a.json", "b.png": "old b.png",
+                                                                   "m.npz": "old m.npz"}
+
+
+def test_check_outputs_names_the_first_collision(tmp_path):
+    for name in ("a.png", "a.jpg"):
+        (tmp_path / name).write_text("x")
+    fix = {"fix_input": "FIX-IN", "fix_shared": "FIX-SHARED"}
+    with pytest.raises(OutputError, match=r"a\.png is the input .*a\.png: writing it would overwrite the original; "
+                                          "FIX-IN$"):
+        fileio.check_outputs([(tmp_path / "a.png", tmp_path / "a.png")], **fix)
+    with pytest.raises(OutputError, match=r"a\.jpg and .*b/a\.jpg would both be written to .*out/a\.png .*FIX-SHARED$"):
+        fileio.check_outputs([(tmp_path / "a.jpg", tmp_path / "out" / "a.png"),
+                              (tmp_path / "b" / "a.jpg", tmp_path / "out" / "a.png")], **fix)
+    fileio.check_outputs([(tmp_path / "a.jpg", tmp_path / "a2.png"), (tmp_path / "a.png", tmp_path / "o.png")], **fix)

@@ -108,7 +108,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     import numpy as np
 
     from radiometry.correction import Corrector
-    from radiometry.fileio import check_overwrite, ensure_dir, write_image
+    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, write_image
     from radiometry.progress import progress_bar
     from radiometry.formats import load_response, load_vignetting
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
@@ -125,10 +125,14 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
         names = [p.stem for p in source.paths]
     else:
         names = None
-    out = ensure_dir(outdir)
     ext = {"npy": ".npy", "tiff": ".tiff", "exr": ".exr"}[fmt] if irradiance else ".png"
-    for name in names or []:  # refuse before writing anything rather than half-way through
-        check_overwrite(out / f"{name}{ext}", force=force)
+    if names is not None:  # refuse before writing anything rather than half-way through
+        pairs = [(path, Path(outdir) / f"{name}{ext}") for path, name in zip(source.paths, names)]
+        check_outputs(pairs, fix_input="choose another output folder (-o); --force never replaces an input",
+                      fix_shared="correct such images into separate output folders (or rename one)")
+        for _path, target in pairs:
+            check_overwrite(target, force=force)
+    out = ensure_dir(outdir)
 
     frames = iter(source)
     if scale_value == "auto" and not irradiance:

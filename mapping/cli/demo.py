@@ -108,7 +108,7 @@ def prepare_output(out: Path, *, force: bool) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out} is an existing file; choose a folder for the demo")
-    if out.is_dir() and any(out.iterdir()):
+    if out.is_dir() and any(p.name != "LOCK" for p in out.iterdir()):  # LOCK: run_demo's own (FolderLock)
         if not force and (out / MARKER).is_file():
             raise OutputError(f"{out} holds an earlier demo; pass --force to overwrite it or choose another folder")
         if not force:
@@ -135,7 +135,15 @@ def response_error_percent(estimate, truth, *, levels: tuple[int, int] = (5, 250
     return [float(v) for v in 100.0 * np.abs(est - tru).max(axis=0)]
 
 
-def run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int = 0, force: bool = False,
+def run_demo(output: str | Path = "demo_out", **options) -> DemoResult:
+    """Run the demo into ``output`` (see :func:`_run_demo`), the folder locked against a second run meanwhile."""
+    from mapping.export import FolderLock
+
+    with FolderLock(Path(output), what="demo"):
+        return _run_demo(output, **options)
+
+
+def _run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int = 0, force: bool = False,
              exposure_compensation: bool | None = None, backend: str = "tsdf", size: DemoSize | None = None,
              camera: str = "asymmetric", progress: bool = True, log: Callable[[str], None] | None = None
              ) -> DemoResult:

@@ -148,9 +148,12 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
         settings.append(("glb", None, "on"))
-    run = reconstruct(**kwargs, output=folder)
-    summary = format_table([run.summary_row()]) + "\n" + settings_line(ctx, settings)
-    folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
+    try:
+        run = reconstruct(**kwargs, output=folder)
+        summary = format_table([run.summary_row()]) + "\n" + settings_line(ctx, settings)
+        folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
+    finally:
+        folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
     click.echo(summary)
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())

@@ -66,7 +66,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
 
     from mapping.cli._common import format_table, run_manifest
     from radiometry.errors import CalibrationError, DatasetError, OutputError
-    from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir
+    from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set
     from radiometry.response_fit import (blue_fill_mask, find_times_file, fit_response, load_brackets,
                                          prediction_rms)
 
@@ -130,10 +130,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names,
                  "prediction_rms_levels": rms})
 
-    _save(output, response, suffix, channel)
     plot_path = output.with_suffix(".png")
-    _plot(plot_path, response, f"{method}: {folder.name}")
-
     repaired = meta.get("repaired_levels")
     monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
     if method == "debevec":
@@ -149,7 +146,10 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     record = run_manifest("response", params)
     record.update({"summary": row, "response": {k: v for k, v in meta.items()}, "outputs": {
         "response": str(output), "plot": str(plot_path)}})
-    atomic_write_json(output.with_suffix(".json"), record)
+    with publish_set(output) as files:  # the response, its plot and record: all three or none (the old set stays)
+        _save(files.path(output), response, suffix, channel)
+        _plot(files.path(plot_path), response, f"{method}: {folder.name}")
+        atomic_write_json(files.path(output.with_suffix(".json")), record)
     click.echo(summary)
     click.echo("fit RMS: error of predicting every unsaturated pixel of every exposure from the merged radiance")
     click.echo(f"wrote {output} ({FORMATS[suffix]}), {plot_path}, {output.with_suffix('.json')}")
@@ -161,19 +161,20 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
 def _write_standard(output: Path, suffix: str, gamma: float | None, params: dict) -> None:
     """Write the gamma or linear response (1 channel for a pcalib .txt, else 3) with its plot and record."""
     from mapping.cli._common import run_manifest
-    from radiometry.fileio import atomic_write_json
+    from radiometry.fileio import atomic_write_json, publish_set
     from radiometry.response import CameraResponse
 
     channels = 1 if suffix == ".txt" else 3
     response = CameraResponse.linear(channels) if gamma is None else CameraResponse.gamma(gamma, channels)
-    _save(output, response, suffix, None)
     plot_path = output.with_suffix(".png")
     name = "linear" if gamma is None else f"gamma {gamma:g}"
-    _plot(plot_path, response, f"standard response: {name}")
     record = run_manifest("response", params)
     record.update({"summary": {"method": response.meta["method"], "gamma": gamma, "channels": channels},
                    "response": dict(response.meta), "outputs": {"response": str(output), "plot": str(plot_path)}})
-    atomic_write_json(output.with_suffix(".json"), record)
+    with publish_set(output) as files:
+        _save(files.path(output), response, suffix, None)
+        _plot(files.path(plot_path), response, f"standard response: {name}")
+        atomic_write_json(files.path(output.with_suffix(".json")), record)
     click.echo(f"wrote {output} ({FORMATS[suffix]}, {name}: f^-1(I) = "
                f"{'I/255' if gamma is None else f'(I/255)^{gamma:g}'}), {plot_path}, {output.with_suffix('.json')}")
 

@@ -110,7 +110,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
     """
     from radiometry.errors import OutputError
-    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir
+    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import load_response
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
@@ -136,24 +136,6 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma
     model = fit_vignetting(acc, model=model_name, **fit_options)
-    if suffix == ".vgn":
-        from radiometry.formats.vgn import write_radical_vgn
-
-        write_radical_vgn(model, out)
-    elif suffix == ".png":
-        from radiometry.formats.dso_vignette import write_dso_vignette
-
-        write_dso_vignette(model, out)
-    else:
-        model.save(out)
-    if save_accumulation:
-        acc.save(save_accumulation)
-    prefix = out.with_name(out.stem)
-    if no_plots:
-        figures = {"coverage": save_coverage_png(prefix.with_name(prefix.name + "_coverage.png"),
-                                                 acc.coverage(), min_samples)}
-    else:
-        figures = save_calibration_figures(prefix, acc, model, min_samples=min_samples)
     rows, facts = summarise(model, acc, response, min_samples)
     skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
     text = "\n".join([
@@ -162,15 +144,42 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
         str(acc.coverage_report(min_samples)),
         format_table(rows),
     ])
+    prefix = out.with_name(out.stem)
+    # the model, its figures, summaries and the accumulation: all published together or none (the old set stays)
+    with publish_set(out) as files:
+        _write_model(model, files.path(out), suffix)
+        if save_accumulation:
+            acc.save(files.path(save_accumulation))
+        staged = files.path(prefix)
+        if no_plots:
+            figures = {"coverage": save_coverage_png(staged.with_name(staged.name + "_coverage.png"),
+                                                     acc.coverage(), min_samples)}
+        else:
+            figures = save_calibration_figures(staged, acc, model, min_samples=min_samples)
+        figures = {name: files.final(path) for name, path in figures.items()}
+        atomic_write_text(staged.with_name(staged.name + "_summary.txt"), text + "\n")
+        atomic_write_json(staged.with_name(staged.name + "_summary.json"),
+                          {**facts, "model": model_name, "output": str(out), "figures": figures,
+                           "run": run_manifest("vignetting", {"frames": frames, "response": response_path,
+                                                              "output": output, "model": model_name,
+                                                              "min_samples": min_samples,
+                                                              "stop_when_covered": stop_when_covered,
+                                                              "max_frames": max_frames,
+                                                              "drift_correction": not no_drift_correction,
+                                                              "smooth_sigma": smooth_sigma if model_name == "lut"
+                                                              else None})})
     click.echo(text)
-    atomic_write_text(prefix.with_name(prefix.name + "_summary.txt"), text + "\n")
-    atomic_write_json(prefix.with_name(prefix.name + "_summary.json"),
-                      {**facts, "model": model_name, "output": str(out), "figures": figures,
-                       "run": run_manifest("vignetting", {"frames": frames, "response": response_path,
-                                                          "output": output, "model": model_name,
-                                                          "min_samples": min_samples,
-                                                          "stop_when_covered": stop_when_covered,
-                                                          "max_frames": max_frames,
-                                                          "drift_correction": not no_drift_correction,
-                                                          "smooth_sigma": smooth_sigma if model_name == "lut"
-                                                          else None})})
+
+
+def _write_model(model, path: Path, suffix: str) -> None:
+    """The model in the format its suffix names: .vgn (radical), .png (DSO vignette) or .npz (radiomap)."""
+    if suffix == ".vgn":
+        from radiometry.formats.vgn import write_radical_vgn
+
+        write_radical_vgn(model, path)
+    elif suffix == ".png":
+        from radiometry.formats.dso_vignette import write_dso_vignette
+
+        write_dso_vignette(model, path)
+    else:
+        model.save(path)

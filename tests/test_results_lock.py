@@ -1,0 +1,243 @@
+"""Overwrites: a results folder is locked while a run writes it, ``--force`` removes the previous run's files, a
+killed run never claims to be complete, and ``correct`` never overwrites its inputs or one result with another.
+
+Concurrency is driven by events, never by sleeps racing a process: the first run is a subprocess; the test waits
+until its ``LOCK`` file exists, stops it (SIGSTOP) so that it cannot finish meanwhile, runs the second, and lets
+the first go on (SIGCONT).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_robustness import REPO, error_line, reconstruct, room, run, snapshot, tum_copy  # noqa: F401 (fixture)
+
+from mapping.export import LOCK_NAME, MANIFEST, FolderLock, ResultsFolder, _process_start, is_complete
+from radiometry.errors import OutputError
+from radiometry.fileio import write_image
+
+
+def start_reconstruct(seq: Path, out: Path, *extra) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "mapping.cli", "reconstruct", str(seq), "-o", str(out), "--poses",
+                             "gt", "--no-progress", *map(str, extra)], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(condition, proc: subprocess.Popen, what: str, timeout: float = 120) -> None:
+    """Wait for an event (a file appearing); fail if the process ends first."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert proc.poll() is None, f"the run ended before {what}: {proc.communicate()}"
+        assert time.monotonic() < deadline, f"no {what} after {timeout} s"
+        time.sleep(0.002)
+
+
+def running_status(out: Path) -> bool:
+    try:
+        return json.loads((out / "metrics.json").read_text())["status"] == "running"
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+@pytest.fixture(scope="module")
+def long_seq(room, tmp_path_factory):
+    """80 frames (the room's 14 repeated): long enough that a run is still going when the test acts on it."""
+    return tum_copy(room, tmp_path_factory.mktemp("long") / "seq", indices=[i % 14 for i in range(80)])
+
+
+@pytest.fixture
+def idle_process():
+    """A live process that is not radiomap (its pid owns a lock in some tests)."""
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    yield proc
+    proc.stdin.close()
+    proc.wait(timeout=30)
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait(timeout=30)
+    return proc.pid
+
+
+def lock_file(folder: Path, pid: int, start: str | None = None) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    import socket
+
+    (folder / LOCK_NAME).write_text(json.dumps({"pid": pid, "start": start, "host": socket.gethostname(),
+                                                "what": "run", "started": "2026-01-01T00:00:00+0000"}))
+
+
+# ==================================================================================================
+# two runs into one folder
+# ==================================================================================================
+def test_a_second_run_into_a_folder_being_written_is_refused(long_seq, tmp_path):
+    out = tmp_path / "run"
+    first = start_reconstruct(long_seq, out, "--voxel-size", "0.03", "--depth-max", "5")
+    try:
+        wait_for(lambda: (out / LOCK_NAME).is_file(), first, "its LOCK file")
+        first.send_signal(signal.SIGSTOP)            # it cannot finish (or write anything) while the second runs
+        assert (out / LOCK_NAME).is_file()
+        owner = json.loads((out / LOCK_NAME).read_text())
+        assert owner["pid"] == first.pid
+        before = snapshot(out)
+        line = error_line(reconstruct(long_seq, out, "--force", "--voxel-size", "0.05"), str(out),
+                          f"pid {first.pid}", "wait for it to finish or choose another output folder")
+        assert "in use by another radiomap run" in line
+        assert snapshot(out) == before               # the second run wrote nothing
+    finally:
+        first.send_signal(signal.SIGCONT)
+    stdout, stderr = first.communicate(timeout=600)
+    assert first.returncode == 0, stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "complete" and is_complete(out) and not (out / LOCK_NAME).exists()
+    config = json.loads((out / "config.json").read_text())
+    assert "0.03" in json.dumps(config) and "0.05" not in json.dumps(config)   # the first run's, whole
+    assert (out / "mesh.ply").is_file() and metrics["frames"]["fused"] == 80
+
+
+def test_a_folder_locked_by_a_live_process_refuses_compare_and_demo(idle_process, long_seq, tmp_path):
+    """The same lock guards a comparison's folder and the demo's (the owner here is any live process)."""
+    from mapping.cli.demo import run_demo
+
+    lock_file(tmp_path / "cmp", idle_process.pid, _process_start(idle_process.pid))
+    error_line(run("compare", long_seq, "-r", REPO / "data_samples" / "brackets" / "ground_truth_response.npz",
+                   "--methods", "none,response", "-o", tmp_path / "cmp", "--force", "--no-progress"),
+               tmp_path / "cmp", f"pid {idle_process.pid}", "in use by another radiomap run")
+    lock_file(tmp_path / "demo", idle_process.pid, _process_start(idle_process.pid))
+    with pytest.raises(OutputError, match=f"in use by another radiomap run \\(pid {idle_process.pid}"):
+        run_demo(tmp_path / "demo", quick=True, force=True, progress=False)
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == [LOCK_NAME]   # nothing else was touched
+
+
+def test_a_stale_lock_is_taken_over_with_a_message(room, tmp_path, caplog):
+    seq = tum_copy(room, tmp_path / "seq", indices=range(3))
+    out = tmp_path / "run"
+    pid = dead_pid()
+    lock_file(out, pid)
+    result = reconstruct(seq, out)
+    assert result.exit_code == 0, result.output
+    assert f"taking over the lock of radiomap pid {pid}" in caplog.text + result.stderr
+    assert not (out / LOCK_NAME).exists() and is_complete(out)
+    # a lock whose pid was reused by another process (its start time differs) is stale too
+    lock_file(out, os.getpid(), start="1")
+    assert reconstruct(seq, out, "--force").exit_code == 0 and not (out / LOCK_NAME).exists()
+
+
+def test_the_lock_in_process(tmp_path):
+    """One process may lock a folder again (a second run in one session); release removes the file."""
+    first = FolderLock(tmp_path / "f")
+    assert json.loads((tmp_path / "f" / LOCK_NAME).read_text())["pid"] == os.getpid()
+    second = FolderLock(tmp_path / "f")
+    first.release()                                   # the older object no longer owns it: the file stays
+    assert (tmp_path / "f" / LOCK_NAME).is_file()
+    second.release()
+    assert not (tmp_path / "f" / LOCK_NAME).exists()
+    with FolderLock(tmp_path / "f"):
+        assert (tmp_path / "f" / LOCK_NAME).is_file()
+    assert not (tmp_path / "f" / LOCK_NAME).exists()
+
+
+# ==================================================================================================
+# --force removes the previous run's files (and only those)
+# ==================================================================================================
+def test_force_removes_the_previous_runs_files_and_keeps_the_users(room, tmp_path):
+    seq = tum_copy(room, tmp_path / "seq", indices=range(4))
+    out = tmp_path / "run"
+    assert reconstruct(seq, out, "--depth-max", "5").exit_code == 0
+    assert (out / "mesh.ply").is_file()
+    written = json.loads((out / MANIFEST).read_text())["files"]
+    assert {"mesh.ply", "metrics.json", "config.json", "trajectory.txt"} <= set(written)
+    (out / "notes.txt").write_text("mine")
+    manifest = json.loads((out / MANIFEST).read_text())
+    (out / "extra_result.bin").write_bytes(b"x")       # a result a future version wrote, listed in the manifest
+    (out / MANIFEST).write_text(json.dumps({"files": manifest["files"] + ["extra_result.bin"]}))
+    result = reconstruct(seq, out, "--force", "--backend", "surfel", "--depth-max", "5")
+    assert result.exit_code == 0, result.output
+    names = {p.name for p in out.iterdir()}
+    assert "surfels.ply" in names and "notes.txt" in names
+    assert not names & {"mesh.ply", "mesh.glb", "mesh_colours.npz", "extra_result.bin"}, names
+    assert (out / "notes.txt").read_text() == "mine"
+    assert "notes.txt" not in json.loads((out / MANIFEST).read_text())["files"]
+
+
+def test_a_killed_run_never_says_complete(long_seq, room, tmp_path):
+    """SIGKILL of a --force run over a finished one: metrics.json says "running" (not the previous run's
+    "complete"), RUNNING stays, the previous run's mesh is gone; the next run takes the stale lock over."""
+    seq = tum_copy(room, tmp_path / "seq", indices=range(3))
+    out = tmp_path / "run"
+    assert reconstruct(seq, out).exit_code == 0 and is_complete(out)
+    victim = start_reconstruct(long_seq, out, "--force", "--depth-max", "5")
+    wait_for(lambda: running_status(out), victim, "metrics.json saying 'running'")
+    victim.kill()
+    victim.communicate(timeout=60)
+    assert json.loads((out / "metrics.json").read_text())["status"] == "running"
+    assert (out / "RUNNING").is_file() and not is_complete(out) and not (out / "mesh.ply").exists()
+    assert (out / LOCK_NAME).is_file()                                  # left by the killed process
+    error_line(reconstruct(seq, out), out, "already holds the results of a run", "pass --force")
+    result = reconstruct(seq, out, "--force")
+    assert result.exit_code == 0 and is_complete(out) and not (out / LOCK_NAME).exists()
+
+
+def test_results_folder_refusals_release_the_lock(tmp_path):
+    with ResultsFolder(tmp_path / "r") as folder:
+        folder.complete()
+    with pytest.raises(OutputError, match="already holds the results of a run"):
+        ResultsFolder(tmp_path / "r")
+    assert not (tmp_path / "r" / LOCK_NAME).exists()
+
+
+# ==================================================================================================
+# correct: never an input, never two inputs into one output
+# ==================================================================================================
+@pytest.fixture
+def models(tmp_path):
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import LUTVignetting
+
+    CameraResponse.gamma(2.2).save(tmp_path / "crf.npz")
+    LUTVignetting(np.full((6, 8, 3), 0.8, np.float32)).save(tmp_path / "v.npz")
+    return ["-r", tmp_path / "crf.npz", "--vignetting", tmp_path / "v.npz"]
+
+
+def images(folder: Path, *names: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(names):
+        write_image(folder / name, np.full((6, 8, 3), 40 + 10 * i, np.uint8))
+    return folder
+
+
+def test_correct_refuses_to_overwrite_its_inputs(models, tmp_path):
+    frames = images(tmp_path / "frames", "a.png", "b.png")
+    before = snapshot(frames)
+    for extra in ((), ("--force",)):
+        error_line(run("correct", frames, *models, "-o", frames, *extra), frames / "a.png",
+                   "is the input", "would overwrite the original", "choose another output folder")
+        assert snapshot(frames) == before
+    single = frames / "b.png"
+    error_line(run("correct", single, *models, "-o", frames, "--force"), single, "is the input")
+    assert snapshot(frames) == before
+    # the same folder under another name (a symbolic link) is the same folder
+    (tmp_path / "alias").symlink_to(frames)
+    error_line(run("correct", frames, *models, "-o", tmp_path / "alias", "--force"), "is the input")
+    assert snapshot(frames) == before
+    # into the input folder without a collision (c.jpg -> c.png) is fine
+    only_jpg = images(tmp_path / "jpg", "c.jpg")
+    assert run("correct", only_jpg, *models, "-o", only_jpg).exit_code == 0
+    assert sorted(p.name for p in only_jpg.iterdir()) == ["c.jpg", "c.png"]
+
+
+def test_correct_refuses_two_inputs_into_one_output(models, tmp_path):
+    frames = images(tmp_path / "frames", "a.png", "a.jpg", "a.bmp", "b.png")
+    line = error_line(run("correct", frames, *models, "-o", tmp_path / "out"), "would both be written to",
+                      tmp_path / "out" / "a.png", "separate output folders")
+    assert str(frames / "a.bmp") in line and str(frames / "a.jpg") in line     # the first collision, by name
+    assert not (tmp_path / "out").exists()                                     # nothing written, not even the folder
