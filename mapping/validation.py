@@ -1,11 +1,12 @@
 """What is physically sensible for an RGB-D camera, in one place: option ranges, the run's memory estimate and
 the rule for a run that fused too little.
 
-Every numeric option of ``reconstruct``, ``compare`` (and the library's :class:`~mapping.pipeline.ReconstructConfig`,
-:func:`~mapping.pipeline.build_run`, :func:`~mapping.pipeline.make_backend`, :func:`~mapping.compare.compare`) is
-checked here, before anything is read or written; a value outside its range raises :class:`ImplausibleValueError`
-(a ``ValueError`` for the library, a one-line error with exit 1 for the CLI) naming the option, the value and
-the range. The ranges come from real sensors:
+Every numeric option of ``reconstruct``, ``compare``, ``simulate``, ``correct`` and ``vignetting`` (and the
+library's :class:`~mapping.pipeline.ReconstructConfig`, :func:`~mapping.pipeline.build_run`,
+:func:`~mapping.pipeline.make_backend`, :func:`~mapping.compare.compare`) is checked here, before anything is read
+or written (options that click already bounds, such as image sizes, keep their click ranges); a value outside
+its range raises :class:`ImplausibleValueError` (a ``ValueError`` for the library, a one-line error with exit 1
+for the CLI) naming the option, the value and the range. The ranges come from real sensors:
 
 ============================  ================  ===========================================================
 quantity                      range             why
@@ -26,6 +27,10 @@ depth scale                   1 .. 100000       raw units per metre: 1 float met
 exposure factors              1e-4 .. 1e4       +-13 stops around the first frame
 block resolution              4 .. 64           voxels per block edge (Open3D uses 8 or 16)
 truncation multiplier         1 .. 32           truncation in voxels (Open3D 8, KinectFusion ~4)
+exposure time (simulate)      1 us .. 60 s      global shutters 1 us; Debevec's brackets reach 32 s
+light change (simulate)       0.01 .. 100 x     a light switched to 1 % .. 100x of its brightness
+lens (simulate --lensfun)     1..2000 mm, f/0.7..f/64   phone lenses to super-telephotos; the fastest lenses
+LUT smoothing (vignetting)    0 .. 50 px        default 1, 2-3 for thin sweeps; OpenCV fails on huge kernels
 ============================  ================  ===========================================================
 
 Memory (:func:`estimate_memory`) is estimated before a run starts and compared with ``MemAvailable`` of
@@ -46,6 +51,7 @@ import numpy as np
 
 from radiometry.errors import RadiomapError
 from radiometry.quorum import MIN_USED_FRACTION, MIN_USED_FRAMES, rule_text, too_little
+from radiometry.vignetting_calibration import MAX_SMOOTH_SIGMA
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +72,7 @@ EXPOSURE_TIME_S = (1e-6, 60.0)      # shutters: 1 us (global-shutter sensors) ..
 LIGHT_CHANGE = (0.01, 100.0)        # a light switched to 1 % .. 100x of its brightness
 LENS_FOCAL_MM = (1.0, 2000.0)       # phone lenses 1.5-9 mm .. super-telephoto 800 mm (lensfun's range)
 LENS_APERTURE = (0.7, 64.0)         # f-numbers: f/0.7 (the fastest lenses made) .. f/64
+SMOOTH_SIGMA_PX = (0.0, MAX_SMOOTH_SIGMA)  # LUT denoising (radiometry.vignetting_calibration): default 1, 2-3 thin
 
 #: a run fails when it fuses fewer frames than this (or all of a shorter sequence), or fewer than this fraction of
 #: its frames: the rule of radiometry/quorum.py, which vignetting calibration shares
@@ -329,7 +336,8 @@ def check_run(dataset, *, backend: str = "tsdf", voxel_size: float = 0.01, depth
     memory (:func:`estimate_memory`, :func:`check_memory`). Returns the estimate."""
     from radiometry.errors import DatasetError
 
-    check_fusion(backend=backend, voxel_size=voxel_size, depth_max=depth_max, depth_min=depth_min, block_resolution=block_resolution,
+    check_fusion(backend=backend, voxel_size=voxel_size, depth_max=depth_max, depth_min=depth_min,
+                 block_resolution=block_resolution,
                  trunc_voxel_multiplier=trunc_voxel_multiplier)
     name = getattr(dataset, "root", None) or getattr(dataset, "name", "the sequence")
     check_intrinsics(dataset.K, dataset.width, dataset.height,
@@ -370,10 +378,10 @@ def check_fused(fused: int, frames: int, reasons: dict[str, int], name: str = "t
         "the results folder")
 
 
-__all__ = ["BLOCK_RESOLUTION", "DEPTH_MAX_M", "DEPTH_MIN_M", "DEPTH_SCALE", "EXPOSURE_FACTOR", "FOV_DEG",
-           "ImplausibleValueError", "MIN_FUSED_FRACTION", "MIN_FUSED_FRAMES", "MemoryEstimate", "MemoryEstimateError",
-           "PIXEL_ASPECT", "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory",
-           "check_depth_max", "check_depth_scale", "config_options", "option_range", "EXPOSURE_TIME_S",
-           "LENS_APERTURE", "LENS_FOCAL_MM", "LIGHT_CHANGE", "check_exposure_factor", "check_fusion", "check_fused",
-           "check_config", "check_intrinsics", "check_memory", "principal_point_problem", "check_range", "check_run", "check_voxel_size", "estimate_memory",
-           "scene_depth", "too_little_fused"]
+__all__ = ["BLOCK_RESOLUTION", "DEPTH_MAX_M", "DEPTH_MIN_M", "DEPTH_SCALE", "EXPOSURE_FACTOR", "EXPOSURE_TIME_S",
+           "FOV_DEG", "ImplausibleValueError", "LENS_APERTURE", "LENS_FOCAL_MM", "LIGHT_CHANGE", "MIN_FUSED_FRACTION",
+           "MIN_FUSED_FRAMES", "MemoryEstimate", "MemoryEstimateError", "PIXEL_ASPECT", "SMOOTH_SIGMA_PX",
+           "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory", "check_config",
+           "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_fused", "check_fusion",
+           "check_intrinsics", "check_memory", "check_range", "check_run", "check_voxel_size", "config_options",
+           "estimate_memory", "option_range", "principal_point_problem", "scene_depth", "too_little_fused"]

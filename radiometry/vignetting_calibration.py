@@ -227,8 +227,8 @@ def open_frames(source: Any, *, max_frames: int | None = None) -> FrameSource:
 @dataclass(frozen=True)
 class SheetDetection:
     """The sheet in one frame: ``status`` is ``"ok"`` or why the frame is skipped (``"saturated"``,
-    ``"too dark"``, ``"too small"``, ``"no sheet"``, ``"textured"``, ``"low contrast"``); ``mask`` (bool ``(H, W)``) and ``centre`` ``(x, y)``
-    are set when it is ``"ok"``."""
+    ``"too dark"``, ``"too small"``, ``"no sheet"``, ``"textured"``, ``"low contrast"``); ``mask`` (bool
+    ``(H, W)``) and ``centre`` ``(x, y)`` are set when it is ``"ok"``."""
 
     status: str
     mask: np.ndarray | None = None
@@ -867,6 +867,8 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     return result
 
 
+#: the largest LUT denoising (pixels): beyond it the "fine" residual is a constant and OpenCV's kernel overflows
+MAX_SMOOTH_SIGMA = 50.0
 #: a model is fitted only when the sheet was seen at this fraction of the image at least (simulated sweeps of
 #: 30-40 frames: 100 %; ordinary room frames where a plain wall passed for a sheet: 15 %)
 MIN_OBSERVED_FRACTION = 0.5
@@ -1039,6 +1041,8 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
 
     if smooth_sigma < 0:
         raise ValueError(f"smooth_sigma must be >= 0, got {smooth_sigma}")
+    if not smooth_sigma <= MAX_SMOOTH_SIGMA:  # also NaN; OpenCV's Gaussian fails on huge kernels
+        raise ValueError(f"smooth_sigma must be at most {MAX_SMOOTH_SIGMA:g} pixels, got {smooth_sigma}")
     acc = accumulation
     flat, weights = _observed(acc, joint_scale, min_samples)
     h, w, ch = acc.shape

@@ -19,8 +19,9 @@ import pytest
 from conftest import shared_path
 from test_robustness import error_line, frames, models, paper, room, run, tum_copy  # noqa: F401 (fixtures)
 
-from mapping.validation import (DEPTH_MAX_M, FOV_DEG, VOXEL_SIZE_M, check_intrinsics, estimate_memory,
-                                ImplausibleValueError, too_little_fused)
+from mapping.validation import (DEPTH_MAX_M, FOV_DEG, VOXEL_SIZE_M, ImplausibleValueError, check_intrinsics,
+                                estimate_memory, too_little_fused)
+from radiometry.response import CameraResponse
 
 
 def reconstruct(seq: Path, out: Path, *extra, **env):
@@ -83,6 +84,19 @@ def test_correct_scale_out_of_range(models, frames, tmp_path):
     error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", models["vignetting.npz"], "-o", out,
                    "--scale", "1e30"), "--scale 1e+30", "0.0001..10000")
     assert not out.exists()
+
+
+def test_vignetting_smooth_sigma_out_of_range(paper, tmp_path):
+    """--smooth-sigma 1e9 used to end in an OpenCV traceback (a Gaussian kernel too large)."""
+    out = tmp_path / "v.npz"
+    error_line(run("vignetting", paper["rgb"], "-r", paper["response"], "-o", out, "--smooth-sigma", "1e9",
+                   "--no-progress"), "--smooth-sigma 1e+09 px", "0..50 px")
+    assert not out.exists()
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting_lut
+
+    acc = collect_vignetting(paper["rgb"], CameraResponse.load(paper["response"]), progress=False)
+    with pytest.raises(ValueError, match="smooth_sigma must be at most 50 pixels, got 1000000000.0"):
+        fit_vignetting_lut(acc, smooth_sigma=1e9)
 
 
 def test_library_entry_points_validate_too(room):

@@ -47,7 +47,10 @@ def _smooth_sigma(ctx, param, value):
 
     if value is not None and not (math.isfinite(value) and value >= 0):
         raise click.BadParameter(f"must be a finite number of pixels >= 0 (0 disables the smoothing), got {value}")
-    return value
+    from mapping.validation import SMOOTH_SIGMA_PX, check_range
+
+    return value if value is None else check_range("--smooth-sigma", value, SMOOTH_SIGMA_PX, "px",
+                                                   "0 disables the smoothing, 2-3 suits thin sweeps")
 
 
 def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]:
