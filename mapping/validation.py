@@ -108,9 +108,15 @@ class TooLittleFusedError(RadiomapError):
 # ------------------------------------------------------------------------------------------------------------
 # single values
 # ------------------------------------------------------------------------------------------------------------
+# config fields whose command-line option has another name
+_OPTION_NAMES = {"reference_exposure": "--display-exposure", "exposure_reference": "--mesh-exposure"}
+
+
 def _label(name: str) -> str:
     """``voxel_size`` -> ``--voxel-size`` (the CLI's spelling; the library's is the same with underscores)."""
-    return name if name.startswith("-") else "--" + name.replace("_", "-")
+    if name.startswith("-"):
+        return name
+    return _OPTION_NAMES.get(name, "--" + name.replace("_", "-"))
 
 
 def check_range(name: str, value, limits: tuple[float, float], unit: str = "", why: str = "") -> float:

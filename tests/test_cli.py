@@ -202,3 +202,15 @@ def test_simulate_num_frames_and_its_old_spelling(tmp_path):
     assert res.exit_code == 0, res.output
     assert "warning: --frames is deprecated, use --num-frames (a count here; --frames is a range A:B:S" in res.stderr
     assert len((tmp_path / "b" / "times.txt").read_text().splitlines()) == 2
+
+
+@pytest.mark.parametrize("field, option", [("reference_exposure", "--display-exposure"),
+                                           ("exposure_reference", "--mesh-exposure"),
+                                           ("voxel_size", "--voxel-size")])
+def test_range_errors_name_the_option_the_user_typed(field, option):
+    """A config field whose option was renamed is named by the option's current spelling in range errors."""
+    from mapping.validation import check_exposure_factor
+
+    with pytest.raises(ValueError) as exc:
+        check_exposure_factor(float("inf"), field)
+    assert str(exc.value).startswith(f"{option} inf is outside")

@@ -152,7 +152,8 @@ def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigFileError(f"{path}: not a JSON file ({exc}); pass the config.json a radiomap run wrote") from None
     if not isinstance(doc, dict):
-        raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes")
+        raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
+                              "pass the config.json a reconstruct or compare run wrote")
     if "config_version" not in doc:
         raise ConfigFileError(f"{path}: no key 'config_version' (written before radiomap replayed runs, or not by "
                               "radiomap); it cannot be replayed: give its options on the command line")
