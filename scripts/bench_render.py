@@ -27,7 +27,7 @@ import numpy as np
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("-n", "--num-frames", type=int, default=100)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--seed", type=int, default=0)
@@ -42,7 +42,7 @@ def main() -> None:
     _ = room.raycaster
     t_room = time.perf_counter() - t0
     K = default_intrinsics(args.width, args.height)
-    n = args.frames
+    n = args.num_frames
     poses = room_trajectory(room, n, seed=args.seed)
     renderer = Renderer(room, K, args.width, args.height)
     renderer.render(poses[0])   # warm up

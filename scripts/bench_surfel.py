@@ -191,7 +191,7 @@ def time_open3d_tsdf(frames, K, w, h, voxel: float, depth_max: float) -> float |
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="0.3,1,3", help="map sizes in millions of surfels")
-    ap.add_argument("--frames", type=int, default=30, help="timed frames per size")
+    ap.add_argument("-n", "--num-frames", type=int, default=30, help="timed frames per size")
     ap.add_argument("--warmup", type=int, default=25, help="frames fused before timing (in-view map)")
     ap.add_argument("--stride", type=int, default=2, help="pixel_stride of the backend (2 = ElasticFusion)")
     ap.add_argument("--max-depth", type=float, default=4.0, help="fusion depth cut-off, metres (the room is 6 m)")
@@ -218,7 +218,7 @@ def main() -> None:
     response = CameraResponse.gamma(2.2) if args.colour == "irradiance" else None
     colour_model = RawIntensity() if response is None else make_colour_model(response)
     warm = make_frames(0, args.warmup, K, w, h, seed=1, response=response)
-    timed = make_frames(args.warmup, args.frames, K, w, h, seed=2, response=response)
+    timed = make_frames(args.warmup, args.num_frames, K, w, h, seed=2, response=response)
 
     base = SurfelBackend(pixel_stride=args.stride, max_depth=args.max_depth)
     for i, (depth, colour, pose) in enumerate(warm):

@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", type=Path, default=Path("results/repeatability"))
     parser.add_argument("--sessions", type=int, default=10)
-    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("-n", "--num-frames", type=int, default=150)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--camera", default="xtion", help="simulated camera preset")
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.time()
     try:
         for k in range(args.sessions):
-            seq = simulate_paper(work / f"session_{k:02d}", camera=args.camera, seed=100 + k, n_frames=args.frames,
+            seq = simulate_paper(work / f"session_{k:02d}", camera=args.camera, seed=100 + k, n_frames=args.num_frames,
                                  width=args.width, height=args.height, flicker=args.flicker, force=True,
                                  progress=False, write_depth_images=False)
             response = CameraResponse.load(seq / "truth" / "response.npz")
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                          "mean": float(np.mean(e)), "p90": float(np.percentile(e, 90)), "max": float(np.max(e)),
                          "vs_truth_median": float(np.median(t))})
     header = (f"vignetting repeatability: {args.sessions} simulated sessions of camera '{args.camera}', "
-              f"{args.width}x{args.height}, {args.frames} frames each, flicker {args.flicker}\n"
+              f"{args.width}x{args.height}, {args.num_frames} frames each, flicker {args.flicker}\n"
               "RMS error in 8-bit levels of a model fitted on one session against the mean flat of each other "
               "session; vs_truth: RMS error against the true V (flat at level 200)")
     cols = ["model", "channel", "pairs", "median", "mean", "p90", "max", "vs_truth_median"]

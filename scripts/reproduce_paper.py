@@ -70,7 +70,7 @@ def figure6(out: Path, *, sessions: int, frames: int, width: int, height: int) -
     script = _load_repeatability_script()
     folder = out / "fig6"
     t0 = time.perf_counter()
-    code = script.main(["-o", str(folder), "--sessions", str(sessions), "--frames", str(frames),
+    code = script.main(["-o", str(folder), "--sessions", str(sessions), "--num-frames", str(frames),
                         "--width", str(width), "--height", str(height)])
     if code != 0:
         raise SystemExit(f"scripts/repeatability.py failed with exit code {code}")
@@ -233,14 +233,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--output", type=Path, required=True, help="folder for figures and text")
     parser.add_argument("--quick", action="store_true", help="4 sessions of 60 frames and the quick demo")
     parser.add_argument("--sessions", type=int, default=None, help="calibration sessions for Fig. 6 (default 10)")
-    parser.add_argument("--frames", type=int, default=None, help="frames per session (default 150)")
+    parser.add_argument("-n", "--num-frames", type=int, default=None, help="frames per session (default 150)")
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--seed", type=int, default=0, help="seed of the Fig. 9 demo")
     parser.add_argument("--skip-fig6", action="store_true")
     args = parser.parse_args(argv)
     sessions = args.sessions or (4 if args.quick else 10)
-    frames = args.frames or (60 if args.quick else 150)
+    frames = args.num_frames or (60 if args.quick else 150)
     if sessions < 2:
         parser.error("--sessions must be at least 2")
 

@@ -23,11 +23,11 @@ def load_script(name: str):
 def test_repeatability_script(tmp_path, capsys):
     script = load_script("repeatability")
     out = tmp_path / "rep"
-    assert script.main(["-o", str(out), "--sessions", "2", "--frames", "20", "--width", "64", "--height", "48"]) == 0
+    assert script.main(["-o", str(out), "--sessions", "2", "--num-frames", "20", "--width", "64", "--height", "48"]) == 0
     figure = cv2.imread(str(out / "repeatability.png"))
     assert figure is not None and figure.shape[0] > 100 and figure.shape[1] > 100
     data = json.loads((out / "repeatability.json").read_text())
-    assert data["parameters"]["sessions"] == 2 and data["parameters"]["frames"] == 20
+    assert data["parameters"]["sessions"] == 2 and data["parameters"]["num_frames"] == 20
     rows = data["rows"]
     assert [(r["model"], r["channel"]) for r in rows] == [(m, c) for m in script.MODELS for c in script.CHANNELS]
     for r in rows:
