@@ -72,7 +72,7 @@ def simulate_rooms(folder: Path, pythonpath: str | None) -> dict[str, Path]:
         out = folder / name
         if not (out / "radiomap_sequence.json").exists():
             cmd = cli + ["simulate", "room", "-o", str(out), "--seed", str(seed), "--width", str(width),
-                         "--height", str(height), "--frames", str(frames), "--no-progress", "--force"]
+                         "--height", str(height), "--num-frames", str(frames), "--no-progress", "--force"]
             done = subprocess.run(cmd, env=env, cwd=folder, capture_output=True, text=True)
             if done.returncode != 0:
                 raise SystemExit(f"simulating {name} failed (exit {done.returncode}): {done.stderr.strip()[-500:]}")
