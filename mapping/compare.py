@@ -36,6 +36,9 @@ Outputs (``OUT``)::
     OUT/report.html                              everything above in one self-contained page
     OUT/<method>/                                a reconstruct results folder per method (histogram,
                                                  trajectory, metrics, mesh.ply, mesh_colours.npz)
+    OUT/config.json, summary.txt                 the CLI's options and printed summary (``config``, ``summary``)
+    OUT/.radiomap-files.json                     the files and method folders the comparison wrote: the next
+                                                 ``force`` run removes them (:class:`ComparisonFolder`)
 """
 
 from __future__ import annotations
@@ -54,7 +57,8 @@ from typing import Any
 import numpy as np
 
 from mapping.colour import FastForward, IrradianceColour, RawIntensity
-from radiometry.errors import OutputError, RadiomapError
+from mapping.export import MANIFEST, ResultsFolder
+from radiometry.errors import CalibrationFileError, RadiomapError
 from radiometry.response import CameraResponse
 from radiometry.vignetting import LUTVignetting, VignettingModel
 
@@ -152,20 +156,41 @@ def make_methods(response: CameraResponse | None, *, vignetting_poly: Vignetting
 
 def _check_model_kind(base: str, model: VignettingModel) -> None:
     """The ``poly`` method needs a polynomial model and ``lut`` a look-up table: a model of the other kind would be
-    compared under the wrong label."""
+    compared under the wrong label (ValueError: a model object passed as an argument)."""
+    problem = _kind_mismatch(base, model)
+    if problem is not None:
+        source = model.info.get("source") if isinstance(getattr(model, "info", None), dict) else None
+        raise ValueError(f"--vignetting-{base} holds {problem[0]}{f' ({source})' if source else ''}, {problem[1]}")
+
+
+def _kind_mismatch(base: str, model: VignettingModel) -> tuple[str, str] | None:
+    """None if ``model`` is of the kind the method ``base`` (``poly``, ``lut``) needs; else (what it holds, the fix)."""
     from radiometry.vignetting import LUTVignetting, PolynomialVignetting
 
     wanted = {"poly": PolynomialVignetting, "lut": LUTVignetting}[base]
     if isinstance(model, wanted):
-        return
+        return None
     kind = "polynomial" if isinstance(model, PolynomialVignetting) else "look-up table (LUT)" \
         if isinstance(model, LUTVignetting) else type(model).__name__
     other = "lut" if base == "poly" else "poly"
-    source = model.info.get("source") if isinstance(getattr(model, "info", None), dict) else None
-    where = f" ({source})" if source else ""
-    raise ValueError(f"--vignetting-{base} holds a {kind} vignetting model{where}, not a "
-                     f"{'polynomial' if base == 'poly' else 'look-up table'}; pass it as --vignetting-{other}, or "
-                     f"calibrate the other kind with 'radiomap vignetting --model {base}'")
+    return (f"a {kind} vignetting model", f"not a {'polynomial' if base == 'poly' else 'look-up table'}; pass it as "
+            f"--vignetting-{other}, or calibrate the other kind with 'radiomap vignetting --model {base}'")
+
+
+def load_method_vignetting(path: str | Path, base: str) -> VignettingModel:
+    """The vignetting model file of the method ``base`` (``poly`` or ``lut``; ``--vignetting-poly/-lut``): a file
+    :func:`mapping.pipeline.load_vignetting_option` reads (a V array ``.npy`` is a LUT). A model of the other kind
+    is a :class:`~radiometry.errors.CalibrationFileError` naming the file and the fix."""
+    from mapping.colour import as_vignetting_model
+    from mapping.pipeline import load_vignetting_option
+
+    if base not in ("poly", "lut"):
+        raise ValueError(f"base must be 'poly' or 'lut', got {base!r}")
+    model = as_vignetting_model(load_vignetting_option(path))
+    problem = _kind_mismatch(base, model)
+    if problem is not None:
+        raise CalibrationFileError(f"{path}: --vignetting-{base} holds {problem[0]}, {problem[1]}")
+    return model
 
 
 def equal_brightness(model: VignettingModel, height: int, width: int) -> LUTVignetting:
@@ -442,12 +467,21 @@ class CompareResult:
 # --------------------------------------------------------------------------------------------------
 # the comparison
 # --------------------------------------------------------------------------------------------------
-def _check_output(output: Path, force: bool) -> None:
-    if output.exists() and not output.is_dir():
-        raise OutputError(f"{output} is an existing file; choose a folder for the comparison")
-    if output.is_dir() and not force and ((output / MARKER).exists() or (output / RUNNING).exists()):
-        raise OutputError(f"{output} already holds a comparison; pass --force to overwrite it or choose another "
-                          "output folder")
+class ComparisonFolder(ResultsFolder):
+    """The comparison's folder (``OUT``): a :class:`~mapping.export.ResultsFolder` whose results are the files of
+    the module doc's layout and one results folder per method (:meth:`subfolder`). ``force`` removes the previous
+    comparison's files and method folders (those its ``.radiomap-files.json`` lists, and folders named like a
+    method) before the new one starts; the user's other files are left alone."""
+
+    what = "comparison"
+    markers = (MARKER, *ResultsFolder.markers)
+    refusal = ("already holds a comparison or the results of a run; pass --force to overwrite them or choose another "
+               "output folder")
+    result_names = frozenset({MARKER, "compare.csv", "compare.txt", "histograms.png", "colour_error.png",
+                              "renders.jpg", "report.html", "exposures.png", "trajectory.png", "config.json",
+                              "summary.txt", RUNNING, MANIFEST})
+    result_folders = frozenset(METHOD_NAMES)
+    status_file = None
 
 
 def _finite(obj):
@@ -477,7 +511,7 @@ def _csv_text(rows: list[dict[str, Any]], columns: list[str]) -> str:
 def compare(dataset, methods: Sequence[Method], *, output: str | Path, **options) -> CompareResult:
     """Compare ``methods`` on ``dataset`` into the folder ``output`` (see :func:`_compare`); the folder is locked
     against a second run (:class:`mapping.export.FolderLock`) from its creation until the comparison ends."""
-    locks: list = []  # the folder's FolderLock, then each method's ResultsFolder
+    locks: list = []  # the folder's ComparisonFolder, then each method's ResultsFolder
     try:
         return _compare(dataset, methods, output=output, _locks=locks, **options)
     finally:
@@ -492,12 +526,14 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
              render_width: int = 320, progress: bool = True, force: bool = False, title: str | None = None,
              report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
              parameters: Mapping[str, Any] | None = None,
-             mesh_formats: Sequence[str] = ("ply", "glb")) -> CompareResult:
+             mesh_formats: Sequence[str] = ("ply", "glb"), config: Mapping[str, Any] | None = None,
+             summary: Callable[[CompareResult], str] | None = None) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report.
 
     dataset:          an :class:`~mapping.datasets.base.RGBDDataset` (range and stride applied).
     methods:          :class:`Method` list (:func:`make_methods`), in table order.
-    output:           the comparison's folder (refused if it holds one, unless ``force``).
+    output:           the comparison's folder (refused if it holds one, unless ``force``: then the previous
+                      comparison's files and method folders are removed first, :class:`ComparisonFolder`).
     backend:          ``tsdf`` or ``surfel`` (:func:`mapping.pipeline.make_backend`), ``backend_options`` to it.
     poses:            ``gt`` (ground truth) or ``icp`` (tracked once by the first method, reused).
     brightness:       ``mean`` (equal brightness, the default) or ``calibrated`` (see the module doc).
@@ -510,9 +546,12 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
     mesh_formats:     formats of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj; PLY and GLB
                       by default, as :func:`mapping.pipeline.reconstruct` writes); the ``mesh_colours.npz`` with
                       map-unit colours is always written.
+    config, summary:  written as ``config.json`` (a JSON document, e.g. the CLI's replay manifest) and
+                      ``summary.txt`` (the text ``summary(result)`` returns) when the comparison has finished, in
+                      the locked folder before it is marked complete: they belong to this run (its MANIFEST).
     """
     from mapping._open3d import o3d
-    from mapping.export import FolderLock, ResultsFolder, write_mesh
+    from mapping.export import write_mesh
     from mapping.pipeline import POSE_SOURCES, make_backend, make_tracker, reconstruct
     from radiometry.fileio import atomic_write_json, atomic_write_text
 
@@ -544,9 +583,8 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
               **{k: v for k, v in dict(backend_options or {}).items()
                  if k in ("block_resolution", "trunc_voxel_multiplier", "depth_min")})
     output = Path(output)
-    _check_output(output, force)
-    _locks.append(FolderLock(output, what="comparison"))  # creates the folder
-    atomic_write_text(output / RUNNING, f"comparison started {time.strftime('%Y-%m-%dT%H:%M:%S%z')}\n")
+    top = ComparisonFolder(output, force=force)  # locked (created), marked RUNNING, the previous comparison removed
+    _locks.append(top)
     start = time.perf_counter()
     height, width = dataset.height, dataset.width
     n = len(dataset)
@@ -565,7 +603,7 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
                 fusion = make_backend(backend, voxel_size=voxel_size, depth_max=depth_max, **dict(backend_options or {}))
                 track = poses == "icp" and fixed is None
                 view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed, on_frame=bar.update)
-                folder = ResultsFolder(output / method.name, force=True)
+                folder = top.subfolder(method.name)
                 _locks.append(folder)  # released (and its files listed) when the comparison ends
                 t0 = time.perf_counter()
                 run = reconstruct(view, colour_model=colour_model, backend=fusion,
@@ -608,12 +646,13 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
         raise RadiomapError("the methods were fused at different poses; this is a bug, please report it")
     _write_outputs(result, dataset, scene, views=views, render_width=render_width, title=title,
                    report_sections=report_sections)
+    if config is not None:
+        result.files["config"] = atomic_write_json(output / "config.json", config)
+    if summary is not None:
+        result.files["summary"] = atomic_write_text(output / "summary.txt", summary(result))
     result.seconds = time.perf_counter() - start
     _write_json(result)
-    try:
-        (output / RUNNING).unlink()
-    except FileNotFoundError:
-        pass
+    top.complete()
     return result
 
 
@@ -809,6 +848,7 @@ def _write_json(result: CompareResult) -> None:
     result.files["json"] = atomic_write_json(result.output / MARKER, _finite(doc))
 
 
-__all__ = ["BASE_METHODS", "BRIGHTNESS", "ColourError", "CompareResult", "DEFAULT_METHODS", "FixedPoses",
-           "MapGeometry", "Method", "METHOD_NAMES", "MethodResult", "colour_error", "compare", "equal_brightness",
-           "exposure_compensation_available", "linear_colours", "make_methods", "map_geometry", "surfel_discs"]
+__all__ = ["BASE_METHODS", "BRIGHTNESS", "ColourError", "CompareResult", "ComparisonFolder", "DEFAULT_METHODS",
+           "FixedPoses", "MapGeometry", "Method", "METHOD_NAMES", "MethodResult", "colour_error", "compare",
+           "equal_brightness", "exposure_compensation_available", "linear_colours", "load_method_vignetting",
+           "make_methods", "map_geometry", "surfel_discs"]

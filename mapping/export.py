@@ -200,53 +200,67 @@ class ResultsFolder:
     """A run's output folder: locked while the run writes it (:class:`FolderLock`), marked incomplete
     (``RUNNING``, and ``"status": "running"`` in ``metrics.json``) until :meth:`complete` is called.
 
-    An existing folder holding results (``metrics.json`` or ``RUNNING``) is refused unless ``force``; with
+    An existing folder holding results (``metrics.json``, ``RUNNING`` or a MANIFEST) is refused unless ``force``; with
     ``force`` the previous run's files (:data:`RESULT_NAMES` and those its ``.radiomap-files.json`` lists) are
     removed before the new run starts, so that no file of the previous run (a TSDF mesh beside new surfels, an
     old ``metrics.json`` saying "complete") outlives it; other files in the folder are left alone. When the run
-    ends (:meth:`complete` or :meth:`release`) ``.radiomap-files.json`` lists every file it wrote."""
+    ends (:meth:`complete` or :meth:`release`) ``.radiomap-files.json`` lists every file it wrote.
+
+    A run that writes results folders inside its own (a comparison: one per method) makes them with
+    :meth:`subfolder`; they are listed under ``"folders"``, and ``force`` cleans each listed (or known,
+    :attr:`result_folders`) subfolder by the same rule and removes it when nothing else is left in it.
+    Subclasses set the class attributes below for another kind of run (:class:`mapping.compare`'s folder)."""
+
+    #: the kind of run (the lock's record and the RUNNING marker)
+    what = "run"
+    #: a folder holding one of these holds results (of this kind of run or, MANIFEST, of another): refused
+    #: without ``force``, so that no run removes another kind's listed files unasked
+    markers: tuple[str, ...] = ("metrics.json", RUNNING_MARKER, MANIFEST)
+    #: the refusal without ``force``, after the folder's name
+    refusal = "already holds the results of a run; pass --force to overwrite them or choose another output folder"
+    #: the files such a run writes (removed with ``force``, with those the previous run's MANIFEST lists)
+    result_names: frozenset[str] = RESULT_NAMES
+    #: the results folders such a run writes inside its own (cleaned with ``force``, as MANIFEST-listed ones)
+    result_folders: frozenset[str] = frozenset()
+    #: written with ``"status": "running"`` when the run starts (None: no status file)
+    status_file: str | None = "metrics.json"
 
     def __init__(self, path: str | os.PathLike, *, force: bool = False) -> None:
         self.path = Path(path)
         if self.path.exists() and not self.path.is_dir():
             raise OutputError(f"output folder {self.path} is an existing file; choose a folder name")
-        self.lock = FolderLock(self.path)
+        self.folders: list[str] = []   # results folders made inside by :meth:`subfolder`
+        self.lock = FolderLock(self.path, what=self.what)
         try:
-            if not force and any((self.path / n).exists() for n in ("metrics.json", RUNNING_MARKER)):
-                raise OutputError(f"{self.path} already holds the results of a run; pass --force to overwrite them "
-                                  "or choose another output folder")
+            if not force and any((self.path / n).exists() for n in self.markers):
+                raise OutputError(f"{self.path} {self.refusal}")
             remove_strays(self.path)
             self._remove_previous_run()
             self.started = time.time()
             self._before = self._inodes()
             atomic_write_text(self.path / RUNNING_MARKER,
-                              f"started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
-                              "this run has not finished (interrupted or crashed if no process runs it)\n")
-            atomic_write_json(self.path / "metrics.json", {"status": "running", "pid": os.getpid(), "started":
-                                                           time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+                              f"{self.what} started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
+                              f"this {self.what} has not finished (interrupted or crashed if no process runs it)\n")
+            if self.status_file is not None:
+                atomic_write_json(self.path / self.status_file, {"status": "running", "pid": os.getpid(), "started":
+                                                                 time.strftime("%Y-%m-%dT%H:%M:%S%z")})
         except BaseException:
             self.lock.release()
             raise
 
     def _remove_previous_run(self) -> None:
-        names = set(RESULT_NAMES)
-        try:
-            listed = json.loads((self.path / MANIFEST).read_text()).get("files", [])
-            names.update(n for n in listed if isinstance(n, str) and n == Path(n).name and n != LOCK_NAME)
-        except (OSError, ValueError, AttributeError):
-            pass
-        removed = []
-        for name in sorted(names):
-            try:
-                (self.path / name).unlink()
-            except FileNotFoundError:
-                continue
-            except OSError as exc:
-                raise OutputError(f"cannot remove {self.path / name} of the previous run ({exc.strerror}); remove "
-                                  "it by hand or choose another output folder") from None
-            removed.append(name)
+        removed = _remove_results(self.path, self.result_names, self.result_folders)
         if removed:
             log.info("%s: removed the previous run's %s", self.path, ", ".join(removed))
+
+    def subfolder(self, name: str) -> "ResultsFolder":
+        """A results folder ``name`` inside this one for a part of the run (``force``: it is this run's); listed
+        in this folder's MANIFEST so that the next ``force`` run removes it."""
+        if not _own_name(name):
+            raise ValueError(f"a results subfolder must be a plain folder name, got {name!r}")
+        if name not in self.folders:
+            self.folders.append(name)
+        return ResultsFolder(self.path / name, force=True)
 
     def _inodes(self) -> dict[str, tuple[int, int]]:
         out = {}
@@ -261,7 +275,10 @@ class ResultsFolder:
         try:
             written = sorted(name for name, ident in self._inodes().items()
                              if self._before.get(name) != ident and name not in (LOCK_NAME, MANIFEST))
-            atomic_write_json(self.path / MANIFEST, {"files": written})
+            record = {"files": written}
+            if self.folders:
+                record["folders"] = sorted(self.folders)
+            atomic_write_json(self.path / MANIFEST, record)
         except (OSError, OutputError) as exc:
             log.warning("could not list the files of the run in %s: %s", self.path / MANIFEST, exc)
 
@@ -299,6 +316,57 @@ class ResultsFolder:
 
     def write_text(self, name: str, text: str) -> Path:
         return atomic_write_text(self.path / name, text)
+
+
+def _own_name(name) -> bool:
+    """A name a MANIFEST may list: a plain entry of the folder itself (no path, not the lock)."""
+    return isinstance(name, str) and name not in ("", ".", "..", LOCK_NAME) and name == Path(name).name
+
+
+def _manifest_entries(folder: Path) -> tuple[set[str], set[str]]:
+    """The files and the results folders the MANIFEST of ``folder`` lists (none if it is missing or unreadable)."""
+    try:
+        listed = json.loads((folder / MANIFEST).read_text())
+        return ({n for n in listed.get("files", []) if _own_name(n)},
+                {n for n in listed.get("folders", []) if _own_name(n)})
+    except (OSError, ValueError, AttributeError, TypeError):
+        return set(), set()
+
+
+def _remove_results(folder: Path, names, folders) -> list[str]:
+    """Remove a previous run's results from ``folder``: the files ``names`` and those its MANIFEST lists, and every
+    results folder (``folders`` and the MANIFEST's) cleaned by the same rule under its own lock (a live run in
+    it is refused), then removed unless files not its own remain. The names removed (folders with a ``/``)."""
+    files, subs = _manifest_entries(folder)
+    removed = []
+    for name in sorted(set(folders) | subs):
+        sub = folder / name
+        if not sub.is_dir() or sub.is_symlink():
+            continue
+        with FolderLock(sub):
+            gone = bool(remove_strays(sub)) | bool(_remove_results(sub, RESULT_NAMES, ()))
+        try:
+            sub.rmdir()
+        except OSError:  # the user's files are left, and the folder with them
+            if gone:
+                log.info("%s: kept the folder of the previous run for the files not its own", sub)
+        else:
+            gone = True
+        if gone:
+            removed.append(name + "/")
+    for name in sorted(set(names) | files):
+        try:
+            (folder / name).unlink()
+        except FileNotFoundError:
+            continue
+        except IsADirectoryError:
+            log.warning("%s: %s is a folder, not a result file of the previous run; left alone", folder, name)
+            continue
+        except OSError as exc:
+            raise OutputError(f"cannot remove {folder / name} of the previous run ({exc.strerror}); remove "
+                              "it by hand or choose another output folder") from None
+        removed.append(name)
+    return removed
 
 
 def is_complete(folder: str | os.PathLike) -> bool:

@@ -465,8 +465,12 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
     if not path.is_file():
         raise CalibrationFileError(f"{path}: no such file; check the path of the {kind} model")
     fix = f"re-create the {kind} file with radiomap"
+    _refuse_bare_npy(path, kind)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy array under another name (the check above)
+            _refuse_bare_npy(path, kind, bare=True)
+        with loaded as data:
             arrays = {name: data[name] for name in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, zlib.error, NotImplementedError,
             RuntimeError, struct.error, UnicodeDecodeError, OverflowError, tokenize.TokenError, SyntaxError,
@@ -499,6 +503,25 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
             "upgrade radiomap or re-create the file")
     check_real_arrays(path, {name: a.dtype for name, a in arrays.items()}, fix)
     return meta, arrays
+
+
+_NPY_MAGIC = b"\x93NUMPY"
+
+
+def _refuse_bare_npy(path: Path, kind: str, *, bare: bool = False) -> None:
+    """:class:`CalibrationFileError` when ``path`` is a single ``.npy`` array (its magic bytes, or ``bare``) where a
+    model archive (``.npz``) is needed: np.load would return the array itself, not an archive."""
+    if not bare:
+        try:
+            with open(path, "rb") as fh:
+                bare = fh.read(len(_NPY_MAGIC)) == _NPY_MAGIC
+        except OSError:
+            return  # np.load reports it
+    if bare:
+        hint = " (a V array is read from a .npy file by reconstruct/correct --vignetting and compare --vignetting-lut)" \
+            if kind == "vignetting" else ""
+        raise CalibrationFileError(f"{path}: a bare .npy array, not a radiomap {kind} model file; pass the {kind} "
+                                   f".npz that radiomap wrote{hint}")
 
 
 # Model arrays hold real numbers: bool, signed and unsigned integers, floats. Anything else (complex, whose

@@ -293,3 +293,40 @@ def test_check_outputs_names_the_first_collision(tmp_path):
         fileio.check_outputs([(tmp_path / "a.jpg", tmp_path / "out" / "a.png"),
                               (tmp_path / "b" / "a.jpg", tmp_path / "out" / "a.png")], **fix)
     fileio.check_outputs([(tmp_path / "a.jpg", tmp_path / "a2.png"), (tmp_path / "a.png", tmp_path / "o.png")], **fix)
+
+
+@pytest.mark.parametrize("name", ["v.npy", "v.npz"])  # a bare array, also under a model's name
+def test_a_bare_npy_array_where_a_model_file_is_needed(tmp_path, name):
+    """np.load returns the array itself for a .npy: it used to end in "TypeError: 'numpy.ndarray' object does not
+    support the context manager protocol" in load_model_file (responses, vignetting models, histograms)."""
+    from mapping.histogram import DisagreementHistogram
+    from radiometry.errors import CalibrationFileError
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import VignettingModel
+
+    path = tmp_path / name
+    with open(path, "wb") as fh:
+        np.save(fh, np.full((6, 8, 3), 0.9, np.float32))
+    texts = {}
+    loaders = [(CameraResponse.load, "response"), (VignettingModel.load, "vignetting")]
+    if name.endswith(".npz"):  # a histogram is read by its suffix: .npz as a model file, else as JSON
+        loaders.append((DisagreementHistogram.load, "disagreement-histogram"))
+    for load, kind in loaders:
+        with pytest.raises(CalibrationFileError) as info:
+            load(path)
+        texts[kind] = str(info.value)
+        assert texts[kind].startswith(f"{path}: a bare .npy array, not a radiomap {kind} model file; pass the {kind} "
+                                      ".npz that radiomap wrote") and "\n" not in texts[kind]
+    hint = "a V array is read from a .npy file by reconstruct/correct --vignetting and compare --vignetting-lut"
+    assert hint in texts["vignetting"] and hint not in texts["response"]
+
+
+def test_load_model_file_refuses_whatever_np_load_returns_that_is_not_an_archive(tmp_path, monkeypatch):
+    """The magic-bytes check aside, anything np.load returns that is not an NpzFile is refused by name."""
+    from radiometry.errors import CalibrationFileError
+    from radiometry.response import CameraResponse
+
+    path = CameraResponse.gamma(2.2).save(tmp_path / "crf.npz")
+    monkeypatch.setattr(np, "load", lambda *a, **k: np.zeros(3))
+    with pytest.raises(CalibrationFileError, match="crf.npz: a bare .npy array, not a radiomap response model file"):
+        fileio.load_model_file(path, "response")

@@ -169,6 +169,69 @@ def test_force_removes_the_previous_runs_files_and_keeps_the_users(room, tmp_pat
     assert "notes.txt" not in json.loads((out / MANIFEST).read_text())["files"]
 
 
+def test_compare_force_removes_the_previous_comparisons_method_folders(room, tmp_path):
+    """compare --methods none,response,lut then --methods none --force: response/ (its metrics.json "complete") and
+    the stale colour_error.png stayed beside the new compare.json, one folder holding two runs; config.json and
+    summary.txt were written after the lock was released and belonged to no run's file list."""
+    out = tmp_path / "cmp"
+    common = ["-r", room / "truth" / "response.npz", "--frames", "0:3", "--voxel-size", "0.04", "--depth-max", "5",
+              "--views", "0", "-o", out, "--no-progress"]
+    first = run("compare", room, "--methods", "none,response,lut", "--vignetting-lut",
+                room / "truth" / "vignetting.npy", *common)
+    assert first.exit_code == 0, first.output
+    assert is_complete(out / "response") and (out / "colour_error.png").is_file()
+    (out / "notes.txt").write_text("mine")                      # the user's files: kept
+    (out / "lut" / "notes.txt").write_text("mine too")
+    (out / "plots").mkdir()
+    (out / "plots" / "metrics.json").write_text("{}")          # a folder no comparison wrote
+    second = run("compare", room, "--methods", "none", *common, "--force")
+    assert second.exit_code == 0, second.output
+    assert not (out / "response").exists() and not (out / "colour_error.png").exists()
+    assert sorted(p.name for p in (out / "lut").iterdir()) == ["notes.txt"]   # its results gone, the user's file kept
+    assert (out / "notes.txt").read_text() == "mine" and (out / "plots" / "metrics.json").read_text() == "{}"
+    assert [m["name"] for m in json.loads((out / "compare.json").read_text())["methods"]] == ["none"]
+    manifest = json.loads((out / MANIFEST).read_text())
+    assert manifest["folders"] == ["none"]
+    assert {"compare.json", "report.html", "config.json", "summary.txt"} <= set(manifest["files"])
+    assert "notes.txt" not in manifest["files"] and not (out / LOCK_NAME).exists() and not (out / "RUNNING").exists()
+    assert json.loads((out / "config.json").read_text())["methods_run"] == ["none"]
+    assert "ranking by L1 mean (best first): none" in (out / "summary.txt").read_text()
+    # a reconstruction into the comparison's folder without --force would remove the files the manifest lists
+    before = snapshot(out)
+    error_line(reconstruct(room, out), out, "already holds the results of a run", "pass --force")
+    assert snapshot(out) == before
+
+
+def test_results_subfolders_are_listed_and_removed_by_the_next_force_run(tmp_path, idle_process):
+    """The rule behind compare --force: a results folder made with subfolder() is listed in the MANIFEST and the
+    next force run cleans it like its parent (results out, the user's files and unlisted folders stay), never while
+    a live process holds its lock."""
+    from mapping.compare import ComparisonFolder
+
+    top = tmp_path / "top"
+    with ResultsFolder(top) as folder:
+        for name in ("custom", "kept"):
+            with folder.subfolder(name) as part:
+                part.write_text("summary.txt", "x")
+                part.complete()
+        folder.complete()
+    assert json.loads((top / MANIFEST).read_text())["folders"] == ["custom", "kept"]
+    with pytest.raises(OutputError, match="already holds a comparison or the results of a run; pass --force"):
+        ComparisonFolder(top)                     # a comparison into a run's folder: only with force
+    (top / "kept" / "mine.txt").write_text("mine")
+    (top / "user").mkdir()
+    (top / "user" / "summary.txt").write_text("the user's")
+    lock_file(top / "custom", idle_process.pid, _process_start(idle_process.pid))
+    with pytest.raises(OutputError, match=f"{top / 'custom'} is in use by another radiomap run"):
+        ResultsFolder(top, force=True)
+    assert (top / "custom" / "summary.txt").is_file() and not (top / LOCK_NAME).exists()
+    (top / "custom" / LOCK_NAME).unlink()
+    ResultsFolder(top, force=True).release()
+    assert not (top / "custom").exists()
+    assert sorted(p.name for p in (top / "kept").iterdir()) == ["mine.txt"]
+    assert (top / "user" / "summary.txt").read_text() == "the user's"
+
+
 def test_a_killed_run_never_says_complete(long_seq, room, tmp_path):
     """SIGKILL of a --force run over a finished one: metrics.json says "running" (not the previous run's
     "complete"), RUNNING stays, the previous run's mesh is gone; the next run takes the stale lock over."""

@@ -202,13 +202,68 @@ def test_grey_frame_in_a_colour_sequence(room, tmp_path):
 
 
 def test_lut_given_as_the_polynomial(room, models, tmp_path):
-    """compare --vignetting-poly LUT.npz used the LUT under the polynomial's name."""
+    """compare --vignetting-poly LUT.npz used the LUT under the polynomial's name; then it was a usage error (exit 2,
+    three lines) naming the model's internal "source" instead of the file."""
     out = tmp_path / "cmp"
     result = run("compare", room, "-r", models["response.npz"], "--vignetting-poly", models["vignetting.npz"],
                  "--vignetting-lut", models["vignetting.npz"], "-o", out, "--no-progress", "--views", "0")
-    assert result.exit_code != 0 and "Traceback" not in result.output
-    assert "--vignetting-poly holds a look-up table (LUT) vignetting model" in result.output
+    error_line(result, f"{models['vignetting.npz']}: --vignetting-poly holds a look-up table (LUT) vignetting model",
+               "pass it as --vignetting-lut")
     assert not out.exists()
+
+
+# ==================================================================================================
+# a bare .npy array where a model file is expected; a V array .npy where a vignetting model is
+# ==================================================================================================
+@pytest.fixture(scope="module")
+def v_npy(room) -> Path:
+    """The simulator's true V as an array (room/truth/vignetting.npy)."""
+    return room / "truth" / "vignetting.npy"
+
+
+@pytest.mark.parametrize("command", ["correct", "reconstruct", "vignetting", "compare"])
+def test_bare_npy_given_as_the_response(command, room, paper, v_npy, tmp_path):
+    """-r V.npy ended in "TypeError: 'numpy.ndarray' object does not support the context manager protocol"."""
+    out = tmp_path / ("v.npz" if command == "vignetting" else "out")
+    args = {"correct": ["correct", room / "rgb", "-r", v_npy, "--vignetting", v_npy, "-o", out],
+            "reconstruct": ["reconstruct", room, "-r", v_npy, "--poses", "gt", "-o", out, "--no-progress"],
+            "vignetting": ["vignetting", paper["rgb"], "-r", v_npy, "-o", out, "--no-progress"],
+            "compare": ["compare", room, "-r", v_npy, "--methods", "none,response", "-o", out, "--no-progress"]}
+    error_line(run(*args[command]), f"{v_npy}: a bare .npy array, not a radiomap response model file",
+               "pass the response .npz that radiomap wrote")
+    assert not out.exists()
+
+
+def test_bare_npy_under_a_model_name_given_as_the_vignetting(room, frames, models, tmp_path):
+    """A V array saved as v.npz is read as a model file (by its suffix) and refused by name with the way out."""
+    disguised = tmp_path / "v.npz"
+    with open(disguised, "wb") as fh:
+        np.save(fh, np.ones((72, 96, 3), np.float32))
+    out = tmp_path / "out"
+    error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", disguised, "-o", out),
+               f"{disguised}: a bare .npy array, not a radiomap vignetting model file",
+               "a V array is read from a .npy file by reconstruct/correct --vignetting")
+    assert not out.exists()
+
+
+def test_correct_takes_a_v_array_npy_as_reconstruct_does(frames, models, tmp_path):
+    """correct --vignetting V.npy: the same images as the LUT model holding that V (reconstruct already read it)."""
+    from radiometry.vignetting import VignettingModel
+
+    lut = VignettingModel.load(models["vignetting.npz"])
+    np.save(tmp_path / "v.npy", lut.evaluate(72, 96))
+    for vignetting, out in ((models["vignetting.npz"], tmp_path / "model"), (tmp_path / "v.npy", tmp_path / "array")):
+        result = run("correct", frames, "-r", models["response.npz"], "--vignetting", vignetting, "-o", out,
+                     "--no-progress")
+        assert result.exit_code == 0, result.output
+    names = sorted(p.name for p in (tmp_path / "model").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "array").iterdir()) and len(names) == 3
+    for name in names:
+        np.testing.assert_array_equal(cv2.imread(str(tmp_path / "array" / name)),
+                                      cv2.imread(str(tmp_path / "model" / name)))
+    # the array is V itself: the correction brightened the corners (it did something)
+    corrected, raw = cv2.imread(str(tmp_path / "array" / names[0])), cv2.imread(str(frames / names[0]))
+    assert corrected[:8, :8].astype(float).mean() > raw[:8, :8].astype(float).mean() + 5
 
 
 def test_sweep_whose_first_frame_has_another_size(paper, models, tmp_path):

@@ -104,10 +104,8 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded comparison's."""
     from mapping.cli._common import drop_replayed, replay_manifest
-    from mapping.compare import compare, make_methods
+    from mapping.compare import compare, load_method_vignetting, make_methods
     from mapping.datasets import open_dataset
-    from mapping.pipeline import load_vignetting_option
-    from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.formats import load_response
 
     ctx = click.get_current_context()
@@ -117,45 +115,40 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
     resp = load_response(response)
-    lut = load_vignetting_option(vignetting_lut) if vignetting_lut is not None else None
-    poly = load_vignetting_option(vignetting_poly) if vignetting_poly is not None else None
+    lut = load_method_vignetting(vignetting_lut, "lut") if vignetting_lut is not None else None
+    poly = load_method_vignetting(vignetting_poly, "poly") if vignetting_poly is not None else None
     exposure_compensation = ctx.params["exposure_compensation"]
     try:
-        method_list = make_methods(resp, vignetting_poly=_as_model(poly), vignetting_lut=_as_model(lut),
+        method_list = make_methods(resp, vignetting_poly=poly, vignetting_lut=lut,
                                    exposure_compensation=exposure_compensation, names=methods)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
     scene = _scene_of(sequence, dataset)
+    ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
+    settings = settings_line(ctx, [("poses", "poses", poses),
+                                   ("exposure compensation", "exposure_compensation", ec) if methods is None
+                                   else ("exposure compensation", None, f"{ec}, as --methods lists"),
+                                   ("glb", "glb", "on" if glb else "off")])
+
+    def summary(result) -> str:
+        lines = [result.table_text()]
+        if result.ate is not None:
+            lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
+        if scene is None:
+            lines.append("(no ground truth: colour error not measured)")
+        lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+        return "\n".join(lines + [settings]) + "\n"
+
+    # config.json and summary.txt are written by compare() in its locked folder: they belong to the run
     result = compare(dataset, method_list, output=output, backend=backend, poses=poses, voxel_size=voxel_size,
                      depth_max=depth_max, brightness=brightness, scene=scene, views=views,
                      render_width=render_width, progress=not no_progress, force=force,
-                     title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",))
-    atomic_write_json(output / "config.json", replay_manifest(ctx, files=("intrinsics",),
-                                                               methods_run=[m.name for m in method_list]))
-    lines = [result.table_text()]
-    if result.ate is not None:
-        lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
-    if scene is None:
-        lines.append("(no ground truth: colour error not measured)")
-    lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
-    ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
-    lines.append(settings_line(ctx, [("poses", "poses", poses),
-                                     ("exposure compensation", "exposure_compensation", ec) if methods is None
-                                     else ("exposure compensation", None, f"{ec}, as --methods lists"),
-                                     ("glb", "glb", "on" if glb else "off")]))
-    atomic_write_text(output / "summary.txt", "\n".join(lines) + "\n")
-    click.echo("\n".join(lines))
+                     title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",),
+                     config=replay_manifest(ctx, files=("intrinsics",), methods_run=[m.name for m in method_list]),
+                     summary=summary)
+    click.echo(summary(result), nl=False)
     click.echo(f"report: {result.files['report']}")
     warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
-
-
-def _as_model(vignetting):
-    """``load_vignetting_option`` returns a model or an array V; models pass, arrays become LUTs."""
-    if vignetting is None:
-        return None
-    from mapping.colour import as_vignetting_model
-
-    return as_vignetting_model(vignetting)
 
 
 def _scene_of(sequence: Path, dataset):

@@ -85,7 +85,7 @@ def _models_must_fit(what, response_path: str, vignetting_path: str):
 @click.option("-r", "--response", "response_path", required=True, type=click.Path(dir_okay=False),
               help="Camera response: radiomap .npz, radical .crf or DSO pcalib.txt.")
 @click.option("--vignetting", "vignetting_path", required=True, type=click.Path(dir_okay=False),
-              help="Vignetting model: radiomap .npz, radical .vgn or DSO vignette.png.")
+              help="Vignetting model: radiomap .npz, radical .vgn, DSO vignette.png, or a V array .npy.")
 @click.option("-o", "--output", "outdir", required=True, type=click.Path(file_okay=False),
               help="Output folder.")
 @click.option("--scale", default="1.0", show_default=True, type=str,
@@ -107,10 +107,11 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     import numpy as np
 
+    from mapping.pipeline import load_vignetting_option
     from radiometry.correction import Corrector
     from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, write_image
+    from radiometry.formats import load_response
     from radiometry.progress import progress_bar
-    from radiometry.formats import load_response, load_vignetting
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
     try:
@@ -118,7 +119,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     except click.BadParameter as exc:
         raise click.BadParameter(str(exc), param_hint="--scale") from None
     response = load_response(response_path)
-    vignetting = load_vignetting(vignetting_path)
+    vignetting = load_vignetting_option(vignetting_path)  # as reconstruct --vignetting: also a V array .npy
     corrector = Corrector(response, vignetting)
     source = open_frames(input_path)
     if isinstance(source, FolderFrames):
