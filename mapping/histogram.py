@@ -153,6 +153,9 @@ class DisagreementHistogram:
                 doc = json.loads(path.read_text(encoding="utf-8"))
             except json.JSONDecodeError as exc:
                 raise CalibrationFileError(f"{path}:{exc.lineno}: invalid JSON ({exc.msg}); re-create it") from None
+            except UnicodeDecodeError:
+                raise CalibrationFileError(f"{path}: a binary file, not a histogram (.json or .npz); pass the "
+                                           "histogram.json or histogram.npz that a radiomap run wrote") from None
             if not isinstance(doc, dict) or doc.get("kind") != KIND or "counts" not in doc:
                 raise CalibrationFileError(f"{path}: not a radiomap disagreement histogram")
             counts, label = doc["counts"], doc.get("label", "")

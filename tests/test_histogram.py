@@ -135,3 +135,11 @@ def test_correction_lowers_disagreement_under_strong_vignetting():
     assert corrected["mean"] < 0.35 * raw["mean"]
     assert corrected["p90"] < raw["p90"]
     assert raw["mean"] > 8.0 and corrected["mean"] < 4.0     # measured: 14.9 and 1.5 (p90 30 and 3)
+
+
+def test_a_binary_file_is_not_a_histogram(tmp_path):
+    """A .npy (or any binary file) under another name than .npz is a one-line error, not a UnicodeDecodeError."""
+    bad = tmp_path / "h.npy"
+    np.save(bad, np.arange(766, dtype=np.float32) * 1000.0)
+    with pytest.raises(CalibrationFileError, match=r"h\.npy: a binary file, not a histogram"):
+        DisagreementHistogram.load(bad)
