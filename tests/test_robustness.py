@@ -185,8 +185,11 @@ def tum_copy(room: Path, dest: Path, indices=range(4), *, shared: bool = False) 
 # (The pause polls rather than blocking in one system call: a signal delivered to another thread, e.g. one of
 # Open3D's, is then still seen by the main thread within 50 ms.) Other records pass as without -v.
 _PAUSE_AT_FRAME = """
-import logging, os, sys, time
+import logging, os, signal, sys, time
 ready, frame = int(sys.argv[1]), sys.argv[2]
+# Ctrl-C as a terminal delivers it, also where the test runner inherited SIGINT ignored (a shell's background job
+# starts with SIGINT ignored, and Python then keeps it ignored: the run would never see the test's signal)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def pause(record):
     if record.getMessage().startswith(f"frame {frame} of "):
