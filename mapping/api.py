@@ -120,18 +120,18 @@ def _as_path(value):
 
 
 def _plain(value):
-    """A JSON value for config.json: paths and slices as text, models as their description."""
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, slice):
-        return ":".join("" if v is None else str(v) for v in (value.start, value.stop, value.step)).rstrip(":")
+    """A JSON value for config.json: as the commands record it (:func:`mapping.export.plain_value`), arrays as
+    lists and model objects as their description."""
+    from mapping.export import plain_value
+
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, np.ndarray):
         return value.tolist()
-    return f"(object) {value!r}"
+    try:
+        return plain_value(value)
+    except TypeError:
+        return f"(object) {value!r}"
 
 
 def _config_record(config, kwargs: dict) -> dict:

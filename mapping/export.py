@@ -23,12 +23,14 @@ import contextlib
 import errno
 import json
 import logging
+import math
 import os
 import socket
 import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -505,3 +507,32 @@ def read_mesh_colours(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise RadiomapError(f"{path}: no such mesh file; run 'radiomap reconstruct' first")
     with np.load(path, allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
+
+
+# ---------------------------------------------------------------- config.json values
+def frame_range_text(frames: slice | None) -> str | None:
+    """``slice`` -> ``"A:B:S"`` (the ``--frames`` syntax, :class:`FrameRange` reads it back); None -> None."""
+    if frames is None or frames == slice(None):
+        return None
+    text = f"{'' if frames.start is None else frames.start}:{'' if frames.stop is None else frames.stop}"
+    return text if frames.step is None else f"{text}:{frames.step}"
+
+
+def plain_value(value: Any) -> Any:
+    """A parameter value as plain JSON that the option reads back: Paths absolute strings, slices ``A:B:S``,
+    tuples lists; anything else that is not JSON-plain is a TypeError (never a Python repr)."""
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise TypeError(f"{value!r} is not a finite number; config.json holds plain JSON")
+        return value
+    if isinstance(value, os.PathLike):
+        return os.path.abspath(os.fspath(value))
+    if isinstance(value, slice):
+        return frame_range_text(value)
+    if isinstance(value, (list, tuple)):
+        return [plain_value(v) for v in value]
+    if hasattr(value, "item") and callable(value.item):  # numpy scalars
+        return plain_value(value.item())
+    raise TypeError(f"cannot record a {type(value).__name__} ({value!r}) in config.json as plain JSON")

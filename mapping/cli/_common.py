@@ -10,7 +10,6 @@ its old spelling as a hidden alias (:func:`deprecated_alias`) that warns in one 
 from __future__ import annotations
 
 import json
-import math
 import os
 import platform
 import sys
@@ -23,6 +22,7 @@ from click.core import ParameterSource
 
 from radiometry import __version__
 from radiometry.errors import RadiomapError
+from mapping.export import frame_range_text, plain_value
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
@@ -63,34 +63,6 @@ class FrameRange(click.ParamType):
         if nums[2] is not None and nums[2] <= 0:
             self.fail(f"the step in {value!r} must be positive", param, ctx)
         return slice(*nums)
-
-
-def frame_range_text(frames: slice | None) -> str | None:
-    """``slice`` -> ``"A:B:S"`` (the ``--frames`` syntax, :class:`FrameRange` reads it back); None -> None."""
-    if frames is None or frames == slice(None):
-        return None
-    text = f"{'' if frames.start is None else frames.start}:{'' if frames.stop is None else frames.stop}"
-    return text if frames.step is None else f"{text}:{frames.step}"
-
-
-def plain_value(value: Any) -> Any:
-    """A parameter value as plain JSON that the option reads back: Paths absolute strings, slices ``A:B:S``,
-    tuples lists; anything else that is not JSON-plain is a TypeError (never a Python repr)."""
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise TypeError(f"{value!r} is not a finite number; config.json holds plain JSON")
-        return value
-    if isinstance(value, os.PathLike):
-        return os.path.abspath(os.fspath(value))
-    if isinstance(value, slice):
-        return frame_range_text(value)
-    if isinstance(value, (list, tuple)):
-        return [plain_value(v) for v in value]
-    if hasattr(value, "item") and callable(value.item):  # numpy scalars
-        return plain_value(value.item())
-    raise TypeError(f"cannot record a {type(value).__name__} ({value!r}) in config.json as plain JSON")
 
 
 def run_manifest(command: str, params: dict[str, Any]) -> dict[str, Any]:
