@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import OutputError, RadiomapError
+from radiometry.response import srgb_to_linear
 from radiometry.fileio import (TEMP_TAG, atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text,
                                ensure_dir, pid_alive, remove_strays)
 
@@ -436,12 +437,6 @@ def write_mesh(folder: Path, vertices: np.ndarray, triangles: np.ndarray, colour
     return out
 
 
-def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0, 1] -> linear light (IEC 61966-2-1), float64."""
-    v = np.asarray(encoded, dtype=np.float64)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
 _GLB_MAGIC, _GLB_JSON, _GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 _FLOAT, _UINT32, _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 5126, 5125, 34962, 34963
 
@@ -456,7 +451,7 @@ def glb_bytes(vertices: np.ndarray, triangles: np.ndarray, display: np.ndarray, 
     already what the scene looks like), falling back to a white, non-metallic, fully rough surface."""
     positions = np.ascontiguousarray(vertices, dtype="<f4").reshape(-1, 3)
     indices = np.ascontiguousarray(triangles, dtype="<u4").reshape(-1)
-    colours = np.ascontiguousarray(srgb_decode(np.asarray(display, dtype=np.float64) / 255.0), dtype="<f4")
+    colours = np.ascontiguousarray(srgb_to_linear(np.asarray(display, dtype=np.float64) / 255.0), dtype="<f4")
     attributes = [("POSITION", positions)]
     if normals is not None:
         n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)

@@ -28,6 +28,13 @@ LEVELS = 256
 KIND = "response"
 
 
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1) undone: encoded values in ``[0, 1]`` to linear light
+    (float64)."""
+    v = np.asarray(values, dtype=np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
 def validate_inverse_table(table: np.ndarray, *, source: str = "inverse response") -> np.ndarray:
     """Check an inverse-response table; return it as float64 ``(256, C)``.
 

@@ -18,6 +18,8 @@ import string
 
 import numpy as np
 
+from radiometry.response import srgb_to_linear  # noqa: F401 (also this module's name for it)
+
 ALBEDO_MIN = 0.03
 ALBEDO_MAX = 0.92
 
@@ -190,13 +192,6 @@ def poster(rng: np.random.Generator, h: int, w: int, texel: float) -> np.ndarray
     frame = max(1, int(round(0.01 / texel)))
     cv2.rectangle(img, (0, 0), (w - 1, h - 1), (20, 20, 20), frame)
     return finish(img.astype(np.float32) / 255.0)
-
-
-def srgb_to_linear(values: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function (IEC 61966-2-1) undone: encoded values in ``[0, 1]`` to linear light
-    (float64)."""
-    v = np.asarray(values, dtype=np.float64)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
 # 8-bit sRGB code -> linear light in 1/65535 steps: resampling a photograph in uint16 keeps 1.5e-5
