@@ -184,7 +184,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     try:
         for i in range(len(dataset)):
             loop.step(i)
-            _advance(bar, loop.records, len(dataset))
+            loop.advance(bar)
         loop.check_fused()  # a run that fused nothing (or too little) fails: mapping/validation.py
         status = "complete"
     except KeyboardInterrupt:
@@ -221,6 +221,7 @@ class _Loop:
         self.failures = 0
         self.depth_valid = 0            # valid depth pixels seen, and those at or beyond the depth range
         self.depth_far = 0
+        self.skipped = 0   # frames done and not fused (the bar's postfix)
         # the backend's fusion range (TSDF: depth_min/depth_max; surfels: max_depth)
         self.depth_low = getattr(backend, "depth_min", 0.0)
         self.depth_high = getattr(backend, "depth_max", getattr(backend, "max_depth", np.inf))
@@ -336,6 +337,16 @@ class _Loop:
             view = self.backend.render(pose, frame.K, frame.height, frame.width)
         self.track_view = (view, pose)
 
+    def advance(self, bar) -> None:
+        """One frame done: the bar advances, and a DEBUG line says so ("frame 3 of 5: fused"; ``-vv``)."""
+        record = self.records[-1]
+        log.debug("frame %d of %d: %s", len(self.records), len(self.dataset),
+                  "fused" if record.fused else f"skipped ({record.reason or 'no reason'})")
+        if not record.fused:
+            self.skipped += 1
+            bar.set_postfix(skipped=self.skipped, refresh=False)
+        bar.update(1)
+
     def check_fused(self) -> None:
         from mapping.validation import check_fused
 
@@ -369,17 +380,6 @@ def _progress_bar(n: int, enabled: bool, name: str):
     from radiometry.progress import progress_bar
 
     return progress_bar(total=n, desc=f"reconstruct {name}".strip(), enabled=enabled, leave=False)
-
-
-def _advance(bar, records: list[FrameRecord], total: int) -> None:
-    """One frame done: the bar advances, and a DEBUG line says so ("frame 3 of 5: fused"; ``-vv``)."""
-    record = records[-1]
-    log.debug("frame %d of %d: %s", len(records), total,
-              "fused" if record.fused else f"skipped ({record.reason or 'no reason'})")
-    skipped = sum(not r.fused for r in records)
-    if skipped:
-        bar.set_postfix(skipped=skipped, refresh=False)
-    bar.update(1)
 
 
 def _backend_stats(backend) -> dict:

@@ -22,7 +22,7 @@ from click.core import ParameterSource
 
 from radiometry import __version__
 from radiometry.errors import RadiomapError
-from mapping.export import frame_range_text, plain_value
+from mapping.export import plain_value
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
@@ -183,13 +183,6 @@ def drop_replayed(ctx: click.Context, name: str, default: Any, why: str) -> bool
     return True
 
 
-def replayed_from(ctx: click.Context, name: str) -> str | None:
-    """The config file an option's value came from (None: given or a default)."""
-    if ctx.get_parameter_source(name) is ParameterSource.DEFAULT_MAP:
-        return ctx.meta.get(_META_CONFIG)
-    return None
-
-
 # --------------------------------------------------------------------------------------------------
 # renamed options: the old spelling stays as a hidden alias that warns
 # --------------------------------------------------------------------------------------------------
@@ -320,6 +313,6 @@ def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2)
 
 
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
-           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "format_table", "frame_range_text",
-           "load_replay_config", "plain_value", "replay_manifest", "replayed_from", "run_manifest", "settings_line",
+           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "format_table",
+           "load_replay_config", "plain_value", "replay_manifest", "run_manifest", "settings_line",
            "warn_far_depth", "atomic_write_json", "atomic_write_text", "ensure_dir", "json"]
