@@ -43,9 +43,7 @@ Outputs (``OUT``)::
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import logging
 import math
 import time
@@ -61,6 +59,8 @@ from mapping.export import MANIFEST, ResultsFolder
 from radiometry.errors import CalibrationFileError, RadiomapError
 from radiometry.response import CameraResponse
 from radiometry.vignetting import LUTVignetting, VignettingModel
+from radiometry.fileio import json_safe
+from radiometry.tables import csv_text, format_table
 
 log = logging.getLogger(__name__)
 
@@ -443,7 +443,6 @@ class CompareResult:
         return [r.row() for r in self.results]
 
     def table_text(self) -> str:
-        from mapping.cli._common import format_table
 
         rows = []
         for row in self.table():
@@ -482,30 +481,6 @@ class ComparisonFolder(ResultsFolder):
                               "summary.txt", RUNNING, MANIFEST})
     result_folders = frozenset(METHOD_NAMES)
     status_file = None
-
-
-def _finite(obj):
-    if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
-def _csv_text(rows: list[dict[str, Any]], columns: list[str]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for r in rows:
-        writer.writerow(["" if isinstance(r.get(c), float) and not math.isfinite(r[c]) else
-                         (f"{r[c]:.4f}" if isinstance(r.get(c), float) else r.get(c, "")) for c in columns])
-    return buf.getvalue()
 
 
 def compare(dataset, methods: Sequence[Method], *, output: str | Path, **options) -> CompareResult:
@@ -627,7 +602,7 @@ def _compare(dataset, methods: Sequence[Method], *, output: str | Path, _locks: 
                 result = MethodResult(method, run, folder.path, colour_model, geometry, err, files, seconds)
                 results.append(result)
                 atomic_write_json(folder.path / "compare_method.json",
-                                  _finite({"method": method.describe(), "row": result.row(),
+                                  json_safe({"method": method.describe(), "row": result.row(),
                                            "colour_error": None if err is None else err.to_dict(),
                                            "geometry": {"kind": geometry.kind, "vertices": len(geometry),
                                                         "triangles": int(geometry.triangles.shape[0])}}))
@@ -686,7 +661,7 @@ def _write_outputs(result: CompareResult, dataset, scene, *, views: int, render_
     out = result.output
     rows = result.table()
     files = result.files
-    files["csv"] = atomic_write_text(out / "compare.csv", _csv_text(rows, TABLE_COLUMNS))
+    files["csv"] = atomic_write_text(out / "compare.csv", csv_text(rows, TABLE_COLUMNS))
     files["txt"] = atomic_write_text(out / "compare.txt", result.table_text() + "\n")
     histograms = {r.method.label: r.run.histogram for r in result.results if r.run.histogram.total}
     figures = []
@@ -845,7 +820,7 @@ def _write_json(result: CompareResult) -> None:
         "files": {k: Path(v).name for k, v in result.files.items()},
         "renders": result.renders,
     }
-    result.files["json"] = atomic_write_json(result.output / MARKER, _finite(doc))
+    result.files["json"] = atomic_write_json(result.output / MARKER, doc)
 
 
 __all__ = ["BASE_METHODS", "BRIGHTNESS", "ColourError", "CompareResult", "ComparisonFolder", "DEFAULT_METHODS",

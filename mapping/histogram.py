@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from radiometry.errors import CalibrationFileError
-from radiometry.fileio import atomic_write_json, load_model_file, save_model_file
+from radiometry.fileio import atomic_write_json, json_safe, load_model_file, save_model_file
 
 MAX_DISTANCE = 765  # 3 channels x 255 levels
 BINS = MAX_DISTANCE + 1
@@ -132,10 +132,10 @@ class DisagreementHistogram:
                "stats": self.stats()}
         if path.suffix.lower() == ".json":
             doc["counts"] = self.counts.tolist()
-            return atomic_write_json(path, _finite(doc))
+            return atomic_write_json(path, doc)
         if path.suffix.lower() == ".npz":
             return save_model_file(path, KIND, {"counts": self.counts},
-                                   _finite({k: v for k, v in doc.items() if k not in ("format", "kind", "version")}))
+                                   json_safe({k: v for k, v in doc.items() if k not in ("format", "kind", "version")}))
         raise ValueError(f"histogram files are .json or .npz, got {path.name!r}")
 
     @classmethod
@@ -169,11 +169,3 @@ class DisagreementHistogram:
         return (f"DisagreementHistogram({self.label!r}, count={s['count']}, mean={s['mean']:.3g}, "
                 f"median={s['median']:.3g}, p90={s['p90']:.3g})")
 
-
-def _finite(obj):
-    """JSON has no NaN: write null for the statistics of an empty histogram."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj

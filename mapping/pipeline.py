@@ -39,6 +39,7 @@ from mapping.colour import ColourModel, RawIntensity, display_l1, make_colour_mo
 from mapping.datasets.base import RGBDDataset
 from mapping.fusion.base import FusionBackend
 from mapping.histogram import DisagreementHistogram
+from radiometry.tables import format_table
 from mapping.metrics import ATEResult, absolute_trajectory_error, format_tum_trajectory
 from radiometry.errors import ModelMismatchError, RadiomapError, TrackingError
 
@@ -115,7 +116,7 @@ class RunResult:
                        "ms_per_frame": 1000.0 * self.seconds / max(self.frames, 1),
                        "stage_ms_per_frame": {k: 1000.0 * v / max(self.frames, 1)
                                               for k, v in self.stage_seconds.items()}},
-            "histogram": _json_stats(self.histogram.stats()),
+            "histogram": self.histogram.stats(),
             "ate": None if self.ate is None else self.ate.to_dict(),
             "depth_beyond_range": self.depth_beyond_range,
             "map": self.map_stats,
@@ -136,10 +137,6 @@ def _reason_kind(reason: str) -> str:
         if ch.isdigit():
             return reason[:i].strip() or reason
     return reason
-
-
-def _json_stats(stats: dict) -> dict:
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in stats.items()}
 
 
 def peak_rss_mb() -> float:
@@ -462,8 +459,6 @@ def _write_results(run: RunResult, dataset, colour_model, backend, tracker, outp
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()
     metrics["files"] = {k: Path(v).name for k, v in files.items()}
-    from mapping.cli._common import format_table
-
     output.write_text("summary.txt", format_table([run.summary_row()]) + "\n")
     output.write_json("metrics.json", metrics)
     output.complete()

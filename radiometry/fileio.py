@@ -14,6 +14,7 @@ import contextlib
 import errno
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -153,16 +154,27 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    """``obj`` as indented JSON, NaN and infinities as null (:func:`json_safe`), written atomically."""
+    return atomic_write_text(path, json.dumps(json_safe(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
+def json_safe(obj: Any) -> Any:
+    """``obj`` with what JSON cannot hold made plain: NaN and infinities None, numpy scalars and arrays Python
+    numbers and lists, paths strings, tuples lists, keys strings. Anything else not JSON-plain is a TypeError."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, (bool, int, str)):
+        return obj
     if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
+        return json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        return json_safe(obj.item())
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
     raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
 
 
@@ -451,7 +463,7 @@ def save_model_file(path: str | os.PathLike, kind: str, arrays: Mapping[str, np.
     payload = {name: np.asarray(a) for name, a in arrays.items()}
     if "meta" in payload:
         raise ValueError("'meta' is reserved in model files; rename that array")
-    payload["meta"] = np.array(json.dumps(header, default=_json_default))
+    payload["meta"] = np.array(json.dumps(json_safe(header)))
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **payload)

@@ -101,7 +101,7 @@ def main(argv=None) -> int:
 
     warm_up(args)   # compile the Numba kernels (colour, TSDF pairs) outside the timed runs
     results = {m: run_method(m, args) for m in METHODS}
-    from mapping.cli._common import format_table
+    from radiometry.tables import format_table
 
     rows = []
     for m, r in results.items():

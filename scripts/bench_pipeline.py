@@ -207,7 +207,7 @@ def main(argv=None) -> int:
     pair_ratios, ratio = pairs["open3d"], ratios["open3d"]
     a, b = summary["radiomap"]["ate_cm"], summary["open3d"]["ate_cm"]
     ate_ratio = a / b if (a is not None and b) else None
-    from mapping.cli._common import format_table
+    from radiometry.tables import format_table
 
     rows = [{"method": m, "ms/frame": s["ms_per_frame"], "frames/s": s["fps"],
              "ATE cm": "-" if s["ate_cm"] is None else round(s["ate_cm"], 2), "peak MB": round(s["peak_rss_mb"]),

@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from mapping.cli._common import format_table
+    from radiometry.tables import format_table
     from radiometry.response import CameraResponse
     from radiometry.response_fit import (blue_fill_mask, fit_response_debevec, fit_response_opencv_debevec,
                                          load_brackets, prediction_rms)

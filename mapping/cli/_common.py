@@ -23,6 +23,7 @@ from click.core import ParameterSource
 from radiometry import __version__
 from radiometry.errors import RadiomapError
 from mapping.export import plain_value
+from radiometry.tables import format_table
 from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
@@ -283,25 +284,6 @@ DIFFERENT_DEFAULTS = {
     "poses": {"reconstruct": "icp", "compare": "gt"},
     "exposure_compensation": {"reconstruct": "on with --response", "compare": "off"},
 }
-
-
-def format_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
-    """A plain-text table (the summary printed at the end of a run and saved beside its results)."""
-    if not rows:
-        return "(no rows)"
-    columns = columns or list(rows[0].keys())
-
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return str(v)
-
-    cells = [[cell(r.get(c, "")) for c in columns] for r in rows]
-    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
-    line = "  ".join(c.ljust(w) for c, w in zip(columns, widths))
-    sep = "  ".join("-" * w for w in widths)
-    body = ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
-    return "\n".join([line, sep, *body])
 
 
 def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2) -> None:
