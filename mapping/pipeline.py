@@ -539,7 +539,7 @@ def load_vignetting_option(path: Path):
     path = Path(path)
     if path.suffix.lower() == ".npy":
         from radiometry.errors import CalibrationFileError
-        from radiometry.fileio import load_array_file
+        from radiometry.arrays import load_array_file
         from radiometry.vignetting import LUTVignetting
 
         fix = "pass a float (H, W[, C]) .npy with finite V > 0"

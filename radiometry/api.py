@@ -149,7 +149,7 @@ def correct(image: np.ndarray | PathLike, response: CameraResponse | PathLike, v
     from radiometry.correction import Corrector
 
     if isinstance(image, (str, os.PathLike)):
-        from radiometry.fileio import read_rgb
+        from radiometry.images import read_rgb
 
         image = read_rgb(image)
     corrector = Corrector(as_response(response), as_vignetting(vignetting))

@@ -1,7 +1,8 @@
-"""File boundary: images in RGB, depth in float32 metres, atomic writes, the model file format.
+"""File boundary for writes: atomic writes, all-or-nothing publication of file sets, the model file format.
 
-Everything that touches the disk goes through here so that errors name the file and the fix, colour
-is converted from OpenCV's BGR exactly once, and no write ever leaves a half file where a good one stood.
+Every write goes through here so that errors name the file and the fix, and no write ever leaves a half
+file where a good one stood. Images are read and written by :mod:`radiometry.images` (RGB, depth in metres),
+single arrays and the real-number check of model arrays by :mod:`radiometry.arrays`.
 
 Model files (response, vignetting, ...) share one versioned, self-describing format: a NumPy ``.npz``
 archive (read with ``allow_pickle=False``) whose ``meta`` entry is a JSON document with at least
@@ -29,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.errors import CalibrationFileError, ImageError, OutputError
+from radiometry.arrays import check_real_arrays, npz_header_dtypes, refuse_bare_npy
+from radiometry.errors import CalibrationFileError, OutputError
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +40,6 @@ MODEL_FORMAT_VERSION = 1
 
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
-
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -477,11 +477,11 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
     if not path.is_file():
         raise CalibrationFileError(f"{path}: no such file; check the path of the {kind} model")
     fix = f"re-create the {kind} file with radiomap"
-    _refuse_bare_npy(path, kind)
+    refuse_bare_npy(path, kind)
     try:
         loaded = np.load(path, allow_pickle=False)
         if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy array under another name (the check above)
-            _refuse_bare_npy(path, kind, bare=True)
+            refuse_bare_npy(path, kind, bare=True)
         with loaded as data:
             arrays = {name: data[name] for name in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, zlib.error, NotImplementedError,
@@ -491,7 +491,7 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
         # mangled .npy header fails to tokenize, or claims an array too large to allocate); an object array
         # (pickled Python objects, refused by allow_pickle=False) is named as such
         if isinstance(exc, ValueError):
-            check_real_arrays(path, {k: v for k, v in _npz_header_dtypes(path).items() if k != "meta"}, fix)
+            check_real_arrays(path, {k: v for k, v in npz_header_dtypes(path).items() if k != "meta"}, fix)
         raise CalibrationFileError(
             f"{path}: not a radiomap {kind} file or corrupt ({type(exc).__name__}); re-create it with radiomap"
         ) from None
@@ -515,270 +515,3 @@ def load_model_file(path: str | os.PathLike, kind: str, *,
             "upgrade radiomap or re-create the file")
     check_real_arrays(path, {name: a.dtype for name, a in arrays.items()}, fix)
     return meta, arrays
-
-
-_NPY_MAGIC = b"\x93NUMPY"
-
-
-def _refuse_bare_npy(path: Path, kind: str, *, bare: bool = False) -> None:
-    """:class:`CalibrationFileError` when ``path`` is a single ``.npy`` array (its magic bytes, or ``bare``) where a
-    model archive (``.npz``) is needed: np.load would return the array itself, not an archive."""
-    if not bare:
-        try:
-            with open(path, "rb") as fh:
-                bare = fh.read(len(_NPY_MAGIC)) == _NPY_MAGIC
-        except OSError:
-            return  # np.load reports it
-    if bare:
-        hint = " (a V array is read from a .npy file by reconstruct/correct --vignetting and compare --vignetting-lut)" \
-            if kind == "vignetting" else ""
-        raise CalibrationFileError(f"{path}: a bare .npy array, not a radiomap {kind} model file; pass the {kind} "
-                                   f".npz that radiomap wrote{hint}")
-
-
-# Model arrays hold real numbers: bool, signed and unsigned integers, floats. Anything else (complex, whose
-# imaginary part a cast would drop; pickled objects; text; structured records; dates) is refused, here only.
-_REAL_KINDS = "biuf"
-_KIND_NAMES = {"c": "complex", "O": "pickled Python-object", "U": "text", "S": "byte-string", "V": "structured",
-               "M": "date-time", "m": "time-delta"}
-
-
-def check_real_arrays(path: str | os.PathLike, dtypes: Mapping[str | None, np.dtype], fix: str) -> None:
-    """Raise :class:`CalibrationFileError` naming ``path`` (and the array) if a dtype is not real numeric.
-
-    ``dtypes`` maps array names (None for a file holding one array) to their dtypes; ``fix`` ends the message.
-    Every model loader goes through here: :func:`load_model_file`, :func:`load_array_file` (``.npy``)."""
-    for name, dtype in dtypes.items():
-        dtype = np.dtype(dtype)
-        if dtype.kind in _REAL_KINDS and dtype.fields is None:
-            continue
-        what = f"array {name!r} holds" if name is not None else "holds"
-        kind = "structured" if dtype.fields is not None else _KIND_NAMES.get(dtype.kind, "non-numeric")
-        raise CalibrationFileError(f"{path}: {what} {kind} values ({dtype}) where real numbers (bool, integer or "
-                                   f"float) are needed; {fix}")
-
-
-def _npy_header_dtype(fh) -> np.dtype | None:
-    """The dtype in a ``.npy`` header (without reading the data); None if the header cannot be parsed."""
-    fmt = np.lib.format
-    try:
-        major, _minor = fmt.read_magic(fh)
-        header = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
-        return np.dtype(header(fh)[2])
-    except Exception:  # noqa: BLE001 - best effort: the caller falls back to its generic message
-        return None
-
-
-def _npz_header_dtypes(path: Path) -> dict[str, np.dtype]:
-    """Member name -> dtype of the arrays of an ``.npz`` whose headers can be read (corrupt members skipped)."""
-    out: dict[str, np.dtype] = {}
-    try:
-        with zipfile.ZipFile(path) as archive:
-            for member in archive.namelist():
-                with archive.open(member) as fh:
-                    dtype = _npy_header_dtype(fh)
-                if dtype is not None:
-                    out[member.removesuffix(".npy")] = dtype
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, zlib.error, NotImplementedError, RuntimeError):
-        pass
-    return out
-
-
-def load_array_file(path: str | os.PathLike, *, fix: str) -> np.ndarray:
-    """Read a single-array ``.npy`` file (no pickle) holding real numbers; :class:`CalibrationFileError` naming
-    the file and ending with ``fix`` otherwise."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file; {fix}")
-    try:
-        array = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        try:
-            with open(path, "rb") as fh:
-                dtype = _npy_header_dtype(fh)
-        except OSError:
-            dtype = None
-        if dtype is not None:
-            check_real_arrays(path, {None: dtype}, fix)
-        raise CalibrationFileError(f"{path}: not a NumPy .npy array or corrupt ({type(exc).__name__}); {fix}") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, struct.error, UnicodeDecodeError, OverflowError,
-            tokenize.TokenError, SyntaxError, MemoryError) as exc:
-        raise CalibrationFileError(f"{path}: not a NumPy .npy array or corrupt ({type(exc).__name__}); {fix}") from None
-    if not isinstance(array, np.ndarray):  # an .npz archive under a .npy name
-        array.close()
-        raise CalibrationFileError(f"{path}: an .npz archive of several arrays, not one .npy array; {fix}")
-    check_real_arrays(path, {None: array.dtype}, fix)
-    return array
-
-
-# --------------------------------------------------------------------------------------------------
-# images
-# --------------------------------------------------------------------------------------------------
-def _cv2():
-    import cv2
-
-    return cv2
-
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_MAX_PIXELS = 100_000_000
-# deflate cannot compress better than ~1032:1, so a PNG much smaller than raw/1100 is lying about its size
-_MAX_DEFLATE_RATIO = 1100
-
-
-def png_defect(raw: np.ndarray | bytes) -> str | None:
-    """Why a PNG cannot hold what its header claims (None when it can, or when the data is no PNG).
-
-    Checked before decoding: a corrupt IHDR size or chunk length makes the decoder allocate and scan
-    gigabytes for seconds on a file of a few bytes."""
-    head = bytes(raw[:33])
-    if not head.startswith(_PNG_SIGNATURE) or len(head) < 33 or head[12:16] != b"IHDR":
-        return None
-    size = len(raw)
-    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    bit_depth = max(head[24], 1)
-    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(head[25], 4)
-    raw_bytes = width * height * channels * bit_depth / 8
-    if width == 0 or height == 0 or width * height > _MAX_PIXELS or raw_bytes > size * _MAX_DEFLATE_RATIO:
-        return (f"the PNG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
-                "(corrupt or truncated)")
-    pos = 8
-    data = raw if isinstance(raw, bytes) else raw.tobytes()
-    while pos + 8 <= size:
-        length = int.from_bytes(data[pos:pos + 4], "big")
-        if length > 2**31 - 1 or pos + 12 + length > size:
-            return (f"cannot decode the PNG: chunk {data[pos + 4:pos + 8]!r} at byte {pos} claims {length} bytes "
-                    f"past the end of the {size}-byte file (corrupt or truncated)")
-        if data[pos + 4:pos + 8] == b"IEND":
-            break
-        pos += 12 + length
-    return None
-
-
-# Huffman-coded JPEG needs at least one bit per 8x8 block: real encoders stay below ~600:1 on flat images
-_MAX_JPEG_RATIO = 4096
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-
-
-def jpeg_defect(raw: np.ndarray | bytes) -> str | None:
-    """Why a JPEG cannot hold the image its start-of-frame claims (None when it can, or for no JPEG):
-    the decoder would fill gigabytes of a made-up size for a file of a few bytes."""
-    data = bytes(raw[:65536])
-    size = len(raw)
-    if not data.startswith(b"\xff\xd8"):
-        return None
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            return None  # not a marker: let the decoder report the corruption
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker in (0x01, *range(0xD0, 0xD8)):
-            pos += 2
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before it
-            return None
-        length = int.from_bytes(data[pos + 2:pos + 4], "big")
-        if marker in _JPEG_SOF and pos + 10 <= len(data):
-            height = int.from_bytes(data[pos + 5:pos + 7], "big")
-            width = int.from_bytes(data[pos + 7:pos + 9], "big")
-            components = max(data[pos + 9], 1)
-            if width * height > _MAX_PIXELS or width * height * components > size * _MAX_JPEG_RATIO:
-                return (f"the JPEG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
-                        "(corrupt or truncated)")
-            return None
-        pos += 2 + length
-    return None
-
-
-def _read_encoded(path: Path, what: str) -> np.ndarray:
-    """Decode an image file (OpenCV, BGR, any depth) or raise :class:`ImageError` naming it."""
-    cv2 = _cv2()
-    try:
-        if not path.is_file():
-            raise ImageError(f"{path}: no such {what}; check the path")
-        data = np.fromfile(path, dtype=np.uint8)
-    except OSError as exc:
-        raise ImageError(f"{path}: cannot read the {what} ({exc.strerror or exc}); check the path and "
-                         "its permissions") from None
-    if data.size == 0:
-        raise ImageError(f"{path}: empty file; replace it with a valid image")
-    defect = png_defect(data) or jpeg_defect(data)
-    if defect is not None:
-        raise ImageError(f"{path}: {defect}; replace it")
-    try:
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        img = None
-    if img is None:
-        raise ImageError(f"{path}: cannot decode the {what} (corrupt, truncated or not an image); replace it")
-    return img
-
-
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
-
-    16-bit images are scaled to 8 bits. Raises :class:`ImageError` naming the file when it is missing,
-    unreadable or truncated.
-    """
-    cv2 = _cv2()
-    path = Path(path)
-    img = _read_encoded(path, "image")
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-        elif img.shape[2] == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        elif img.shape[2] == 1:
-            img = img[:, :, 0]
-        else:
-            raise ImageError(f"{path}: {img.shape[2]} channels; expected 1, 3 or 4")
-    return np.ascontiguousarray(img)
-
-
-def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
-    """Read a 16-bit depth image and return float32 metres (``raw / scale``; 0 stays 0 = invalid)."""
-    path = Path(path)
-    if scale <= 0 or not np.isfinite(scale):
-        raise ValueError(f"depth scale must be a positive number, got {scale}")
-    img = _read_encoded(path, "depth image")
-    if img.ndim == 3:
-        raise ImageError(f"{path}: depth image has {img.shape[2]} channels; expected a single-channel 16-bit PNG")
-    if img.dtype not in (np.uint16, np.float32):
-        raise ImageError(f"{path}: depth must be 16-bit (got {img.dtype}); save depth as 16-bit PNG")
-    depth = img.astype(np.float32) / np.float32(scale)
-    depth[~np.isfinite(depth)] = 0.0
-    return depth
-
-
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix."""
-    cv2 = _cv2()
-    image = np.asarray(image)
-    if image.ndim == 3 and image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    path = Path(path)
-    ok, buf = cv2.imencode(path.suffix or ".png", image)
-    if not ok:
-        raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
-    return atomic_write_bytes(path, buf.tobytes())
-
-
-def write_depth(path: str | os.PathLike, depth_m: np.ndarray, scale: float) -> Path:
-    """Write float32 metres as a 16-bit PNG (``round(depth * scale)``, clipped to the uint16 range)."""
-    raw = np.clip(np.round(np.nan_to_num(depth_m) * scale), 0, 65535).astype(np.uint16)
-    return write_image(path, raw)
-
-
-def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files in a folder, sorted by name."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise ImageError(f"{folder}: no such folder; check the path")
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())

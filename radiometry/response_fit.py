@@ -624,7 +624,7 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
     in the folder. Every listed image must exist and every image in the folder must be listed.
     ``progress``: a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     """
-    from radiometry.fileio import list_images, read_rgb
+    from radiometry.images import list_images, read_rgb
     from radiometry.progress import progress_bar
 
     folder = Path(folder)

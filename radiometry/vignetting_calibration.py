@@ -51,7 +51,8 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError, CalibrationFileError, ImageError
-from radiometry.fileio import IMAGE_EXTENSIONS, list_images, read_rgb, save_model_file
+from radiometry.fileio import save_model_file
+from radiometry.images import IMAGE_EXTENSIONS, list_images, read_rgb
 from radiometry.quorum import rule_text, too_little
 from radiometry.response import CameraResponse, validate_inverse_table
 from radiometry.vignetting import (LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal,

@@ -110,7 +110,8 @@ read noise (4 e-) and 8-bit quantisation. `ground_truth_response.npz` is the tru
 
 
 def write(out: Path) -> None:
-    from radiometry.fileio import atomic_write_text, ensure_dir, write_image
+    from radiometry.fileio import atomic_write_text, ensure_dir
+    from radiometry.images import write_image
     from radiometry.response import CameraResponse
 
     folder = ensure_dir(out / "brackets")
@@ -126,7 +127,7 @@ def write(out: Path) -> None:
 def check(out: Path) -> list[str]:
     """Names of sample files that differ from what :func:`write` would produce (pixels, text, table)."""
     from radiometry.errors import RadiomapError
-    from radiometry.fileio import read_rgb
+    from radiometry.images import read_rgb
     from radiometry.response import CameraResponse
 
     folder = out / "brackets"

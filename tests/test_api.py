@@ -100,7 +100,7 @@ def test_calibrate_response_folder_and_arrays_match_the_command_path():
 
 def test_correct_and_calibrate_vignetting(tmp_path, truth):
     from radiometry.correction import Corrector
-    from radiometry.fileio import read_rgb
+    from radiometry.images import read_rgb
     from radiometry.vignetting import LUTVignetting
 
     response = radiometry.load_response(truth["response"])

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from mapping.cli import cli
-from radiometry.fileio import read_rgb
+from radiometry.images import read_rgb
 from radiometry.simulation import CameraSpec
 from conftest import shared_path
 

@@ -196,7 +196,7 @@ def _summary(prefix):
 def test_vignetting_from_a_camera_index(sweep, tmp_path, monkeypatch):
     """``radiomap vignetting 0``: the camera's BGR frames (after 10 warm-up frames, noise here) give the
     same model as the same frames read from the folder."""
-    from radiometry.fileio import list_images
+    from radiometry.images import list_images
 
     rng = np.random.default_rng(0)
     warmup = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(10)]

@@ -17,7 +17,7 @@ from mapping.datasets.redwood import read_log_trajectory, write_log_trajectory
 from mapping.datasets.synthetic import ArrayDataset
 from mapping.metrics import associate_timestamps, write_tum_trajectory
 from radiometry.errors import DatasetError
-from radiometry.fileio import write_depth, write_image
+from radiometry.images import write_depth, write_image
 
 OPEN3D = ("rgbd", "open3d_testdata")
 KITCHEN = ("rgbd", "redkitchen_7scenes_000-099")

@@ -11,50 +11,50 @@ import cv2
 import numpy as np
 import pytest
 
-from radiometry import fileio
+from radiometry import arrays, fileio, images
 from radiometry.errors import ImageError, OutputError
 
 
 def test_read_rgb_converts_from_bgr(tmp_path):
     img = np.zeros((4, 6, 3), np.uint8)
     img[..., 0] = 200  # red in RGB
-    fileio.write_image(tmp_path / "a.png", img)
+    images.write_image(tmp_path / "a.png", img)
     on_disk = cv2.imread(str(tmp_path / "a.png"))
     assert on_disk[0, 0, 2] == 200 and on_disk[0, 0, 0] == 0  # OpenCV sees it as BGR
-    back = fileio.read_rgb(tmp_path / "a.png")
+    back = images.read_rgb(tmp_path / "a.png")
     np.testing.assert_array_equal(back, img)
 
 
 def test_read_rgb_errors_name_the_file(tmp_path):
     with pytest.raises(ImageError, match="missing.png: no such image"):
-        fileio.read_rgb(tmp_path / "missing.png")
+        images.read_rgb(tmp_path / "missing.png")
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
     with pytest.raises(ImageError, match="empty.png: empty file"):
-        fileio.read_rgb(empty)
+        images.read_rgb(empty)
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(b"\xff\xd8 not really a jpeg")
     with pytest.raises(ImageError, match="bad.jpg: cannot decode"):
-        fileio.read_rgb(bad)
+        images.read_rgb(bad)
     good = tmp_path / "good.png"
-    fileio.write_image(good, np.full((64, 64, 3), 7, np.uint8))
+    images.write_image(good, np.full((64, 64, 3), 7, np.uint8))
     trunc = tmp_path / "trunc.png"
     trunc.write_bytes(good.read_bytes()[:40])
     with pytest.raises(ImageError, match="trunc.png"):
-        fileio.read_rgb(trunc)
+        images.read_rgb(trunc)
 
 
 def test_depth_round_trip_metres(tmp_path):
     depth = np.array([[0.0, 0.5, 1.2345], [3.0, 10.0, 0.0]], np.float32)
-    fileio.write_depth(tmp_path / "d.png", depth, 5000)
-    back = fileio.read_depth(tmp_path / "d.png", 5000)
+    images.write_depth(tmp_path / "d.png", depth, 5000)
+    back = images.read_depth(tmp_path / "d.png", 5000)
     assert back.dtype == np.float32
     np.testing.assert_allclose(back, depth, atol=1 / 5000)
     with pytest.raises(ValueError, match="depth scale"):
-        fileio.read_depth(tmp_path / "d.png", 0)
-    fileio.write_image(tmp_path / "rgb.png", np.zeros((2, 3, 3), np.uint8))
+        images.read_depth(tmp_path / "d.png", 0)
+    images.write_image(tmp_path / "rgb.png", np.zeros((2, 3, 3), np.uint8))
     with pytest.raises(ImageError, match="channels"):
-        fileio.read_depth(tmp_path / "rgb.png", 1000)
+        images.read_depth(tmp_path / "rgb.png", 1000)
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):
@@ -111,9 +111,9 @@ def test_check_overwrite(tmp_path):
 def test_list_images_sorted(tmp_path):
     for name in ("b.png", "a.jpg", "c.txt"):
         (tmp_path / name).write_bytes(b"x")
-    assert [p.name for p in fileio.list_images(tmp_path)] == ["a.jpg", "b.png"]
+    assert [p.name for p in images.list_images(tmp_path)] == ["a.jpg", "b.png"]
     with pytest.raises(ImageError, match="no such folder"):
-        fileio.list_images(tmp_path / "nope")
+        images.list_images(tmp_path / "nope")
 
 
 def test_atomic_files_follow_umask(tmp_path):
@@ -199,21 +199,21 @@ def test_real_dtypes_of_every_kind_are_accepted(tmp_path):
     for dtype in (np.uint8, np.int32, np.uint16, np.float16, np.float64):
         np.save(tmp_path / "v.npy", np.ones((6, 8), dtype))
         assert load_vignetting_option(tmp_path / "v.npy").channels == 1
-    fileio.check_real_arrays("x.npz", {"a": np.dtype(bool), "b": np.dtype(">i8"), "c": np.dtype("<f4")}, "fix")
+    arrays.check_real_arrays("x.npz", {"a": np.dtype(bool), "b": np.dtype(">i8"), "c": np.dtype("<f4")}, "fix")
 
 
 def test_array_file_errors_name_the_file(tmp_path):
     from radiometry.errors import CalibrationFileError
 
     with pytest.raises(CalibrationFileError, match=r"missing.npy: no such file; FIX$"):
-        fileio.load_array_file(tmp_path / "missing.npy", fix="FIX")
+        arrays.load_array_file(tmp_path / "missing.npy", fix="FIX")
     np.savez(tmp_path / "two.npy", a=np.ones(3), b=np.ones(3))  # numpy writes two.npy.npz; rename it
     os.replace(tmp_path / "two.npy.npz", tmp_path / "two.npy")
     with pytest.raises(CalibrationFileError, match=r"two.npy: an .npz archive of several arrays, not one .npy"):
-        fileio.load_array_file(tmp_path / "two.npy", fix="FIX")
+        arrays.load_array_file(tmp_path / "two.npy", fix="FIX")
     (tmp_path / "text.npy").write_text("not numpy")
     with pytest.raises(CalibrationFileError, match=r"text.npy: not a NumPy .npy array or corrupt \(ValueError\); FIX"):
-        fileio.load_array_file(tmp_path / "text.npy", fix="FIX")
+        arrays.load_array_file(tmp_path / "text.npy", fix="FIX")
 
 
 def test_complex_response_through_the_cli_is_one_line(tmp_path):
@@ -230,7 +230,7 @@ def test_complex_response_through_the_cli_is_one_line(tmp_path):
     arrays["inverse_table"] = arrays["inverse_table"] + 0j
     np.savez(tmp_path / "complex.npz", **arrays)
     (tmp_path / "in").mkdir()
-    fileio.write_image(tmp_path / "in" / "a.png", np.full((6, 8, 3), 100, np.uint8))
+    images.write_image(tmp_path / "in" / "a.png", np.full((6, 8, 3), 100, np.uint8))
     LUTVignetting(np.full((6, 8, 3), 0.9, np.float32)).save(tmp_path / "v.npz")
     result = CliRunner().invoke(cli, ["correct", str(tmp_path / "in"), "--response", str(tmp_path / "complex.npz"),
                                       "--vignetting", str(tmp_path / "v.npz"), "-o", str(tmp_path / "out")])

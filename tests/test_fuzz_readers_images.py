@@ -80,7 +80,7 @@ def test_dso_vignette_png(workdir, seed):
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_colour_and_depth_images(workdir, seed):
-    from radiometry.fileio import read_depth, read_rgb
+    from radiometry.images import read_depth, read_rgb
 
     rng = random.Random(seed)
     which = rng.random()

@@ -11,7 +11,7 @@ import pytest
 from conftest import shared_path
 
 from radiometry.errors import CalibrationError, DatasetError
-from radiometry.fileio import write_image
+from radiometry.images import write_image
 from radiometry.response import CameraResponse
 from radiometry.response_fit import (
     METHODS,

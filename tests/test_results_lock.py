@@ -22,7 +22,7 @@ from test_robustness import REPO, error_line, reconstruct, room, run, snapshot, 
 
 from mapping.export import LOCK_NAME, MANIFEST, FolderLock, ResultsFolder, _process_start, is_complete
 from radiometry.errors import OutputError
-from radiometry.fileio import write_image
+from radiometry.images import write_image
 
 
 def start_reconstruct(seq: Path, out: Path, *extra) -> subprocess.Popen:

@@ -14,7 +14,7 @@ from mapping.cli import cli
 from mapping.simulation import Renderer, load_room, look_at, make_room
 from mapping.simulation import textures as tx
 from radiometry.errors import DatasetError, ImageError
-from radiometry.fileio import write_image
+from radiometry.images import write_image
 from radiometry.simulation import default_intrinsics
 
 # 2 x 3 blocks of distinct sRGB colours, black and white included

@@ -15,7 +15,7 @@ from mapping.simulation import (DEPTH_SCALE, MANIFEST, DepthSensor, Face, Handhe
                                 simulate_brackets, simulate_paper, simulate_room, tum_to_pose)
 from mapping.simulation.sequences import resolve_camera
 from radiometry.errors import DatasetError, OutputError
-from radiometry.fileio import read_depth, read_rgb
+from radiometry.images import read_depth, read_rgb
 from radiometry.response import CameraResponse
 from radiometry.simulation import CameraSpec, default_intrinsics
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import mapping
 import radiometry
 from mapping.simulation import sample_sequence
-from radiometry.fileio import read_rgb, write_image
+from radiometry.images import read_rgb, write_image
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "from_python_out")
 out.mkdir(parents=True, exist_ok=True)

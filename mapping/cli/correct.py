@@ -109,8 +109,9 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     from mapping.pipeline import load_vignetting_option
     from radiometry.correction import Corrector
-    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, write_image
+    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir
     from radiometry.formats import load_response
+    from radiometry.images import write_image
     from radiometry.progress import progress_bar
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from mapping.datasets.base import RGBDFrame
 from radiometry.errors import DatasetError, ImageError
-from radiometry.fileio import read_depth, read_rgb
+from radiometry.images import read_depth, read_rgb
 from radiometry.textlists import read_list_text
 
 log = logging.getLogger(__name__)

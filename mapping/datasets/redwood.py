@@ -25,7 +25,8 @@ import numpy as np
 from mapping.datasets._common import FileSequence, FrameFiles, check_pose, optional_file, parse_intrinsics, \
     read_intrinsics_file
 from radiometry.errors import DatasetError
-from radiometry.fileio import IMAGE_EXTENSIONS, atomic_write_text
+from radiometry.fileio import atomic_write_text
+from radiometry.images import IMAGE_EXTENSIONS
 from radiometry.textlists import list_lines, read_list_text
 
 DEFAULT_INTRINSICS = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1.0]])

@@ -34,7 +34,8 @@ import numpy as np
 from mapping.simulation import textures as tx
 from mapping.simulation.scene import Face, Lighting, PointLight, TexturedScene
 from radiometry.errors import DatasetError, ImageError
-from radiometry.fileio import atomic_write_json, read_rgb
+from radiometry.fileio import atomic_write_json
+from radiometry.images import read_rgb
 
 log = logging.getLogger(__name__)
 

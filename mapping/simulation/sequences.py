@@ -44,7 +44,8 @@ from mapping.simulation.trajectory import (HandheldMotion, PaperSweep, paper_tra
                                            room_trajectory)
 from radiometry import __version__
 from radiometry.errors import OutputError
-from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir, write_depth, write_image
+from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
+from radiometry.images import write_depth, write_image
 from radiometry.simulation import (Capture, CameraSpec, ExposureController, SimulatedCamera, default_intrinsics)
 
 log = logging.getLogger(__name__)

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from radiometry.errors import CalibrationFileError, OutputError
-from radiometry.fileio import atomic_write_bytes, png_defect
+from radiometry.fileio import atomic_write_bytes
+from radiometry.images import png_defect
 from radiometry.vignetting import LUTVignetting, VignettingModel
 
 log = logging.getLogger(__name__)

@@ -1,0 +1,188 @@
+"""Image files: colour read as RGB (OpenCV's BGR converted here, exactly once), depth as float32 metres.
+
+Every reader names the file and the fix when it fails, and checks a PNG's or JPEG's header before decoding it
+(:func:`png_defect`, :func:`jpeg_defect`): a few corrupt bytes can claim an image of gigabytes. Writes are
+atomic (:func:`radiometry.fileio.atomic_write_bytes`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from radiometry.errors import ImageError, OutputError
+from radiometry.fileio import atomic_write_bytes
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_MAX_PIXELS = 100_000_000
+# deflate cannot compress better than ~1032:1, so a PNG much smaller than raw/1100 is lying about its size
+_MAX_DEFLATE_RATIO = 1100
+
+
+def png_defect(raw: np.ndarray | bytes) -> str | None:
+    """Why a PNG cannot hold what its header claims (None when it can, or when the data is no PNG).
+
+    Checked before decoding: a corrupt IHDR size or chunk length makes the decoder allocate and scan
+    gigabytes for seconds on a file of a few bytes."""
+    head = bytes(raw[:33])
+    if not head.startswith(_PNG_SIGNATURE) or len(head) < 33 or head[12:16] != b"IHDR":
+        return None
+    size = len(raw)
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    bit_depth = max(head[24], 1)
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(head[25], 4)
+    raw_bytes = width * height * channels * bit_depth / 8
+    if width == 0 or height == 0 or width * height > _MAX_PIXELS or raw_bytes > size * _MAX_DEFLATE_RATIO:
+        return (f"the PNG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
+                "(corrupt or truncated)")
+    pos = 8
+    data = raw if isinstance(raw, bytes) else raw.tobytes()
+    while pos + 8 <= size:
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        if length > 2**31 - 1 or pos + 12 + length > size:
+            return (f"cannot decode the PNG: chunk {data[pos + 4:pos + 8]!r} at byte {pos} claims {length} bytes "
+                    f"past the end of the {size}-byte file (corrupt or truncated)")
+        if data[pos + 4:pos + 8] == b"IEND":
+            break
+        pos += 12 + length
+    return None
+
+
+# Huffman-coded JPEG needs at least one bit per 8x8 block: real encoders stay below ~600:1 on flat images
+_MAX_JPEG_RATIO = 4096
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def jpeg_defect(raw: np.ndarray | bytes) -> str | None:
+    """Why a JPEG cannot hold the image its start-of-frame claims (None when it can, or for no JPEG):
+    the decoder would fill gigabytes of a made-up size for a file of a few bytes."""
+    data = bytes(raw[:65536])
+    size = len(raw)
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return None  # not a marker: let the decoder report the corruption
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):
+            pos += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before it
+            return None
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker in _JPEG_SOF and pos + 10 <= len(data):
+            height = int.from_bytes(data[pos + 5:pos + 7], "big")
+            width = int.from_bytes(data[pos + 7:pos + 9], "big")
+            components = max(data[pos + 9], 1)
+            if width * height > _MAX_PIXELS or width * height * components > size * _MAX_JPEG_RATIO:
+                return (f"the JPEG header claims {width}x{height} pixels, which this {size}-byte file cannot hold "
+                        "(corrupt or truncated)")
+            return None
+        pos += 2 + length
+    return None
+
+
+def _read_encoded(path: Path, what: str) -> np.ndarray:
+    """Decode an image file (OpenCV, BGR, any depth) or raise :class:`ImageError` naming it."""
+    cv2 = _cv2()
+    try:
+        if not path.is_file():
+            raise ImageError(f"{path}: no such {what}; check the path")
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot read the {what} ({exc.strerror or exc}); check the path and "
+                         "its permissions") from None
+    if data.size == 0:
+        raise ImageError(f"{path}: empty file; replace it with a valid image")
+    defect = png_defect(data) or jpeg_defect(data)
+    if defect is not None:
+        raise ImageError(f"{path}: {defect}; replace it")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    if img is None:
+        raise ImageError(f"{path}: cannot decode the {what} (corrupt, truncated or not an image); replace it")
+    return img
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
+
+    16-bit images are scaled to 8 bits. Raises :class:`ImageError` naming the file when it is missing,
+    unreadable or truncated.
+    """
+    cv2 = _cv2()
+    path = Path(path)
+    img = _read_encoded(path, "image")
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        elif img.shape[2] == 1:
+            img = img[:, :, 0]
+        else:
+            raise ImageError(f"{path}: {img.shape[2]} channels; expected 1, 3 or 4")
+    return np.ascontiguousarray(img)
+
+
+def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
+    """Read a 16-bit depth image and return float32 metres (``raw / scale``; 0 stays 0 = invalid)."""
+    path = Path(path)
+    if scale <= 0 or not np.isfinite(scale):
+        raise ValueError(f"depth scale must be a positive number, got {scale}")
+    img = _read_encoded(path, "depth image")
+    if img.ndim == 3:
+        raise ImageError(f"{path}: depth image has {img.shape[2]} channels; expected a single-channel 16-bit PNG")
+    if img.dtype not in (np.uint16, np.float32):
+        raise ImageError(f"{path}: depth must be 16-bit (got {img.dtype}); save depth as 16-bit PNG")
+    depth = img.astype(np.float32) / np.float32(scale)
+    depth[~np.isfinite(depth)] = 0.0
+    return depth
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix."""
+    cv2 = _cv2()
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    path = Path(path)
+    ok, buf = cv2.imencode(path.suffix or ".png", image)
+    if not ok:
+        raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def write_depth(path: str | os.PathLike, depth_m: np.ndarray, scale: float) -> Path:
+    """Write float32 metres as a 16-bit PNG (``round(depth * scale)``, clipped to the uint16 range)."""
+    raw = np.clip(np.round(np.nan_to_num(depth_m) * scale), 0, 65535).astype(np.uint16)
+    return write_image(path, raw)
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """Image files in a folder, sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ImageError(f"{folder}: no such folder; check the path")
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
