@@ -1,0 +1,141 @@
+"""Collection: every frame of a source through sheet detection into the accumulator, with the frames skipped
+counted by reason and a one-line error with the fix when the frames are no white-sheet sweep."""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import CalibrationError, ImageError
+from radiometry.quorum import rule_text, too_little
+from radiometry.response import CameraResponse
+from radiometry.vignetting_calibration.accumulate import VignettingAccumulation, VignettingAccumulator
+from radiometry.vignetting_calibration.sheet import detect_sheet
+from radiometry.vignetting_calibration.sources import open_frames
+
+log = logging.getLogger(__name__)
+
+#: the fix that ends every "these frames are no sweep" message
+SWEEP_FIX = ("point the camera at an evenly lit white sheet that fills a good part of the view, on a darker "
+             "background, and sweep it across the whole image")
+
+
+def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: int | None = None,
+                       stop_when_covered: bool = False, max_frames: int | None = None, block: int | None = None,
+                       saturation: int = 250, dark: int = 20, progress: bool = True,
+                       **detect_options: Any) -> VignettingAccumulation:
+    """Segment the sheet in every frame of ``source`` and accumulate it in irradiance.
+
+    ``source``: anything :func:`open_frames` takes. ``min_samples`` with ``stop_when_covered`` stops as
+    soon as every pixel has that many samples. Raises :class:`CalibrationError` (with the fix) when no
+    frame is usable: all saturated (the clipped flat-field case), too dark, or no sheet found. ``progress``:
+    a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
+    """
+    if not isinstance(response, CameraResponse):
+        raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
+    if min_samples is not None and min_samples < 1:
+        raise ValueError(f"min_samples must be at least 1, got {min_samples}")
+    if stop_when_covered and min_samples is None:
+        raise ValueError("stop_when_covered needs min_samples")
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be positive, got {max_frames}")
+    frames = open_frames(source, max_frames=max_frames)
+    from radiometry.progress import progress_bar
+
+    acc: VignettingAccumulator | None = None
+    skipped: Counter[str] = Counter()
+    sizes: Counter[str] = Counter()      # frames per size ("WxH" or "WxH grey"): the first frame's must prevail
+    first_size = ""
+    seed: tuple[int, int] | None = None
+    n_seen = 0
+    total = frames.length if max_frames is None or frames.length is None else min(frames.length, max_frames)
+    bar = progress_bar(frames, total=total, desc="vignetting frames", enabled=progress, leave=False)
+    try:
+        for frame in bar:
+            if max_frames is not None and n_seen >= max_frames:
+                break
+            n_seen += 1
+            frame = np.asarray(frame)
+            if frame.dtype != np.uint8:
+                raise ImageError(f"{frames.name}: frame {n_seen - 1} is {frame.dtype}; vignetting calibration "
+                                 "needs 8-bit frames")
+            if frame.ndim == 3 and frame.shape[2] == 1:
+                frame = frame[:, :, 0]
+            sizes[_size_text(frame)] += 1
+            if acc is None:
+                first_size = _size_text(frame)
+                ch = 1 if frame.ndim == 2 else frame.shape[2]
+                acc = VignettingAccumulator(frame.shape[0], frame.shape[1], ch, response, block=block,
+                                            saturation=saturation)
+            elif frame.shape[:2] != acc.shape[:2] or (frame.ndim == 2) != (acc.shape[2] == 1):
+                skipped["different size"] += 1
+                continue
+            det = detect_sheet(frame, seed, saturation=saturation, dark=dark, **detect_options)
+            if not det.ok:
+                skipped[det.status] += 1
+                log.debug("frame %d skipped: %s", n_seen - 1, det.status)
+                continue
+            acc.add(frame, det.mask, index=n_seen - 1)
+            seed = det.centre
+            if stop_when_covered and acc.covered(min_samples):  # type: ignore[arg-type]
+                log.info("every pixel has %d samples after %d frames; stopping", min_samples, n_seen)
+                break
+    finally:
+        bar.close()
+    if acc is None:
+        raise CalibrationError(f"{frames.name}: no frames; record a sweep over a white sheet")
+    if len(sizes) > 1:
+        _check_sizes(frames.name, sizes, first_size)
+    if acc.frames == 0:
+        raise CalibrationError(_no_frames_message(frames.name, n_seen, skipped, saturation))
+    if too_little(acc.frames, n_seen):
+        reasons = ", ".join(f"{k}: {v}" for k, v in skipped.most_common())
+        raise CalibrationError(
+            f"{frames.name}: a sheet was found in only {acc.frames} of {n_seen} frames ({reasons}); a model needs "
+            f"{rule_text()}, so these are not a white-sheet sweep; {SWEEP_FIX}")
+    if skipped.get("saturated", 0) > acc.frames:
+        log.warning("%d of %d frames were skipped as saturated; lowering the exposure would use them",
+                    skipped["saturated"], n_seen)
+    result = acc.result(skipped=dict(skipped), source=frames.name)
+    log.info("vignetting data: %d frames used, %d skipped %s", result.frames_used, result.frames_skipped,
+             dict(skipped))
+    return result
+
+
+def _size_text(frame: np.ndarray) -> str:
+    return f"{frame.shape[1]}x{frame.shape[0]}" + (" grey" if frame.ndim == 2 else "")
+
+
+def _check_sizes(name: str, sizes: Counter, first: str) -> None:
+    """Frames of another size than the first are skipped; when they outnumber the first frame's size, the first
+    frame was the odd one and the model would rest on the few: refuse with the counts."""
+    listing = ", ".join(f"{n} at {size}" for size, n in sizes.most_common())
+    if sizes[first] < max(n for size, n in sizes.items() if size != first):
+        raise CalibrationError(f"{name}: the frames have different sizes ({listing}); the first frame's size "
+                               f"({first}) is the rarer one; remove the frames of other sizes, or record the sweep at "
+                               "one resolution")
+    log.warning("%s: skipped %d frames of another size than the first (%s)", name,
+                sum(sizes.values()) - sizes[first], listing)
+
+
+def _no_frames_message(name: str, n_seen: int, skipped: Counter, saturation: int) -> str:
+    reason, count = skipped.most_common(1)[0] if skipped else ("no sheet", n_seen)
+    if reason == "saturated":
+        return (f"{name}: the frames are saturated: the sheet is clipped (>= {saturation}) in {count} of {n_seen} "
+                "frames, so they cannot measure vignetting; lower the exposure time (or the light) until the "
+                "brightest part of the sheet stays below 250, and record again")
+    if reason == "too dark":
+        return (f"{name}: the sheet is too dark in {count} of {n_seen} frames; raise the exposure or the light "
+                "(the sheet's centre should be around 150-220) and record again")
+    if reason == "textured":
+        return (f"{name}: the view is textured or noisy, not a plain sheet, in {count} of {n_seen} frames; point "
+                "the camera at an evenly lit plain white sheet (matte paper, no print) and record again")
+    if reason == "low contrast":
+        return (f"{name}: the plain region found is hardly brighter than its surroundings in {count} of {n_seen} "
+                f"frames (a wall or a table, not a white sheet on a darker background); {SWEEP_FIX}")
+    if reason == "different size":
+        return f"{name}: the frames have different sizes; record the sweep at one resolution"
+    return f"{name}: no white sheet found in any of the {n_seen} frames ({dict(skipped)}); {SWEEP_FIX}"

@@ -1,0 +1,105 @@
+"""Evaluation in 8-bit levels: an estimated vignetting against the truth (simulations), a model against a
+session's mean flat, and the paper's repeatability experiment (Fig. 6)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from radiometry.registry import validate_name
+from radiometry.response import CameraResponse
+from radiometry.vignetting import VignettingModel
+from radiometry.vignetting_calibration.accumulate import VignettingAccumulation
+from radiometry.vignetting_calibration.fit import MODELS, fit_vignetting, observed_flat
+
+
+def vignetting_error_levels(estimate: np.ndarray | VignettingModel, truth: np.ndarray, response: CameraResponse, *,
+                            level: float = 200.0, mask: np.ndarray | None = None) -> np.ndarray:
+    """RMS error of an estimated ``V`` against the true one, in 8-bit intensity levels, per channel.
+
+    A flat field whose centre (``V = 1``) images at ``level`` is observed as ``f(f^-1(level) V_true(x))``;
+    the estimate predicts ``f(a f^-1(level) V_est(x))``, with ``a`` the median of ``V_true / V_est`` (the
+    global scale of ``V`` is absorbed by exposure, so it is not counted). Returns the RMS over pixels
+    (or over ``mask``) of the difference of the two, float64 ``(C,)``.
+    """
+    truth = np.asarray(truth, dtype=np.float64)
+    if truth.ndim == 2:
+        truth = truth[:, :, None]
+    est = estimate.evaluate(truth.shape[0], truth.shape[1]) if isinstance(estimate, VignettingModel) else estimate
+    est = np.asarray(est, dtype=np.float64)
+    if est.ndim == 2:
+        est = est[:, :, None]
+    if est.shape[:2] != truth.shape[:2]:
+        raise ValueError(f"estimate {est.shape} and truth {truth.shape} must have the same size")
+    channels = max(est.shape[2], truth.shape[2])
+    est = np.broadcast_to(est, (*truth.shape[:2], channels))
+    truth = np.broadcast_to(truth, est.shape)
+    sel = np.ones(truth.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    tables = response.channel_tables(channels).astype(np.float64)
+    out = np.empty(channels)
+    for c in range(channels):
+        t, e = truth[:, :, c][sel], est[:, :, c][sel]
+        a = float(np.median(t / e))
+        base = float(np.interp(level, np.arange(256.0), tables[:, c]))
+        obs = np.interp(base * t, tables[:, c], np.arange(256.0))
+        pred = np.interp(a * base * e, tables[:, c], np.arange(256.0))
+        out[c] = float(np.sqrt(np.mean((pred - obs) ** 2)))
+    return out
+
+
+def flat_rms_levels(model: VignettingModel, accumulation: VignettingAccumulation,
+                    response: CameraResponse | None = None, *, joint_scale: bool = True,
+                    min_samples: int = 1) -> np.ndarray:
+    """How well ``model`` explains a session's mean flat image, in 8-bit levels, per channel.
+
+    The observed flat is ``O(x) = f(E(x))`` with ``E`` the session's (drift-corrected) mean irradiance;
+    the model predicts ``P(x) = f(a V(x))`` with ``a`` the median of ``E / V`` (the flat's brightness).
+    Returns the RMS of ``P - O`` over pixels with at least ``min_samples`` samples (``(C,)``). With the
+    model fitted on the same session this is the fit residual; on another session it is the paper's
+    repeatability error (Fig. 6).
+    """
+    response = response or accumulation.response
+    if response is None:
+        raise ValueError("pass the response: the accumulation does not carry one")
+    flat, weights = observed_flat(accumulation, joint_scale, min_samples)
+    h, w, ch = accumulation.shape
+    v = model.evaluate(h, w).astype(np.float64)
+    v = np.broadcast_to(v, (h, w, ch))
+    tables = response.channel_tables(ch).astype(np.float64)
+    levels = np.arange(256.0)
+    out = np.empty(ch)
+    for c in range(ch):
+        sel = (weights[:, :, c] > 0) & np.isfinite(flat[:, :, c])
+        e, vv = flat[:, :, c][sel], v[:, :, c][sel]
+        if e.size == 0:
+            out[c] = np.nan
+            continue
+        a = float(np.median(e / vv))
+        obs = np.interp(e, tables[:, c], levels)
+        pred = np.interp(a * vv, tables[:, c], levels)
+        out[c] = float(np.sqrt(np.mean((pred - obs) ** 2)))
+    return out
+
+
+def repeatability(accumulations: Sequence[VignettingAccumulation], response: CameraResponse, *,
+                  models: Sequence[str] = ("poly", "poly-fixed-center", "lut"),
+                  fit_options: dict | None = None) -> dict[str, np.ndarray]:
+    """The paper's repeatability experiment (Fig. 6): fit each model on each of K sessions and measure
+    :func:`flat_rms_levels` against each of the other K - 1.
+
+    Returns ``{model: errors}`` with ``errors`` float64 ``(K * (K - 1), C)`` in 8-bit levels.
+    """
+    k = len(accumulations)
+    if k < 2:
+        raise ValueError(f"repeatability needs at least 2 sessions, got {k}")
+    for name in models:
+        validate_name(name, MODELS, MODELS.kind)
+    results: dict[str, list[np.ndarray]] = {name: [] for name in models}
+    for i, acc in enumerate(accumulations):
+        for name in models:
+            model = fit_vignetting(acc, model=name, **(fit_options or {}))
+            for j, other in enumerate(accumulations):
+                if j != i:
+                    results[name].append(flat_rms_levels(model, other, response))
+    return {name: np.array(errs) for name, errs in results.items()}

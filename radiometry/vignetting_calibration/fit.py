@@ -1,0 +1,215 @@
+"""Fits of a vignetting model to an accumulation, one function per method (:func:`fit_vignetting_lut`,
+:func:`fit_vignetting_polynomial` with the centre fixed or free), and :func:`fit_vignetting`, which picks one
+by name from :data:`MODELS`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import CalibrationError
+from radiometry.registry import Registry
+from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal
+from radiometry.vignetting_calibration.accumulate import VignettingAccumulation
+from radiometry.vignetting_calibration.collect import SWEEP_FIX
+
+#: the largest LUT denoising (pixels): beyond it the "fine" residual is a constant and OpenCV's kernel overflows
+MAX_SMOOTH_SIGMA = 50.0
+#: a model is fitted only when the sheet was seen at this fraction of the image at least (simulated sweeps of
+#: 30-40 frames: 100 %; ordinary room frames where a plain wall passed for a sheet: 15 %)
+MIN_OBSERVED_FRACTION = 0.5
+
+
+def observed_flat(acc: VignettingAccumulation, joint_scale: bool,
+                  min_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """The session's flat (:meth:`VignettingAccumulation.flat`) where a pixel has at least ``min_samples``
+    samples, NaN elsewhere, and the sample counts as weights (0 elsewhere), both float64 ``(H, W, C)``."""
+    flat = acc.flat(joint_scale=joint_scale)
+    weights = np.where(acc.count >= min_samples, acc.count, 0).astype(np.float64)
+    flat = np.where(weights > 0, flat, np.nan)
+    return flat, weights
+
+
+def _poly_design(r2: np.ndarray) -> np.ndarray:
+    return np.stack([np.ones_like(r2), r2, r2 ** 2, r2 ** 3], axis=1)
+
+
+def _fit_channel_poly(xs: np.ndarray, ys: np.ndarray, d: np.ndarray, w: np.ndarray, resolution: tuple[int, int],
+                      free: bool) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """Fit ``d = s (1 + b1 r^2 + b2 r^4 + b3 r^6)`` to samples; returns ``s, b, centre, rms``."""
+    from scipy.optimize import least_squares
+
+    width, height = resolution
+    radius = half_diagonal(resolution)
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    sw = np.sqrt(w)
+    r2 = ((xs - centre[0]) ** 2 + (ys - centre[1]) ** 2) / radius ** 2
+    design = _poly_design(r2) * sw[:, None]
+    coef, *_ = np.linalg.lstsq(design, d * sw, rcond=None)
+    s = float(coef[0])
+    if not s > 0:
+        raise CalibrationError("the fitted vignetting is not positive at the image centre; the data do not look "
+                               "like a flat field (check the response and the frames)")
+    b = coef[1:] / s
+    if free:
+        # parameters: centre in units of R (well scaled), overall scale, b1..b3
+        def residual(p):
+            cx, cy, s_, b1, b2, b3 = p
+            rr = ((xs - cx * radius) ** 2 + (ys - cy * radius) ** 2) / radius ** 2
+            return sw * (d - s_ * (1.0 + rr * (b1 + rr * (b2 + rr * b3))))
+
+        def jacobian(p):
+            cx, cy, s_, b1, b2, b3 = p
+            dx, dy = xs - cx * radius, ys - cy * radius
+            rr = (dx * dx + dy * dy) / radius ** 2
+            dp = b1 + rr * (2.0 * b2 + 3.0 * rr * b3)  # dP/d(rr)
+            jac = np.empty((xs.size, 6))
+            jac[:, 0] = sw * s_ * dp * (2.0 * dx / radius)
+            jac[:, 1] = sw * s_ * dp * (2.0 * dy / radius)
+            jac[:, 2] = -sw * (1.0 + rr * (b1 + rr * (b2 + rr * b3)))
+            jac[:, 3] = -sw * s_ * rr
+            jac[:, 4] = -sw * s_ * rr ** 2
+            jac[:, 5] = -sw * s_ * rr ** 3
+            return jac
+
+        p0 = np.array([centre[0] / radius, centre[1] / radius, s, *b])
+        sol = least_squares(residual, p0, jac=jacobian, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                            max_nfev=2000)
+        cx, cy, s, b1, b2, b3 = sol.x
+        centre = np.array([cx * radius, cy * radius])
+        b = np.array([b1, b2, b3])
+        if not (-0.5 <= centre[0] <= width - 0.5 and -0.5 <= centre[1] <= height - 0.5) or not s > 0:
+            raise CalibrationError(
+                f"the free-centre fit put the optical centre at ({centre[0]:.1f}, {centre[1]:.1f}), outside the "
+                f"{width}x{height} image: the data do not constrain it; cover the image more evenly or use "
+                "--model poly-fixed-center")
+        r2 = ((xs - centre[0]) ** 2 + (ys - centre[1]) ** 2) / radius ** 2
+    pred = s * (1.0 + r2 * (b[0] + r2 * (b[1] + r2 * b[2])))
+    rms = float(np.sqrt(np.sum(w * (d - pred) ** 2) / np.sum(w)) / s)
+    return float(s), np.asarray(b, dtype=np.float64), centre, rms
+
+
+def fit_vignetting_polynomial(accumulation: VignettingAccumulation, *, fixed_centre: bool = False,
+                              joint_scale: bool = True, min_samples: int = 1,
+                              max_points: int = 200_000) -> PolynomialVignetting:
+    """Polynomial model per channel, ``V = s_c (1 + b1 r^2 + b2 r^4 + b3 r^6)``, stored normalised (``V = 1``
+    at its centre; ``s_c`` kept in ``info["fit_scale"]``).
+
+    ``fixed_centre=True``: centre at the image centre, linear least squares weighted by the sample counts.
+    ``fixed_centre=False``: centre free, Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``)
+    initialised from the fixed-centre fit. At most ``max_points`` pixels (a regular subsample) are used.
+    """
+    acc = accumulation
+    flat, weights = observed_flat(acc, joint_scale, min_samples)
+    h, w, ch = acc.shape
+    step = max(1, int(np.ceil(np.sqrt(h * w / max_points))))
+    yy, xx = np.mgrid[0:h:step, 0:w:step]
+    coeffs, centres, scales, rms = [], [], [], []
+    for c in range(ch):
+        d = flat[::step, ::step, c]
+        wt = weights[::step, ::step, c]
+        sel = (wt > 0) & np.isfinite(d)
+        if np.count_nonzero(sel) < 50:
+            raise CalibrationError(f"channel {c}: only {np.count_nonzero(sel)} observed pixels; record a longer sweep")
+        s, b, centre, err = _fit_channel_poly(xx[sel].astype(np.float64), yy[sel].astype(np.float64), d[sel],
+                                              wt[sel], acc.resolution, free=not fixed_centre)
+        coeffs.append(b)
+        centres.append(centre)
+        scales.append(s)
+        rms.append(err)
+    info = {"method": "poly-fixed-center" if fixed_centre else "poly", "joint_scale": bool(joint_scale),
+            "fit_scale": scales, "fit_rms_relative": rms, "frames_used": acc.frames_used,
+            "frames_skipped": acc.skipped, "source": acc.source}
+    try:
+        return PolynomialVignetting(np.array(coeffs), np.array(centres), acc.resolution, info=info)
+    except ValueError as exc:
+        raise CalibrationError(f"the fitted polynomial is not a valid vignetting ({exc}); the corners are probably "
+                               "not covered: sweep the sheet into the corners, or use --model lut") from None
+
+
+def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: bool = True, min_samples: int = 1,
+                       smooth_sigma: float = 1.0) -> LUTVignetting:
+    """Per-pixel, per-channel LUT: the session's (drift-corrected) mean flat, normalised and denoised.
+
+    The flat ``D`` is factored as ``P(x) * q(x)`` with ``P`` a free-centre polynomial fit of the same data
+    (fixed-centre if the free fit fails) and ``q = D / P`` what no radial model explains (the non-radial
+    part and the noise). Then:
+
+    - Denoising: ``q`` is averaged with count-weighted Gaussian weights of ``smooth_sigma`` pixels (``0``
+      disables it). Smoothing ``q`` rather than ``D`` keeps the steep radial fall-off out of the average,
+      so image borders and the edges of unobserved regions are not biased.
+    - Unobserved pixels (fewer than ``min_samples`` samples) get ``P`` times ``q`` faded to 1 away from
+      the observed region: never zero or NaN, and no seam. Pixels with only a few samples are pulled
+      towards the local trend of ``q`` (with the weight of 3 samples), so a thinly covered corner does not
+      carry single-frame noise into the LUT.
+    - Normalisation: divided by the maximum of ``P * q_coarse`` (``q`` smoothed over 1 % of the image
+      diagonal), so that one noisy pixel cannot set the scale; ``V`` is ~1 at the optical centre.
+    """
+    import cv2
+
+    if smooth_sigma < 0:
+        raise ValueError(f"smooth_sigma must be >= 0, got {smooth_sigma}")
+    if not smooth_sigma <= MAX_SMOOTH_SIGMA:  # also NaN; OpenCV's Gaussian fails on huge kernels
+        raise ValueError(f"smooth_sigma must be at most {MAX_SMOOTH_SIGMA:g} pixels, got {smooth_sigma}")
+    acc = accumulation
+    flat, weights = observed_flat(acc, joint_scale, min_samples)
+    h, w, ch = acc.shape
+    observed = weights > 0
+    if observed.mean() < 0.05:
+        raise CalibrationError(f"only {100 * observed.mean():.1f}% of the image was observed; sweep the sheet over "
+                               "the whole image")
+    try:
+        poly = fit_vignetting_polynomial(acc, joint_scale=joint_scale, min_samples=min_samples)
+    except CalibrationError:
+        poly = fit_vignetting_polynomial(acc, fixed_centre=True, joint_scale=joint_scale, min_samples=min_samples)
+    base = poly.evaluate(h, w).astype(np.float64) * np.asarray(poly.info["fit_scale"])[None, None, :]
+    ratio = np.where(observed, flat / base, 0.0)
+    big_sigma = 0.01 * float(np.hypot(h, w))
+
+    def blur(a: np.ndarray, sigma: float) -> np.ndarray:
+        if sigma <= 0:
+            return a
+        out = cv2.GaussianBlur(a.astype(np.float64), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        return out.reshape(a.shape)
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wc = blur(weights, big_sigma)
+        coarse = blur(ratio * weights, big_sigma) / wc
+        # away from the data the residual fades to 1 (the polynomial alone), with the weight of a tenth of
+        # the typical pixel's samples
+        prior = 0.1 * float(np.median(weights[observed]))
+        faded = (blur(ratio * weights, big_sigma) + prior) / (wc + prior)
+        # a pixel with few samples is pulled towards the local trend (the weight of `shrink` samples)
+        shrink = 3.0
+        trend = np.where(observed, coarse, faded)
+        fine = (blur(ratio * weights, smooth_sigma) + shrink * trend) / (blur(weights, smooth_sigma) + shrink)
+    q = np.where(observed, fine, faded)
+    q_coarse = np.where(observed, coarse, faded)
+    norm = np.array([float(np.max((base * q_coarse)[:, :, c][observed[:, :, c]])) for c in range(ch)])
+    lut = base * q / norm
+    lut = np.maximum(lut, 1e-3)
+    info = {"method": "lut", "joint_scale": bool(joint_scale), "smooth_sigma": float(smooth_sigma),
+            "filled_fraction": float(1.0 - observed.all(axis=2).mean()), "frames_used": acc.frames_used,
+            "frames_skipped": acc.skipped, "source": acc.source, "base": poly.info["method"]}
+    return LUTVignetting(lut.astype(np.float32), info=info)
+
+
+MODELS = Registry("model", {
+    "lut": lambda acc, **kw: fit_vignetting_lut(acc, **kw),
+    "poly": lambda acc, **kw: fit_vignetting_polynomial(acc, fixed_centre=False, **kw),
+    "poly-fixed-center": lambda acc, **kw: fit_vignetting_polynomial(acc, fixed_centre=True, **kw),
+})
+
+
+def fit_vignetting(accumulation: VignettingAccumulation, *, model: str = "lut", **options: Any) -> VignettingModel:
+    """Fit a vignetting model: ``model`` is ``"lut"``, ``"poly"`` (free centre) or ``"poly-fixed-center"``;
+    ``options`` go to the method (``joint_scale``, ``min_samples``, ...)."""
+    method = MODELS[model]  # ValueError listing the models on a wrong name
+    observed = float(np.mean(accumulation.count.max(axis=2) > 0))
+    if observed < MIN_OBSERVED_FRACTION:  # the rest of V would be extrapolated from a corner of the image
+        raise CalibrationError(
+            f"{accumulation.source or 'the sweep'}: the sheet was seen at only {observed:.0%} of the image in "
+            f"{accumulation.frames_used} frames; a model needs it swept over at least {MIN_OBSERVED_FRACTION:.0%} "
+            f"(the rest would be guessed); {SWEEP_FIX}")
+    return method(accumulation, **options)
