@@ -8,7 +8,7 @@
 
 Keyword names are ``radiomap reconstruct``'s long option names with underscores (``--voxel-size`` ->
 ``voxel_size``; ``--no-progress`` is ``progress=False``); their values and defaults are the command's
-(:class:`mapping.pipeline.ReconstructConfig`). The work is :func:`mapping.pipeline.build_run` and
+(:class:`mapping.factory.ReconstructConfig`). The work is :func:`mapping.factory.build_run` and
 :func:`mapping.pipeline.reconstruct`, exactly as the command does it.
 
 Import cost: this module imports neither Open3D nor trimesh; they are loaded when a run or a mesh needs them.
@@ -39,7 +39,7 @@ _FIELD_OF = {"display_exposure": "reference_exposure", "mesh_exposure": "exposur
 
 def _option_fields() -> dict[str, str]:
     """``{keyword option: ReconstructConfig field}`` for every option beyond the named arguments."""
-    from mapping.pipeline import ReconstructConfig
+    from mapping.factory import ReconstructConfig
 
     option_of = {field: option for option, field in _FIELD_OF.items()}
     return {option_of.get(f.name, f.name): f.name for f in dataclasses.fields(ReconstructConfig) if f.name not in _OWN}
@@ -74,7 +74,8 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
                  ``depth_max``, ``depth_scale``, ``intrinsics``, ``backend``, ``surfel_mesh``, ``format``, ...
                  (:func:`option_names`).
     """
-    from mapping.pipeline import ReconstructConfig, build_run, reconstruct
+    from mapping.factory import ReconstructConfig, build_run
+    from mapping.pipeline import reconstruct
     from radiometry.response import CameraResponse
 
     fields = _option_fields()
@@ -149,12 +150,12 @@ def _config_record(config, kwargs: dict) -> dict:
 
 
 class Reconstruction:
-    """The outcome of :func:`reconstruct_sequence`: the run (:class:`mapping.pipeline.RunResult`, whose
+    """The outcome of :func:`reconstruct_sequence`: the run (:class:`mapping.results.RunResult`, whose
     attributes it passes on: ``poses``, ``stamps``, ``histogram``, ``ate``, ``records``, ``metrics()``, ``fused``,
     ``status``, ``files``, ...) and the map's mesh in display colours.
 
     output:                the results folder, or None for a run without files.
-    config:                the :class:`~mapping.pipeline.ReconstructConfig` it ran with.
+    config:                the :class:`~mapping.factory.ReconstructConfig` it ran with.
     colour_model:          the colour model (``describe()``; with exposure compensation its ``estimator``).
     exposure_compensation: whether exposure compensation ran.
     """

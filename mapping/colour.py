@@ -8,15 +8,20 @@ A :class:`ColourModel` decides what a map stores:
   unless an ``exposure`` estimator is plugged in); display is ``f(E * k_ref)``: the response at a reference
   exposure, so maps fused with different corrections are compared in the same 8-bit units.
 
-The pipeline calls ``to_map(frame, view)`` with the map already rendered at the frame's pose (``view``, a
-:class:`mapping.fusion.base.ModelView`, or None for the first frame), so that a model can estimate per-frame
-quantities against the map (exposure compensation divides by a per-frame ``k`` estimated from it).
+The pipeline calls ``to_map(frame, view, pose)`` with the map already rendered at the frame's pose (``view``,
+a :class:`mapping.fusion.base.ModelView`, or None) and the pose the frame is fused at, so that a model can
+estimate per-frame quantities against the map (exposure compensation divides by a per-frame ``k`` estimated
+from it). It returns a :class:`FrameColour`: the colour, and which pixels may be fused (with the reason when
+none may).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -28,18 +33,47 @@ from radiometry.response import CameraResponse
 log = logging.getLogger(__name__)
 
 
+@dataclass
+class FrameColour:
+    """What a colour model makes of one frame.
+
+    colour: (H, W, 3) float32 map units.
+    valid:  None (every pixel may be fused) or bool (H, W): the pixels whose colour measures irradiance (the
+            pipeline fuses neither colour nor geometry elsewhere).
+    reason: why no pixel may be fused, when ``valid`` leaves none (the frame is then skipped with it).
+    """
+
+    colour: np.ndarray
+    valid: np.ndarray | None = None
+    reason: str = ""
+
+
 @runtime_checkable
 class ColourModel(Protocol):
     """How a run turns frames into map colours and map colours into display levels."""
 
     name: str
 
-    def to_map(self, frame: RGBDFrame, view: Any = None) -> np.ndarray:
-        """(H, W, 3) float32 map units for the frame (``view``: the map rendered at its pose, or None)."""
+    def to_map(self, frame: RGBDFrame, view: Any = None, pose: np.ndarray | None = None) -> FrameColour:
+        """The frame's colour in map units (``view``: the map rendered at ``pose``, the pose the frame is fused
+        at; either may be None)."""
         ...
 
     def to_display(self, colour: np.ndarray) -> np.ndarray:
         """Map units ``(..., 3)`` -> float32 display levels in [0, 255] (same shape)."""
+        ...
+
+    def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
+        """``sum_c |to_display(a) - to_display(b)|`` per row of two (N, 3) map-unit arrays, float32 (N,)."""
+        ...
+
+    def display_for_export(self) -> Callable[[np.ndarray], np.ndarray]:
+        """The conversion the exported mesh's colours go through (after the run; e.g. at the sequence's median
+        exposure)."""
+        ...
+
+    def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
+        """Write what the model learnt during the run (e.g. per-frame exposures) into ``folder``."""
         ...
 
     def describe(self) -> dict:
@@ -47,30 +81,25 @@ class ColourModel(Protocol):
         ...
 
 
-def display_l1(model: ColourModel, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
-    """The display-unit L1 distance (summed over R, G, B) between rows of two (N, 3) map-unit arrays:
-    ``model.display_l1`` when the model has a fused implementation, else through ``to_display``."""
-    fused = getattr(model, "display_l1", None)
-    if fused is not None:
-        return fused(map_colour, sample_colour)
-    a = np.asarray(model.to_display(map_colour), dtype=np.float32)
-    b = np.asarray(model.to_display(sample_colour), dtype=np.float32)
-    return np.abs(a - b).sum(axis=1)
-
-
 class RawIntensity:
     """No correction: the map averages intensity levels (0..255 as float32); display is the identity."""
 
     name = "none"
 
-    def to_map(self, frame: RGBDFrame, view: Any = None) -> np.ndarray:
-        return frame.rgb.astype(np.float32)
+    def to_map(self, frame: RGBDFrame, view: Any = None, pose: np.ndarray | None = None) -> FrameColour:
+        return FrameColour(frame.rgb.astype(np.float32))
 
     def to_display(self, colour: np.ndarray) -> np.ndarray:
         return np.clip(np.asarray(colour, dtype=np.float32), 0.0, 255.0)
 
     def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
         return np.abs(self.to_display(map_colour) - self.to_display(sample_colour)).sum(axis=1)
+
+    def display_for_export(self) -> Callable[[np.ndarray], np.ndarray]:
+        return self.to_display
+
+    def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
+        return {}
 
     def describe(self) -> dict:
         return {"name": self.name, "map_units": "intensity levels 0..255", "display": "identity"}
@@ -140,20 +169,52 @@ class FastForward:
 # --------------------------------------------------------------------------------------------------
 # irradiance
 # --------------------------------------------------------------------------------------------------
-ExposureFn = Callable[[RGBDFrame, np.ndarray, Any], "float | np.ndarray"]
+ExposureFn = Callable[[RGBDFrame, np.ndarray, Any, "np.ndarray | None"], "float | np.ndarray"]
 
 
 def as_vignetting_model(vignetting):
-    """None, a :class:`radiometry.vignetting.VignettingModel`, or an array ``V`` (H, W[, C]) (wrapped as a
-    :class:`~radiometry.vignetting.LUTVignetting`, e.g. a simulator's ``truth/vignetting.npy``)."""
+    """None, a :class:`radiometry.vignetting.VignettingModel`, an array ``V`` (H, W[, C]) (wrapped as a
+    :class:`~radiometry.vignetting.LUTVignetting`, e.g. a simulator's ``truth/vignetting.npy`` loaded), or a
+    file (:func:`read_vignetting`)."""
     from radiometry.vignetting import LUTVignetting, VignettingModel
 
     if vignetting is None or isinstance(vignetting, VignettingModel):
         return vignetting
     if isinstance(vignetting, np.ndarray):
         return LUTVignetting(vignetting, info={"source": "array"})
-    raise TypeError(f"vignetting must be a VignettingModel, an array V (H, W[, C]) or None, "
+    if isinstance(vignetting, (str, os.PathLike)):
+        return read_vignetting(vignetting)
+    raise TypeError(f"vignetting must be a VignettingModel, an array V (H, W[, C]), a file or None, "
                     f"got {type(vignetting).__name__}")
+
+
+def read_vignetting(path: str | os.PathLike):
+    """A vignetting model file: radiomap/radical/DSO files via :func:`radiometry.formats.load_vignetting`, or a
+    ``.npy`` array V (H, W[, C]) such as a simulator's ``truth/vignetting.npy`` (taken as a LUT)."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        from radiometry.errors import CalibrationFileError
+        from radiometry.arrays import load_array_file
+        from radiometry.vignetting import LUTVignetting
+
+        fix = "pass a float (H, W[, C]) .npy with finite V > 0"
+        array = load_array_file(path, fix=fix)  # refuses complex, object, text and structured arrays
+        try:
+            return LUTVignetting(array, info={"source": str(path)})
+        except (ValueError, TypeError) as exc:
+            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); {fix}") from None
+    from radiometry.formats import load_vignetting
+
+    return load_vignetting(path)
+
+
+def divide_exposure(irradiance: np.ndarray, k: Any) -> np.ndarray:
+    """``irradiance / k`` in place (float32), ``k`` a positive scalar or three per-channel gains."""
+    k = np.asarray(k, dtype=np.float32).reshape(-1)
+    if k.size not in (1, 3) or not np.all(np.isfinite(k)) or np.any(k <= 0):
+        raise ValueError(f"the exposure estimate must be a positive scalar or 3 gains, got {k}")
+    irradiance /= k if k.size == 3 else k[0]
+    return irradiance
 
 
 class IrradianceColour:
@@ -162,8 +223,9 @@ class IrradianceColour:
     response:           the camera response (:class:`CameraResponse`, 1 or 3 channels).
     vignetting:         None (no vignetting correction), a :class:`radiometry.vignetting.VignettingModel`
                         (polynomial or LUT) or an array V (H, W[, C]) taken as a LUT.
-    exposure:           None (k = 1 for every frame) or ``exposure(frame, irradiance, view) -> k`` (a scalar
-                        or three per-channel gains): the hook exposure compensation plugs into.
+    exposure:           None (k = 1 for every frame) or ``exposure(frame, irradiance, view, pose) -> k`` (a
+                        scalar or three per-channel gains; ``view`` the map rendered at ``pose``, the pose the
+                        frame is fused at): a per-frame exposure estimate.
     reference_exposure: ``k_ref`` of the display conversion.
 
     ``f^-1(I) / V`` is :meth:`radiometry.correction.Corrector.irradiance` (a uint8 table look-up).
@@ -182,7 +244,6 @@ class IrradianceColour:
         self._forward = FastForward(response, reference_exposure=reference_exposure)
         self.corrector = Corrector(response, self.vignetting)
         self.name = name or ("response+vignetting" if vignetting is not None else "response")
-        self.last_exposure: np.ndarray | None = None
 
     def irradiance(self, rgb: np.ndarray) -> np.ndarray:
         """``f^-1(I) / V`` of a uint8 (H, W, 3) image, float32."""
@@ -191,15 +252,11 @@ class IrradianceColour:
             raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
         return self.corrector.irradiance(rgb)
 
-    def to_map(self, frame: RGBDFrame, view: Any = None) -> np.ndarray:
+    def to_map(self, frame: RGBDFrame, view: Any = None, pose: np.ndarray | None = None) -> FrameColour:
         E = self.irradiance(frame.rgb)
         if self.exposure is not None:
-            k = np.asarray(self.exposure(frame, E, view), dtype=np.float32).reshape(-1)
-            if k.size not in (1, 3) or not np.all(np.isfinite(k)) or np.any(k <= 0):
-                raise ValueError(f"the exposure estimate must be a positive scalar or 3 gains, got {k}")
-            E /= k if k.size == 3 else k[0]
-            self.last_exposure = k
-        return E
+            E = divide_exposure(E, self.exposure(frame, E, view, pose))
+        return FrameColour(E)
 
     def to_display(self, colour: np.ndarray) -> np.ndarray:
         return self._forward(colour)
@@ -207,6 +264,12 @@ class IrradianceColour:
     def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
         """Display-unit L1 distances of (N, 3) map-unit pairs, fused (no temporaries)."""
         return self._forward.l1(map_colour, sample_colour)
+
+    def display_for_export(self) -> Callable[[np.ndarray], np.ndarray]:
+        return self.to_display
+
+    def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
+        return {}
 
     def describe(self) -> dict:
         vig = None if self.vignetting is None else repr(self.vignetting)

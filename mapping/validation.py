@@ -2,8 +2,8 @@
 the rule for a run that fused too little.
 
 Every numeric option of ``reconstruct``, ``compare``, ``simulate``, ``correct`` and ``vignetting`` (and the
-library's :class:`~mapping.pipeline.ReconstructConfig`, :func:`~mapping.pipeline.build_run`,
-:func:`~mapping.pipeline.make_backend`, :func:`~mapping.compare.compare`) is checked here, before anything is read
+library's :class:`~mapping.factory.ReconstructConfig`, :func:`~mapping.factory.build_run`,
+:func:`~mapping.factory.make_backend`, :func:`~mapping.compare.compare`) is checked here, before anything is read
 or written (options that click already bounds, such as image sizes, keep their click ranges); a value outside
 its range raises :class:`ImplausibleValueError` (a ``ValueError`` for the library, a one-line error with exit 1
 for the CLI) naming the option, the value and the range. The ranges come from real sensors:
@@ -318,33 +318,28 @@ def scene_depth(dataset, samples: int = 3) -> float | None:
 
 
 def config_options(config) -> dict:
-    """The fusion options of a :class:`~mapping.pipeline.ReconstructConfig` (or anything with those attributes)
+    """The fusion options of a :class:`~mapping.factory.ReconstructConfig` (or anything with those attributes)
     as keyword arguments of :func:`check_fusion` and :func:`check_run`."""
     names = ("backend", "voxel_size", "depth_max", "block_resolution", "trunc_voxel_multiplier")
     return {k: getattr(config, k) for k in names if hasattr(config, k)}
 
 
 def check_config(config) -> None:
-    """The options of a :class:`~mapping.pipeline.ReconstructConfig` that need no data: fusion options, depth
+    """The options of a :class:`~mapping.factory.ReconstructConfig` that need no data: fusion options, depth
     scale, exposure factors."""
     check_fusion(**config_options(config))
     check_depth_scale(getattr(config, "depth_scale", None))
-    for name in ("reference_exposure", "display_exposure"):
-        if isinstance(getattr(config, name, None), (int, float)):
-            check_exposure_factor(getattr(config, name), name)
+    if isinstance(getattr(config, "reference_exposure", None), (int, float)):
+        check_exposure_factor(config.reference_exposure, "reference_exposure")
 
 
-def check_run(dataset, *, backend: str = "tsdf", voxel_size: float = 0.01, depth_max: float = 3.0,
-              depth_min: float = 0.1, block_resolution: int = 16, trunc_voxel_multiplier: float = 8.0,
-              poses: str = "icp") -> MemoryEstimate:
-    """Everything about a run that can be checked before it starts: the options (:func:`check_fusion`), the
-    intrinsics against the image size (:func:`check_intrinsics`), ground truth for ``poses="gt"``, and the
-    memory (:func:`estimate_memory`, :func:`check_memory`). Returns the estimate."""
+def check_run(dataset, *, poses: str = "icp", **fusion) -> MemoryEstimate:
+    """Everything about a run that can be checked before it starts: the fusion options (``fusion``: the keywords
+    of :func:`check_fusion`), the intrinsics against the image size (:func:`check_intrinsics`), ground truth for
+    ``poses="gt"``, and the memory (:func:`estimate_memory`, :func:`check_memory`). Returns the estimate."""
     from radiometry.errors import DatasetError
 
-    check_fusion(backend=backend, voxel_size=voxel_size, depth_max=depth_max, depth_min=depth_min,
-                 block_resolution=block_resolution,
-                 trunc_voxel_multiplier=trunc_voxel_multiplier)
+    check_fusion(**fusion)
     name = getattr(dataset, "root", None) or getattr(dataset, "name", "the sequence")
     check_intrinsics(dataset.K, dataset.width, dataset.height,
                      source=getattr(dataset, "intrinsics_source", None) or "intrinsics")
@@ -352,10 +347,8 @@ def check_run(dataset, *, backend: str = "tsdf", voxel_size: float = 0.01, depth
         raise DatasetError(f"{name}: has no ground-truth poses for the selected frames (--poses gt); track with "
                            "--poses icp, or add the trajectory (TUM groundtruth.txt, 7-Scenes pose files, "
                            "Redwood trajectory.log)")
-    estimate = estimate_memory(backend=backend, K=dataset.K, width=dataset.width, height=dataset.height,
-                               frames=len(dataset), voxel_size=voxel_size, depth_min=depth_min, depth_max=depth_max,
-                               block_resolution=block_resolution, trunc_voxel_multiplier=trunc_voxel_multiplier,
-                               scene_depth=scene_depth(dataset))
+    estimate = estimate_memory(K=dataset.K, width=dataset.width, height=dataset.height, frames=len(dataset),
+                               scene_depth=scene_depth(dataset), **{"backend": "tsdf", **fusion})
     check_memory(estimate)
     return estimate
 

@@ -111,8 +111,9 @@ def worker_radiomap(args) -> dict:
 
     from mapping.colour import IrradianceColour
     from mapping.datasets import open_dataset
-    from mapping.datasets.synthetic import ArrayDataset
-    from mapping.pipeline import make_backend, make_tracker, reconstruct
+    from mapping.datasets.in_memory import ArrayDataset
+    from mapping.factory import make_backend, make_tracker
+    from mapping.pipeline import reconstruct
     from radiometry.response import CameraResponse
     from radiometry.vignetting import PolynomialVignetting
 

@@ -211,7 +211,7 @@ def test_frame_to_frame_starts_the_sequence_and_cross_checks(downsample):
     np.testing.assert_allclose(k, k2 / k0, rtol=0.005)
     np.testing.assert_allclose(rec.frame_k, k2 / k0, rtol=0.01)
     assert 0 <= rec.disagreement < 0.01
-    # view.pose, when the pipeline sets it, wins over frame.pose (here the ground truth is withheld)
+    # view.pose (the pose the backend rendered it at) wins over frame.pose (here the ground truth is withheld)
     est2 = ExposureEstimator(GAMMA)
     est2(plane_frame(0, pose_at(), k0), None, None)
     frame = plane_frame(1, p1, k1)
@@ -395,26 +395,28 @@ def test_compensated_colour_divides_masks_and_displays():
     rgb = f0.rgb.copy()
     rgb[:3, :3] = 255            # saturated corner
     f0 = RGBDFrame(0, 0.0, rgb, f0.depth, PK, f0.pose)
-    E0 = model.to_map(f0, None)
-    assert E0.dtype == np.float32
-    assert model.last_valid_mask is not None and model.last_valid_mask.sum() == PW * PH - 9
-    assert not model.last_valid_mask[:3, :3].any()
+    c0 = model.to_map(f0, None)
+    assert c0.colour.dtype == np.float32
+    assert c0.valid is not None and c0.valid.sum() == PW * PH - 9
+    assert not c0.valid[:3, :3].any() and c0.reason == "colour rejected: every pixel clipped or black"
     p = pose_at(0.03)
-    E1 = model.to_map(plane_frame(1, p, [0.5, 0.6, 0.7]), plane_view(p, [1, 1, 1]))
-    assert model.last_valid_mask is None                     # nothing clipped
-    np.testing.assert_allclose(model.last_record.k, [0.5, 0.6, 0.7], rtol=0.004)
+    c1 = model.to_map(plane_frame(1, p, [0.5, 0.6, 0.7]), plane_view(p, [1, 1, 1]), p)
+    assert c1.valid is None                                  # nothing clipped
+    E1 = c1.colour
+    np.testing.assert_allclose(model.estimator.last.k, [0.5, 0.6, 0.7], rtol=0.004)
     # compensated irradiance is in first-frame units: it matches the ideal map
     _, L = plane_radiance(p)
     assert np.median(np.abs(E1 / L - 1)) < 0.01
     # an over-exposed glitch: fallback, nothing of it is fused
-    model.to_map(plane_frame(2, p, [3, 3, 3]), plane_view(p, [1, 1, 1]))
-    assert model.last_record.source == "fallback" and not model.last_valid_mask.any()
+    c2 = model.to_map(plane_frame(2, p, [3, 3, 3]), plane_view(p, [1, 1, 1]), p)
+    assert model.estimator.last.source == "fallback" and not c2.valid.any()
+    assert c2.reason == "colour rejected: the exposure estimate fell back"
     # display: the histogram's reference is fixed (first frame), the export's is the median of the estimates
     np.testing.assert_allclose(model.to_display(np.full((1, 3), 0.5, np.float32)), GAMMA.forward(np.full((1, 3), 0.5)),
                                atol=1e-3)
     k_ref = model.export_reference_k()
     np.testing.assert_allclose(k_ref, np.median([[1, 1, 1], [0.5, 0.6, 0.7]], axis=0), rtol=0.004)
-    shown = model.export_display()(np.full((1, 3), 0.5, np.float32))
+    shown = model.display_for_export()(np.full((1, 3), 0.5, np.float32))
     np.testing.assert_allclose(shown, GAMMA.forward((0.5 * k_ref)[None].astype(np.float32)), atol=1e-3)
     doc = model.describe()
     assert doc["exposure_compensation"] is True and doc["exposure"]["summary"]["fallbacks"] == 1
@@ -435,9 +437,9 @@ def test_compensated_colour_options_and_errors():
     assert masked_only.estimator is None and masked_only.name == "response+clip-mask"
     assert masked_only.save_results("unused") == {}
     f = plane_frame(0, pose_at(), [30, 30, 30])              # saturated: masked, not compensated
-    E = masked_only.to_map(f, None)
-    np.testing.assert_allclose(E, masked_only.base.irradiance(f.rgb))
-    assert masked_only.last_valid_mask.mean() < 0.01
+    c = masked_only.to_map(f, None)
+    np.testing.assert_allclose(c.colour, masked_only.base.irradiance(f.rgb))
+    assert c.valid.mean() < 0.01
     np.testing.assert_allclose(masked_only.export_reference_k(), [1, 1, 1])
     fixed = CompensatedColour(IrradianceColour(GAMMA), export_reference=[0.5, 1, 2], max_jump=3.0)
     assert fixed.estimator.max_jump == 3.0
@@ -448,8 +450,9 @@ def test_the_pipeline_does_not_fuse_clipped_pixels():
     """Four views of the plane at the same exposure; in the last a patch is saturated (a specular highlight).
     With the clip mask the map keeps the first views' colour there; without it the highlight is averaged in."""
     from mapping.colour import IrradianceColour
-    from mapping.datasets.synthetic import ArrayDataset
-    from mapping.pipeline import make_backend, reconstruct
+    from mapping.datasets.in_memory import ArrayDataset
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
 
     frames = [plane_frame(i, pose_at(0.01 * i), [0.8] * 3, seed=i) for i in range(4)]
     last = frames[-1]
@@ -480,7 +483,7 @@ INJECTED = {12: 4.0, 18: 0.25, 25: 4.0, 33: 0.25}      # frame -> factor on its 
 
 def frames_dataset(frames, K, rgb_override=None):
     """The simulator's in-memory frames as an RGBDDataset (ground-truth poses), optionally with replaced images."""
-    from mapping.datasets.synthetic import ArrayDataset
+    from mapping.datasets.in_memory import ArrayDataset
 
     rgb_override = rgb_override or {}
     return ArrayDataset([RGBDFrame(f.index, f.timestamp, rgb_override.get(f.index, f.rgb),
@@ -507,7 +510,8 @@ def ae_awb_sequence():
 
 
 def _run(dataset, model, voxel_size=0.03):
-    from mapping.pipeline import make_backend, reconstruct
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
 
     backend = make_backend("tsdf", voxel_size=voxel_size, depth_max=4.0)
     run = reconstruct(dataset, colour_model=model, backend=backend, poses="gt", progress=False)

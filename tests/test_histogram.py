@@ -118,8 +118,9 @@ def test_correction_lowers_disagreement_under_strong_vignetting():
     room: fused as raw intensities, every surface changes colour as it crosses the image; fused as irradiance
     f^-1(I)/V it does not, up to 8-bit quantisation."""
     from mapping.colour import IrradianceColour, RawIntensity
-    from mapping.datasets.synthetic import box_room_sequence, radial_vignetting
-    from mapping.pipeline import make_backend, reconstruct
+    from box_room import box_room_sequence, radial_vignetting
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
     from radiometry.response import CameraResponse
 
     response = CameraResponse.gamma(2.2)

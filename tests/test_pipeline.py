@@ -7,15 +7,17 @@ import json
 
 import numpy as np
 import pytest
+from box_room import box_room_sequence
 from conftest import shared_path
 
-from mapping.colour import FastForward, IrradianceColour, RawIntensity, display_l1, make_colour_model
+from mapping.colour import FastForward, FrameColour, IrradianceColour, RawIntensity, make_colour_model
 from mapping.datasets import open_dataset
 from mapping.datasets.base import RGBDFrame
-from mapping.datasets.synthetic import ArrayDataset, box_room_sequence
+from mapping.datasets.in_memory import ArrayDataset
 from mapping.export import RUNNING_MARKER, ResultsFolder, is_complete
-from mapping.pipeline import make_backend, make_tracker, reconstruct
-from radiometry.errors import OutputError, RadiomapError
+from mapping.factory import make_backend, make_tracker
+from mapping.pipeline import reconstruct
+from radiometry.errors import OutputError
 from radiometry.response import CameraResponse
 
 
@@ -94,7 +96,7 @@ def room_colour_runs(room, calibrated_lut):
     stamps = np.array(sorted(exposures))
     k = np.array([exposures[s][0] * exposures[s][1:] for s in stamps])
 
-    def true_exposure(frame, irradiance, view):
+    def true_exposure(frame, irradiance, view, pose):
         return k[np.argmin(np.abs(stamps - frame.timestamp))]
 
     models = {"none": RawIntensity(),
@@ -203,22 +205,26 @@ def test_colour_models():
     rgb = np.random.default_rng(1).integers(0, 256, (6, 8, 3)).astype(np.uint8)
     frame = RGBDFrame(0, 0.0, rgb, np.ones((6, 8), np.float32), np.eye(3))
     raw = RawIntensity()
-    np.testing.assert_array_equal(raw.to_map(frame), rgb.astype(np.float32))
+    np.testing.assert_array_equal(raw.to_map(frame).colour, rgb.astype(np.float32))
     np.testing.assert_array_equal(raw.to_display(np.array([[-3, 100.5, 300]], np.float32)), [[0, 100.5, 255]])
     V = np.full((6, 8, 3), 0.5, np.float32)
     model = IrradianceColour(response, V)
-    E = model.to_map(frame)
+    out = model.to_map(frame)
+    assert isinstance(out, FrameColour) and out.valid is None and out.reason == ""
+    E = out.colour
     assert E.dtype == np.float32
     np.testing.assert_allclose(E, response.inverse(rgb) / 0.5, rtol=1e-6)
     np.testing.assert_allclose(model.to_display(E * 0.5), rgb, atol=1e-3)     # display = f(E * k_ref)
     # the exposure hook divides by k per channel
-    hooked = IrradianceColour(response, V, exposure=lambda f, e, view: np.array([2.0, 1.0, 0.5]))
-    np.testing.assert_allclose(hooked.to_map(frame), E / [2.0, 1.0, 0.5], rtol=1e-6)
-    bad = IrradianceColour(response, exposure=lambda f, e, view: -1.0)
+    seen = []
+    hooked = IrradianceColour(response, V, exposure=lambda f, e, view, pose: seen.append(pose) or np.array([2.0, 1.0, 0.5]))
+    np.testing.assert_allclose(hooked.to_map(frame, None, np.eye(4)).colour, E / [2.0, 1.0, 0.5], rtol=1e-6)
+    np.testing.assert_array_equal(seen[0], np.eye(4))                     # the hook receives the pose
+    bad = IrradianceColour(response, exposure=lambda f, e, view, pose: -1.0)
     with pytest.raises(ValueError, match="exposure estimate"):
         bad.to_map(frame)
     a, b = E.reshape(-1, 3)[:10], E.reshape(-1, 3)[10:20]
-    np.testing.assert_allclose(display_l1(model, a, b), np.abs(model.to_display(a) - model.to_display(b)).sum(1),
+    np.testing.assert_allclose(model.display_l1(a, b), np.abs(model.to_display(a) - model.to_display(b)).sum(1),
                                atol=1e-3)
     assert isinstance(make_colour_model(), RawIntensity)
     with pytest.raises(ValueError, match="needs the camera response"):
@@ -256,7 +262,7 @@ def test_tracking_lost_for_good_raises(tmp_path):
     ds = _box(5)
     frames = [ds.frames[0]] + [RGBDFrame(f.index, f.timestamp, f.rgb, np.zeros_like(f.depth), f.K, f.pose)
                                for f in ds.frames[1:]]
-    from radiometry.errors import TrackingError
+    from mapping.tracking import TrackingError
 
     out = ResultsFolder(tmp_path / "lost")
     with pytest.raises(TrackingError, match="4 consecutive frames"):
@@ -309,17 +315,11 @@ def test_a_frame_cut_short_by_ctrl_c_is_not_counted_as_skipped(tmp_path):
 
 
 def test_backends_by_name():
-    with pytest.raises(ValueError, match="backend must be one of"):
+    with pytest.raises(ValueError, match="backend must be one of tsdf, surfel, got 'octomap'"):
         make_backend("octomap")
-    import mapping.pipeline as pipeline
-
-    original = dict(pipeline.BACKENDS)
-    try:
-        pipeline.BACKENDS["surfel"] = ("mapping.fusion.not_there", "SurfelBackend")
-        with pytest.raises(RadiomapError, match="surfel backend.*not available.*--backend tsdf"):
-            make_backend("surfel")
-    finally:
-        pipeline.BACKENDS.update(original)
+    assert type(make_backend("surfel", voxel_size=0.02, block_resolution=8)).__name__ == "SurfelBackend"
+    with pytest.raises(ValueError, match="surfel_mesh applies to the surfel backend only"):
+        make_backend("tsdf", surfel_mesh=True)
     with pytest.raises(ValueError, match="poses must be one of"):
         reconstruct(_box(2), backend=make_backend("tsdf"), poses="slam")
     with pytest.raises(ValueError, match="needs a tracker"):

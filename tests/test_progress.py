@@ -117,8 +117,10 @@ def test_every_bar_is_made_by_the_helper():
 def test_reconstruct_counts_every_frame_and_logs_each(bars, caplog):
     """5 frames, the third without a pose: the bar counts 5 of 5 with 1 skipped, and the pipeline logs one DEBUG
     line per frame, in order, saying what became of it."""
-    from mapping.datasets.synthetic import ArrayDataset, box_room_sequence
-    from mapping.pipeline import make_backend, reconstruct
+    from mapping.datasets.in_memory import ArrayDataset
+    from box_room import box_room_sequence
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
 
     ds, _ = box_room_sequence(n_frames=5, width=80, height=60)
     frames = [ds[i] if i != 2 else replace(ds[i], pose=None) for i in range(5)]
@@ -135,8 +137,9 @@ def test_reconstruct_counts_every_frame_and_logs_each(bars, caplog):
 
 
 def test_reconstruct_without_progress_draws_nothing(bars):
-    from mapping.datasets.synthetic import box_room_sequence
-    from mapping.pipeline import make_backend, reconstruct
+    from box_room import box_room_sequence
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
 
     ds, _ = box_room_sequence(n_frames=2, width=80, height=60)
     reconstruct(ds, backend=make_backend("tsdf", voxel_size=0.05), poses="gt", progress=False)
@@ -147,7 +150,7 @@ def test_reconstruct_without_progress_draws_nothing(bars):
 def test_compare_has_one_bar_over_every_method(bars, tmp_path):
     """3 frames x 2 methods: one bar, 6 frames counted, the fusions inside draw none of their own."""
     from mapping.compare import compare, make_methods
-    from mapping.datasets.synthetic import box_room_sequence
+    from box_room import box_room_sequence
 
     ds, _ = box_room_sequence(n_frames=3, width=80, height=60)
     compare(ds, make_methods(CameraResponse.gamma(2.2), names=["none", "response"]), output=tmp_path / "cmp",

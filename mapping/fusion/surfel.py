@@ -7,7 +7,7 @@ Each :meth:`SurfelBackend.integrate` call runs ElasticFusion's fusion step on th
 
 1. **Samples.** Depth pixels of one lattice: with ``pixel_stride=2`` (default, ElasticFusion's ``data.vert``)
    the pixels with ``x % 2 == y % 2 == t % 2`` (``t`` counts integrated frames), with ``pixel_stride=1``
-   every pixel (Keller et al.). A pixel needs a depth in ``(0, max_depth]`` and its four neighbours valid
+   every pixel (Keller et al.). A pixel needs a depth in ``(0, depth_max]`` and its four neighbours valid
    (ElasticFusion's ``checkNeighbours``); additionally (not in ElasticFusion) no neighbour may differ by
    more than ``max_depth_jump`` (5 %) of the depth, so that no surfel is made across a depth discontinuity
    with a meaningless normal. Positions come from the raw depth; normals and radii from a bilateral-filtered
@@ -88,7 +88,8 @@ from pathlib import Path
 import numpy as np
 
 from mapping.fusion import _surfel_kernels as kern
-from mapping.fusion.base import ColourPairs, ModelView
+from mapping.fusion.base import ColourPairs, ModelView, masked_depth
+from mapping.fusion.surfel_map import SurfelMap, write_surfel_ply
 from radiometry.errors import OutputError
 from radiometry.fileio import atomic_path, ensure_dir
 
@@ -105,176 +106,6 @@ MAX_SPLAT_HALF = 32.0  # largest half-size in pixels of one splat in render()
 MAX_CANDIDATES = 8  # association candidates kept per sample (nearest its ray)
 
 
-# --------------------------------------------------------------------------------------------------
-# storage
-# --------------------------------------------------------------------------------------------------
-class SurfelMap:
-    """Struct-of-arrays surfel storage with amortised growth and compaction.
-
-    Arrays have ``capacity`` rows; rows ``0 .. size-1`` are in use, some of them dead (confidence -1) until
-    :meth:`compact` removes them. ``created``/``updated`` are integration counters (0 for the first frame
-    integrated), not frame indices; :class:`SurfelBackend` maps them back to frame indices.
-    """
-
-    FIELDS: tuple[tuple[str, tuple[int, ...], type], ...] = (
-        ("position", (3,), np.float32),
-        ("normal", (3,), np.float32),
-        ("radius", (), np.float32),
-        ("confidence", (), np.float32),
-        ("colour", (3,), np.float32),
-        ("created", (), np.int32),
-        ("updated", (), np.int32),
-    )
-
-    def __init__(self, capacity: int = 1 << 16) -> None:
-        if int(capacity) < 1:
-            raise ValueError(f"capacity must be a positive number of surfels, got {capacity}")
-        self._size = 0
-        self._dead = 0
-        self._arrays: dict[str, np.ndarray] = {
-            name: np.zeros((int(capacity),) + shape, dtype=dtype) for name, shape, dtype in self.FIELDS}
-
-    # sizes ------------------------------------------------------------------------------------------
-    @property
-    def capacity(self) -> int:
-        return int(self._arrays["radius"].shape[0])
-
-    @property
-    def size(self) -> int:
-        """Rows in use, dead ones included."""
-        return self._size
-
-    @property
-    def dead(self) -> int:
-        return self._dead
-
-    def __len__(self) -> int:
-        """Live surfels."""
-        return self._size - self._dead
-
-    @property
-    def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in self._arrays.values()))
-
-    # raw arrays (full capacity) for the kernels ----------------------------------------------------------
-    def array(self, name: str) -> np.ndarray:
-        return self._arrays[name]
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        arrays = self.__dict__.get("_arrays")
-        if arrays is not None and name in arrays:
-            return arrays[name][: self._size]
-        raise AttributeError(name)
-
-    def live_mask(self) -> np.ndarray:
-        return self._arrays["confidence"][: self._size] >= 0
-
-    # changes --------------------------------------------------------------------------------------------
-    def reserve(self, extra: int) -> None:
-        """Make room for ``extra`` more rows, doubling the capacity as needed."""
-        need = self._size + int(extra)
-        cap = self.capacity
-        if need <= cap:
-            return
-        new_cap = max(need, 2 * cap)
-        for name, arr in self._arrays.items():
-            grown = np.zeros((new_cap,) + arr.shape[1:], dtype=arr.dtype)
-            grown[: self._size] = arr[: self._size]
-            self._arrays[name] = grown
-
-    def append(self, position, normal, radius, confidence, colour, created, updated=None) -> np.ndarray:
-        """Append surfels (world frame; normals unit length); returns their row indices."""
-        position = np.asarray(position, dtype=np.float32).reshape(-1, 3)
-        m = position.shape[0]
-        values = {
-            "position": position,
-            "normal": np.asarray(normal, dtype=np.float32).reshape(-1, 3),
-            "radius": np.asarray(radius, dtype=np.float32).reshape(-1),
-            "confidence": np.asarray(confidence, dtype=np.float32).reshape(-1),
-            "colour": np.asarray(colour, dtype=np.float32).reshape(-1, 3),
-        }
-        for name, val in values.items():
-            if val.shape[0] != m:
-                raise ValueError(f"{name} must have one row per surfel ({m}), got shape {val.shape}")
-        if np.any(values["confidence"] < 0):
-            raise ValueError("confidence must be >= 0 (negative marks dead surfels)")
-        created_arr = np.broadcast_to(np.asarray(created, dtype=np.int32), (m,))
-        updated_arr = created_arr if updated is None else np.broadcast_to(np.asarray(updated, dtype=np.int32), (m,))
-        self.reserve(m)
-        sl = slice(self._size, self._size + m)
-        for name, val in values.items():
-            self._arrays[name][sl] = val
-        self._arrays["created"][sl] = created_arr
-        self._arrays["updated"][sl] = updated_arr
-        self._size += m
-        return np.arange(sl.start, sl.stop)
-
-    def kill(self, rows: np.ndarray) -> int:
-        """Mark rows dead; returns how many were alive."""
-        rows = np.unique(np.asarray(rows, dtype=np.int64))
-        conf = self._arrays["confidence"]
-        alive = rows[conf[rows] >= 0]
-        conf[alive] = -1.0
-        self._dead += int(alive.size)
-        return int(alive.size)
-
-    def note_dead(self, count: int) -> None:
-        """Account for rows a kernel marked dead in place."""
-        self._dead += int(count)
-
-    def compact(self) -> None:
-        """Drop dead rows, keeping the order of the live ones (creation order, spatially coherent)."""
-        if self._dead == 0:
-            return
-        keep = np.flatnonzero(self._arrays["confidence"][: self._size] >= 0)
-        k = keep.size
-        for arr in self._arrays.values():
-            arr[:k] = arr[keep]
-        self._size = k
-        self._dead = 0
-
-
-# --------------------------------------------------------------------------------------------------
-# PLY
-# --------------------------------------------------------------------------------------------------
-_PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
-                       ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("radius", "<f4"), ("confidence", "<f4")])
-_PLY_TYPES = {"f4": "float", "u1": "uchar"}
-
-
-def write_surfel_ply(path: str | Path, positions: np.ndarray, normals: np.ndarray, colours: np.ndarray,
-                     radius: np.ndarray, confidence: np.ndarray, *, comment: str = "radiomap surfel map") -> Path:
-    """Write surfels as a binary little-endian PLY point cloud, atomically.
-
-    Vertex properties: ``x y z nx ny nz`` (float), ``red green blue`` (uchar, display levels), ``radius``
-    and ``confidence`` (float). Readable by Open3D, trimesh, CloudCompare and MeshLab.
-    """
-    n = int(np.shape(positions)[0])
-    colours = np.asarray(colours)
-    if colours.shape != (n, 3) or colours.dtype != np.uint8:
-        raise ValueError(f"colours must be uint8 of shape ({n}, 3), got {colours.dtype} {colours.shape}")
-    rec = np.empty(n, dtype=_PLY_DTYPE)
-    pos = np.asarray(positions, dtype=np.float32).reshape(n, 3)
-    nrm = np.asarray(normals, dtype=np.float32).reshape(n, 3)
-    for i, a in enumerate("xyz"):
-        rec[a] = pos[:, i]
-        rec["n" + a] = nrm[:, i]
-    for i, c in enumerate(("red", "green", "blue")):
-        rec[c] = colours[:, i]
-    rec["radius"] = np.asarray(radius, dtype=np.float32).reshape(n)
-    rec["confidence"] = np.asarray(confidence, dtype=np.float32).reshape(n)
-    props = "".join(f"property {_PLY_TYPES[_PLY_DTYPE[name].str.lstrip('<|')]} {name}\n" for name in _PLY_DTYPE.names)
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {n}\n{props}end_header\n")
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(rec.tobytes())
-    return Path(path)
-
-
-# --------------------------------------------------------------------------------------------------
-# the backend
-# --------------------------------------------------------------------------------------------------
 class _Samples:
     """Valid sample pixels of one frame (camera frame, float64)."""
 
@@ -304,7 +135,7 @@ class SurfelBackend:
     Parameters (all keyword-only; defaults are ElasticFusion's unless said otherwise):
         confidence_threshold: confidence at which a surfel is stable (rendered for tracking, exported).
         unstable_window: frames without update after which an unstable surfel is removed.
-        max_depth: depth cut-off in metres for fusion (ElasticFusion's ``-d``).
+        depth_max: depth cut-off in metres for fusion (ElasticFusion's ``-d``); ``depth_min`` is 0.
         index_scale: index-map supersampling per image axis (Keller et al.).
         pixel_stride: 2 = ElasticFusion's alternating half-resolution lattice; 1 = every pixel.
         depth_gate: association gate along the ray, metres.
@@ -324,8 +155,9 @@ class SurfelBackend:
     """
 
     name = "surfel"
+    depth_min = 0.0  # a sample needs a depth in (0, depth_max]
 
-    def __init__(self, *, confidence_threshold: float = 10.0, unstable_window: int = 20, max_depth: float = 3.0,
+    def __init__(self, *, confidence_threshold: float = 10.0, unstable_window: int = 20, depth_max: float = 3.0,
                  index_scale: int = 4, pixel_stride: int = 2, depth_gate: float = 0.05,
                  normal_gate_deg: float = math.degrees(0.5), radius_ratio: float = 1.5, bilateral: bool = True,
                  max_depth_jump: float = 0.05, normal_baseline: int = 3, free_space_gap: float = 0.01,
@@ -333,7 +165,7 @@ class SurfelBackend:
                  initial_capacity: int = 1 << 16) -> None:
         self.confidence_threshold = _positive("confidence_threshold", confidence_threshold)
         self.unstable_window = _positive("unstable_window", unstable_window, integer=True, allow_zero=True)
-        self.max_depth = _positive("max_depth", max_depth)
+        self.depth_max = _positive("depth_max", depth_max)
         self.index_scale = _positive("index_scale", index_scale, integer=True)
         self.pixel_stride = _positive("pixel_stride", pixel_stride, integer=True)
         if self.index_scale > 8:
@@ -385,7 +217,7 @@ class SurfelBackend:
         vertex = np.zeros((height, width, 3), np.float32)
         normal = np.zeros((height, width, 3), np.float32)
         if len(self.map) == 0:
-            return ModelView(depth, colour, vertex, normal)
+            return ModelView(depth, colour, vertex, normal, pose=pose.copy())
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         rcw, tcw = _world_to_camera(pose)
         min_conf = 0.0 if self.fill_unstable else self.confidence_threshold
@@ -394,13 +226,21 @@ class SurfelBackend:
         kern.splat(idx, pc, nc, v, self.map.array("radius"), self.map.array("confidence"), self.map.array("colour"),
                    fx, fy, cx, cy, width, height, self.confidence_threshold, self.fill_unstable, MAX_SPLAT_HALF,
                    depth, colour, vertex, normal)
-        return ModelView(depth, colour, vertex, normal)
+        return ModelView(depth, colour, vertex, normal, pose=pose.copy())
+
+    def render_for_frame(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> ModelView:
+        """:meth:`render` at the frame's size (a surfel map prepares nothing for fusion)."""
+        height, width = np.shape(depth)[:2]
+        return self.render(pose, K, height, width)
 
     def integrate(self, depth: np.ndarray, colour: np.ndarray, K: np.ndarray, pose: np.ndarray, *,
-                  view: ModelView | None = None, frame_index: int = 0) -> ColourPairs:
-        """Fuse one frame (see the module doc); returns the colour pairs (surfel colour before averaging,
-        sample colour) of every sample averaged into an existing surfel, in map units. ``view`` is unused."""
+                  view: ModelView | None = None, valid: np.ndarray | None = None,
+                  frame_index: int = 0) -> ColourPairs:
+        """Fuse one frame (see the module doc) without the pixels ``valid`` marks False; returns the colour pairs
+        (surfel colour before averaging, sample colour) of every sample averaged into an existing surfel, in map
+        units. ``view`` is unused."""
         depth, colour = _check_images(depth, colour)
+        depth = masked_depth(depth, valid)
         K = _check_K(K)
         pose = _check_pose(pose)
         h, w = depth.shape
@@ -419,7 +259,7 @@ class SurfelBackend:
 
         # 1. surfels in view, index map, association
         idx, pc, nc, px = self._scratch_view(smap.size)
-        v = self._cull(rcw, tcw, K, w, h, 0.0, self.max_depth + self.depth_gate, idx, pc, nc, px)
+        v = self._cull(rcw, tcw, K, w, h, 0.0, self.depth_max + self.depth_gate, idx, pc, nc, px)
         removed = self._expired
         t0 = time.process_time()
         timings["cull"] += t0 - t1
@@ -554,7 +394,7 @@ class SurfelBackend:
         alpha = np.empty(cap, np.float64)
         col = np.empty((cap, 3), np.float32)
         m = kern.frame_samples(depth, filt, colour, K[0, 0], K[1, 1], K[0, 2], K[1, 2], offset, self.pixel_stride,
-                               self.max_depth, self.max_depth_jump, 2.0 * SIGMA * SIGMA, self.normal_baseline, u, v,
+                               self.depth_max, self.max_depth_jump, 2.0 * SIGMA * SIGMA, self.normal_baseline, u, v,
                                ray, vert, nrm, rad, alpha, col)
         return _Samples(u[:m], v[:m], ray[:m], vert[:m], nrm[:m], rad[:m], alpha[:m], col[:m])
 

@@ -6,9 +6,10 @@ KinectFusion's running average; the map is rendered by ray casting the zero cros
 interpolation of the eight voxels around the surface point.
 
 Ray casts and block lists. :meth:`TSDFBackend.render_for_frame` computes the voxel blocks the frame's depth
-touches at its pose (the same list integration needs), ray casts the map within them, and keeps the list so
-that :meth:`TSDFBackend.integrate` of the same frame reuses it: one block search and one ray cast per frame,
-as Open3D's own dense SLAM loop. :meth:`TSDFBackend.render` (the generic interface) casts within the blocks
+touches at its pose (the same list integration needs), ray casts the map within them, and hands the list over
+in the view (:attr:`ModelView.prepared`) so that :meth:`TSDFBackend.integrate` of the frame reuses it: one
+block search and one ray cast per frame, as Open3D's own dense SLAM loop. When the colour model masks pixels
+(``valid``), their depth is removed and the blocks are searched again for what is left. :meth:`TSDFBackend.render` (the generic interface) casts within the blocks
 of the last integrated frame. The cast renders depth and colour; the view's vertex map is the depth
 back-projected and its normals those of the bilaterally smoothed vertex map (Open3D's tracking recipe: the
 TSDF-gradient normals of a fine, noisy grid make worse ICP targets, and cost 10% more casting time).
@@ -54,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from mapping._open3d import o3d
-from mapping.fusion.base import ColourPairs, ModelView
+from mapping.fusion.base import ColourPairs, ModelView, masked_depth
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +115,17 @@ def _quiet():
     return o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error)
 
 
+@dataclass
+class _Prepared:
+    """What :meth:`TSDFBackend.render_for_frame` prepares for fusing a frame (:attr:`ModelView.prepared`)."""
+
+    blocks: object              # o3d.core.Tensor (B, 3) int32: the voxel blocks the frame's depth touches
+    depth_image: object         # o3d.t.geometry.Image of the depth the blocks were found for
+    extrinsic: np.ndarray       # world-to-camera (4, 4)
+    extrinsic_t: object         # the same as an o3d.core.Tensor
+    shape: tuple[int, int]
+
+
 class TSDFBackend:
     """A TSDF map of float colours in an Open3D voxel block grid (implements ``FusionBackend``).
 
@@ -167,7 +179,6 @@ class TSDFBackend:
             block_resolution=self.block_resolution, block_count=int(block_count), device=self.device)
         self.frames_integrated = 0
         self._last_blocks = None          # block coordinates of the last fused frame (for render())
-        self._pending = None              # (depth array, pose, K, blocks, depth image) from render_for_frame
         self.ray_casts = 0
         self.fragment_capacity = 0        # fragments Open3D's range-map buffer is known to hold (module doc)
 
@@ -187,10 +198,8 @@ class TSDFBackend:
         return self.voxel_size * self.trunc_voxel_multiplier
 
     # ---------------------------------------------------------------- rendering
-    def _extrinsic(self, pose: np.ndarray):
-        return o3d.core.Tensor(np.linalg.inv(np.asarray(pose, dtype=np.float64)))
-
-    def _ray_cast(self, blocks, K: np.ndarray, pose: np.ndarray, height: int, width: int) -> ModelView:
+    def _ray_cast(self, blocks, K: np.ndarray, pose: np.ndarray, height: int, width: int, *,
+                  extrinsic: np.ndarray | None = None) -> ModelView:
         """Depth and colour from Open3D's ray cast; vertex and normal maps from the depth (normals of the
         bilaterally smoothed vertex map, Open3D's own tracking recipe: the TSDF-gradient normals of a fine,
         noisy grid make worse ICP targets and cost 10% more ray-casting time); the surface bias removed."""
@@ -199,7 +208,9 @@ class TSDFBackend:
         # Open3D's ray cast builds its range map at 1/8 resolution and reads it out of bounds (hanging or
         # returning nothing) unless both sides are multiples of 8: cast a padded image and crop it
         hp, wp = _padded(height, width)
-        extrinsic = np.linalg.inv(np.asarray(pose, dtype=np.float64))
+        pose = np.asarray(pose, dtype=np.float64)
+        if extrinsic is None:
+            extrinsic = np.linalg.inv(pose)
         self._fit_range_fragments(blocks.numpy(), K, extrinsic, hp, wp)
         result = self.grid.ray_cast(blocks, Kt, o3d.core.Tensor(extrinsic), wp, hp, ["depth", "color"], 1.0,
                                     self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
@@ -214,13 +225,12 @@ class TSDFBackend:
         vertex = depth_nan.create_vertex_map(Kt, _NAN).as_tensor().numpy()
         normal = depth_nan.filter_bilateral(5, 5.0, 10.0).create_vertex_map(Kt, _NAN) \
             .create_normal_map(_NAN).as_tensor().numpy()
-        pose = np.asarray(pose, dtype=np.float64)
         c = pose[:3, :3].T @ np.ones(3)  # the grid diagonal (1, 1, 1) in the camera frame
         _kernels().finish_view(vertex, normal, depth, c.astype(np.float32), np.float32(0.5 * self.voxel_size),
                                self.surface != "open3d")
         if self.surface == "refine":
             self._refine(blocks, K, pose, depth, vertex)
-        return ModelView(depth=depth, colour=colour, vertex=vertex, normal=normal)
+        return ModelView(depth=depth, colour=colour, vertex=vertex, normal=normal, pose=pose.copy())
 
     def _fragments(self, blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int,
                    width: int) -> np.ndarray:
@@ -284,39 +294,40 @@ class TSDFBackend:
                                  np.ascontiguousarray(pose[:3, :3]), pose[:3, 3].copy(), tsdf, weight, index, lo,
                                  int(self.block_resolution).bit_length() - 1, self.voxel_size)
 
-    def _empty_view(self, height: int, width: int) -> ModelView:
+    def _empty_view(self, height: int, width: int, pose: np.ndarray | None = None) -> ModelView:
         return ModelView(depth=np.zeros((height, width), np.float32), colour=np.zeros((height, width, 3), np.float32),
                          vertex=np.zeros((height, width, 3), np.float32),
-                         normal=np.zeros((height, width, 3), np.float32))
+                         normal=np.zeros((height, width, 3), np.float32),
+                         pose=None if pose is None else np.array(pose, dtype=np.float64))
 
     def render(self, pose: np.ndarray, K: np.ndarray, height: int, width: int) -> ModelView:
         """The map seen from ``pose``, ray cast within the blocks of the last fused frame (all zero if empty)."""
         if self.frames_integrated == 0 or self._last_blocks is None:
-            return self._empty_view(height, width)
+            return self._empty_view(height, width, pose)
         return self._ray_cast(self._last_blocks, K, pose, height, width)
 
-    def _prepare(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray):
-        """The blocks ``depth`` touches at ``pose`` (cached for the next call with the same depth and pose)."""
-        pose = np.asarray(pose, dtype=np.float64)
-        pending = self._pending
-        if pending is not None and pending[0] is depth and np.array_equal(pending[1], pose):
-            return pending
-        extrinsic = self._extrinsic(pose)
+    def _prepare(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> _Prepared:
+        """The voxel blocks ``depth`` touches at ``pose``, and the Open3D inputs integration needs."""
+        extrinsic = np.linalg.inv(np.asarray(pose, dtype=np.float64))
+        extrinsic_t = o3d.core.Tensor(extrinsic)
         depth_image = o3d.t.geometry.Image(_tensor(depth))
         Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
-        blocks = self.grid.compute_unique_block_coordinates(depth_image, Kt, extrinsic, 1.0, self.depth_max,
+        blocks = self.grid.compute_unique_block_coordinates(depth_image, Kt, extrinsic_t, 1.0, self.depth_max,
                                                             self.trunc_voxel_multiplier)
-        self._pending = (depth, pose.copy(), blocks, depth_image, extrinsic)
-        return self._pending
+        return _Prepared(blocks, depth_image, extrinsic, extrinsic_t, depth.shape)
 
     def render_for_frame(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> ModelView:
-        """The map seen from ``pose`` within the blocks ``depth`` touches there; :meth:`integrate` of the same
-        ``depth`` array at the same ``pose`` reuses the block list."""
+        """The map seen from ``pose`` within the blocks ``depth`` touches there; the view carries the block list
+        (:attr:`ModelView.prepared`) for :meth:`integrate` of the same frame."""
+        depth = np.asarray(depth)
         height, width = depth.shape
-        blocks = self._prepare(depth, K, pose)[2]
+        prepared = self._prepare(depth, K, pose)
         if self.frames_integrated == 0:
-            return self._empty_view(height, width)
-        return self._ray_cast(blocks, K, pose, height, width)
+            view = self._empty_view(height, width, pose)
+        else:
+            view = self._ray_cast(prepared.blocks, K, pose, height, width, extrinsic=prepared.extrinsic)
+        view.prepared = prepared
+        return view
 
     # ---------------------------------------------------------------- fusion
     def colour_pairs(self, depth: np.ndarray, colour: np.ndarray, view: ModelView) -> ColourPairs:
@@ -332,27 +343,33 @@ class TSDFBackend:
         return ColourPairs(map_colour=out_map[:n], sample_colour=out_sample[:n])
 
     def integrate(self, depth: np.ndarray, colour: np.ndarray, K: np.ndarray, pose: np.ndarray, *,
-                  view: ModelView | None = None, frame_index: int = 0) -> ColourPairs | None:
-        """Fuse one frame (depth float32 metres, colour (H, W, 3) float32 map units) at ``pose``; returns the
-        colour pairs compared against ``view`` (rendered here first when not given)."""
+                  view: ModelView | None = None, valid: np.ndarray | None = None,
+                  frame_index: int = 0) -> ColourPairs | None:
+        """Fuse one frame (depth float32 metres, colour (H, W, 3) float32 map units) at ``pose``, without the
+        pixels ``valid`` marks False; returns the colour pairs compared against ``view`` (:meth:`render_for_frame`'s
+        view of this frame, whose block list is reused when no pixel is masked; rendered here when not given)."""
         depth = np.asarray(depth)
         if depth.dtype != np.float32 or depth.ndim != 2:
             raise ValueError(f"depth must be float32 (H, W) metres, got {depth.dtype} {depth.shape}")
         colour = np.asarray(colour)
         if colour.shape != depth.shape + (3,):
             raise ValueError(f"colour must be (H, W, 3) matching depth {depth.shape}, got {colour.shape}")
-        _, _, blocks, depth_image, extrinsic = self._prepare(depth, K, pose)
-        self._pending = None
+        prepared = view.prepared if view is not None and valid is None else None
+        if not (isinstance(prepared, _Prepared) and prepared.shape == depth.shape
+                and np.array_equal(view.pose, pose)):  # not render_for_frame's view of this frame: search again
+            depth = masked_depth(depth, valid)
+            prepared = self._prepare(depth, K, pose)
         pairs = None
         if self.frames_integrated:
             if view is None:
-                view = self._ray_cast(blocks, K, pose, depth.shape[0], depth.shape[1])
+                view = self._ray_cast(prepared.blocks, K, pose, depth.shape[0], depth.shape[1],
+                                      extrinsic=prepared.extrinsic)
             pairs = self.colour_pairs(depth, colour, view)
         colour_image = o3d.t.geometry.Image(_tensor(colour))
         Kt = o3d.core.Tensor(self._integration_intrinsics(K))
-        self.grid.integrate(blocks, depth_image, colour_image, Kt, extrinsic, 1.0, self.depth_max,
-                            self.trunc_voxel_multiplier)
-        self._last_blocks = blocks
+        self.grid.integrate(prepared.blocks, prepared.depth_image, colour_image, Kt, prepared.extrinsic_t, 1.0,
+                            self.depth_max, self.trunc_voxel_multiplier)
+        self._last_blocks = prepared.blocks
         self.frames_integrated += 1
         return pairs
 

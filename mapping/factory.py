@@ -1,0 +1,126 @@
+"""From options to the parts of a run: :class:`ReconstructConfig` (what ``radiomap reconstruct`` and
+:func:`mapping.reconstruct_sequence` collect) and :func:`build_run`, which checks it, opens the sequence, loads
+the models and builds the colour model, the fusion backend (:data:`BACKENDS`, :func:`make_backend`) and the
+tracker (:func:`make_tracker`): the keyword arguments of :func:`mapping.pipeline.reconstruct`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mapping.colour import as_vignetting_model, make_colour_model
+from mapping.fusion.base import FusionBackend
+from radiometry.errors import ModelMismatchError
+from radiometry.registry import Registry
+
+
+@dataclass
+class ReconstructConfig:
+    """Everything ``radiomap reconstruct`` collects; :func:`build_run` turns it into :func:`reconstruct`'s
+    arguments."""
+
+    sequence: Path
+    output: Path | None = None
+    response: Path | None = None
+    vignetting: Path | None = None
+    poses: str = "icp"
+    voxel_size: float = 0.01
+    frames: slice = field(default_factory=lambda: slice(None))
+    depth_scale: float | None = None
+    intrinsics: Any = None
+    backend: str = "tsdf"
+    surfel_mesh: bool = False                   # surfel backend: also write a Poisson mesh (surfels_mesh.ply)
+    format: str | None = None
+    depth_max: float = 3.0
+    block_resolution: int = 16
+    trunc_voxel_multiplier: float = 8.0
+    motion_model: str = "constant_velocity"
+    reference_exposure: float = 1.0             # --display-exposure: the histogram's display reference
+    exposure_compensation: bool | None = None   # None: on when a response is given
+    exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
+    force: bool = False
+    progress: bool = True
+
+
+def _tsdf(*, voxel_size: float, depth_max: float, block_resolution: int, trunc_voxel_multiplier: float, **options):
+    from mapping.fusion.tsdf import TSDFBackend
+
+    return TSDFBackend(voxel_size=voxel_size, depth_max=depth_max, block_resolution=block_resolution,
+                       trunc_voxel_multiplier=trunc_voxel_multiplier, **options)
+
+
+def _surfel(*, voxel_size: float, depth_max: float, block_resolution: int, trunc_voxel_multiplier: float,
+            surfel_mesh: bool = False, depth_min: float = 0.0, **options):
+    """The grid options do not apply to surfels, nor ``depth_min`` (a surfel sample needs a depth above 0)."""
+    from mapping.fusion.surfel import SurfelBackend
+
+    return SurfelBackend(depth_max=depth_max, mesh=surfel_mesh, **options)
+
+
+#: fusion backends by name: builders taking the run's fusion options (the backend's own keywords pass through)
+BACKENDS = Registry("backend", {"tsdf": _tsdf, "surfel": _surfel})
+
+
+def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0, block_resolution: int = 16,
+                 trunc_voxel_multiplier: float = 8.0, surfel_mesh: bool = False, **options) -> FusionBackend:
+    """A fusion backend by name (:data:`BACKENDS`), imported on first use; grid options do not apply to surfels,
+    ``surfel_mesh`` (the surfel backend's Poisson mesh) only to them; ``options``: the backend's own keywords."""
+    build = BACKENDS[name]
+    if surfel_mesh and name != "surfel":
+        raise ValueError(f"surfel_mesh applies to the surfel backend only, got backend {name!r} (the TSDF "
+                         "backend always writes mesh.ply); pass backend='surfel' or surfel_mesh=False")
+    from mapping.validation import check_fusion
+
+    check_fusion(backend=name, voxel_size=voxel_size, depth_max=depth_max, block_resolution=block_resolution,
+                 trunc_voxel_multiplier=trunc_voxel_multiplier, depth_min=options.get("depth_min", 0.1))
+    if surfel_mesh:
+        options["surfel_mesh"] = True
+    return build(voxel_size=voxel_size, depth_max=depth_max, block_resolution=block_resolution,
+                 trunc_voxel_multiplier=trunc_voxel_multiplier, **options)
+
+
+def make_tracker(*, depth_max: float = 3.0, motion_model: str = "constant_velocity", **kwargs):
+    """Frame-to-model point-to-plane ICP (:class:`mapping.tracking.FrameToModelTracker`)."""
+    from mapping.tracking import FrameToModelTracker
+
+    return FrameToModelTracker(depth_max=depth_max, motion_model=motion_model, **kwargs)
+
+
+def build_run(config: ReconstructConfig) -> dict[str, Any]:
+    """The keyword arguments of :func:`mapping.pipeline.reconstruct` for a configuration (the dataset opened,
+    the models loaded, backend and tracker built)."""
+    from mapping.datasets import open_dataset
+    from mapping.validation import check_config, check_run, config_options
+    from radiometry.formats import load_response
+
+    check_config(config)  # the option ranges (mapping/validation.py), before anything is read
+    dataset = open_dataset(config.sequence, format=config.format, depth_scale=config.depth_scale,
+                           intrinsics=config.intrinsics, frames=config.frames)
+    check_run(dataset, poses=config.poses, **config_options(config))  # intrinsics, ground truth, memory
+    # a file is loaded; a model object (mapping.reconstruct_sequence) is used as it is
+    response = load_response(config.response) if isinstance(config.response, (str, Path)) else config.response
+    vignetting = as_vignetting_model(config.vignetting)
+    if vignetting is not None:  # refuse a model of another aspect ratio now, before any result is written
+        try:
+            vignetting.check_size(dataset.height, dataset.width)
+        except ModelMismatchError as exc:
+            raise ModelMismatchError(f"{config.vignetting}: {exc}") from None
+    colour_model = make_colour_model(response, vignetting, reference_exposure=config.reference_exposure)
+    if config.exposure_compensation or (config.exposure_compensation is None and response is not None):
+        if response is None:
+            raise ValueError("exposure compensation needs a response (it acts on irradiance); pass --response, "
+                             "or --no-exposure-compensation")
+        from mapping.exposure_compensation import CompensatedColour, parse_reference
+
+        colour_model = CompensatedColour(colour_model, export_reference=parse_reference(config.exposure_reference))
+    backend = make_backend(config.backend, voxel_size=config.voxel_size, depth_max=config.depth_max,
+                           block_resolution=config.block_resolution,
+                           trunc_voxel_multiplier=config.trunc_voxel_multiplier, surfel_mesh=config.surfel_mesh)
+    tracker = make_tracker(depth_max=config.depth_max, motion_model=config.motion_model) \
+        if config.poses == "icp" else None
+    return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
+            "poses": config.poses, "progress": config.progress}
+
+
+__all__ = ["BACKENDS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]

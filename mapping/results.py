@@ -1,0 +1,181 @@
+"""What a reconstruction produces: per-frame records, the run's result, and the files written into its results
+folder (``trajectory.txt``, ``frames.csv``, ``histogram.*``, the mesh, ``metrics.json``, ``summary.txt``)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import resource
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mapping.histogram import DisagreementHistogram
+from mapping.metrics import ATEResult, format_tum_trajectory
+from radiometry.tables import format_table
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameRecord:
+    """What happened to one frame (one row of ``frames.csv``)."""
+
+    index: int
+    timestamp: float
+    fused: bool
+    reason: str = ""
+    fitness: float = math.nan
+    inlier_rmse: float = math.nan
+    pairs: int = 0
+    mean_l1: float = math.nan
+
+
+@dataclass
+class RunResult:
+    """The outcome of :func:`reconstruct`."""
+
+    stamps: np.ndarray                  # (N,) timestamps of the fused frames
+    poses: np.ndarray                   # (N, 4, 4) camera-to-world poses of the fused frames
+    histogram: DisagreementHistogram
+    records: list[FrameRecord]
+    seconds: float
+    stage_seconds: dict[str, float]
+    ate: ATEResult | None
+    map_stats: dict
+    peak_rss_mb: float
+    status: str = "complete"
+    files: dict[str, Path] = field(default_factory=dict)
+    depth_beyond_range: float = 0.0     # fraction of the valid depth pixels at or beyond the backend's depth_max
+
+    @property
+    def frames(self) -> int:
+        return len(self.records)
+
+    @property
+    def fused(self) -> int:
+        return sum(r.fused for r in self.records)
+
+    @property
+    def skipped(self) -> int:
+        return self.frames - self.fused
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else math.nan
+
+    def skip_reasons(self) -> dict[str, int]:
+        """Skipped frames counted by the kind of reason (the text before the first number)."""
+        return dict(Counter(reason_kind(r.reason) for r in self.records if not r.fused))
+
+    def metrics(self) -> dict:
+        """The content of ``metrics.json``."""
+        return {
+            "status": self.status,
+            "frames": {"total": self.frames, "fused": self.fused, "skipped": self.skipped,
+                       "skip_reasons": self.skip_reasons(),
+                       "skipped_frames": [{"index": r.index, "timestamp": r.timestamp, "reason": r.reason}
+                                          for r in self.records if not r.fused]},
+            "timing": {"seconds": self.seconds, "frames_per_second": self.frames_per_second,
+                       "ms_per_frame": 1000.0 * self.seconds / max(self.frames, 1),
+                       "stage_ms_per_frame": {k: 1000.0 * v / max(self.frames, 1)
+                                              for k, v in self.stage_seconds.items()}},
+            "histogram": self.histogram.stats(),
+            "ate": None if self.ate is None else self.ate.to_dict(),
+            "depth_beyond_range": self.depth_beyond_range,
+            "map": self.map_stats,
+            "memory": {"peak_rss_mb": self.peak_rss_mb},
+        }
+
+    def summary_row(self) -> dict:
+        s = self.histogram.stats()
+        return {"frames": self.frames, "fused": self.fused, "skipped": self.skipped,
+                "fps": round(self.frames_per_second, 2), "L1 mean": s["mean"], "L1 median": s["median"],
+                "L1 p90": s["p90"], "pairs": s["count"],
+                "ATE cm": "-" if self.ate is None else round(100 * self.ate.rmse, 2),
+                "peak MB": round(self.peak_rss_mb)}
+
+
+def reason_kind(reason: str) -> str:
+    for i, ch in enumerate(reason):
+        if ch.isdigit():
+            return reason[:i].strip() or reason
+    return reason
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB; includes Open3D's C++ allocations)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def backend_stats(backend) -> dict:
+    """The backend's size figures for metrics.json (empty, with a warning, if it fails)."""
+    try:
+        return dict(backend.stats())
+    except Exception as exc:  # a statistic must never lose a finished run
+        log.warning("the backend's stats() failed: %s", exc)
+        return {}
+
+
+def frames_csv(records: list[FrameRecord]) -> str:
+    lines = ["index,timestamp,fused,fitness,inlier_rmse_m,pairs,mean_l1,reason"]
+    for r in records:
+        reason = r.reason.replace('"', "'")
+        lines.append(f"{r.index},{r.timestamp:.6f},{int(r.fused)},{r.fitness:.4f},{r.inlier_rmse:.5f},{r.pairs},"
+                     f"{r.mean_l1:.3f},\"{reason}\"")
+    return "\n".join(lines) + "\n"
+
+
+def write_partial(run: RunResult, backend, output) -> None:
+    """On Ctrl-C or a failure: the trajectory and metrics so far, the RUNNING marker stays."""
+    try:
+        output.write_text("trajectory.txt", format_tum_trajectory(run.stamps, run.poses))
+        output.write_text("frames.csv", frames_csv(run.records))
+        run.map_stats = backend_stats(backend)
+        output.write_json("metrics.json", run.metrics())
+    except Exception as exc:  # never mask the original exception
+        log.warning("could not save the partial results: %s", exc)
+
+
+def describe_run(dataset, colour_model, backend, tracker) -> dict:
+    """What config.json records when the caller has not written one (the CLI writes its own)."""
+    def params(obj):
+        if obj is None:
+            return None
+        return {k: v for k, v in vars(obj).items() if not k.startswith("_") and isinstance(v, (int, float, str, bool,
+                                                                                             tuple, type(None)))}
+    return {"dataset": repr(dataset), "colour_model": colour_model.describe(),
+            "backend": {"class": type(backend).__name__, **(params(backend) or {})},
+            "tracker": None if tracker is None else {"class": type(tracker).__name__, **params(tracker)}}
+
+
+def write_results(run: RunResult, dataset, colour_model, backend, tracker, output, *, write_mesh: bool) -> None:
+    from mapping.plots import save_histogram_figure
+
+    files = {}
+    if not output.file("config.json").exists():
+        files["config"] = output.write_json("config.json", describe_run(dataset, colour_model, backend, tracker))
+    files["trajectory"] = output.write_text("trajectory.txt", format_tum_trajectory(run.stamps, run.poses))
+    files["frames"] = output.write_text("frames.csv", frames_csv(run.records))
+    files["histogram_json"] = run.histogram.save(output.file("histogram.json"))
+    files["histogram_npz"] = run.histogram.save(output.file("histogram.npz"))
+    if run.histogram.total:
+        save_histogram_figure(output.file("histogram.png"), {run.histogram.label: run.histogram},
+                              title="colour disagreement before fusion")
+        files["histogram_png"] = output.file("histogram.png")
+    if write_mesh:  # colours e.g. at the sequence's median exposure
+        files.update(backend.export(output.path, colour_model.display_for_export()))
+    files.update(colour_model.save_results(output.path))  # e.g. per-frame exposure estimates
+    run.files = files
+    metrics = run.metrics()
+    metrics["colour_model"] = colour_model.describe()
+    metrics["files"] = {k: Path(v).name for k, v in files.items()}
+    output.write_text("summary.txt", format_table([run.summary_row()]) + "\n")
+    output.write_json("metrics.json", metrics)
+    output.complete()
+
+
+__all__ = ["FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv", "peak_rss_mb", "reason_kind",
+           "write_partial", "write_results"]
