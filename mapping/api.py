@@ -191,7 +191,7 @@ class Reconstruction:
                 self._mesh = _read_mesh(self._mesh_file(self.run.files, self.output))
             else:
                 with tempfile.TemporaryDirectory(prefix="radiomap-mesh-") as tmp:
-                    files = self._backend.export(Path(tmp), _display(self.colour_model))
+                    files = self._backend.export(Path(tmp), self.colour_model.display_for_export())
                     self._mesh = _read_mesh(self._mesh_file(files, Path(tmp)))
         return dict(self._mesh)
 
@@ -233,13 +233,6 @@ class Reconstruction:
         if m["normals"] is not None:
             mesh.vertex_normals = o3d.utility.Vector3dVector(m["normals"].astype(np.float64))
         return mesh
-
-
-def _display(colour_model):
-    """Map units -> display levels as the results folder's mesh uses them (at the export reference exposure
-    with exposure compensation)."""
-    export_display = getattr(colour_model, "export_display", None)
-    return export_display() if export_display is not None else colour_model.to_display
 
 
 def _read_mesh(path: Path) -> dict[str, np.ndarray]:

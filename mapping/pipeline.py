@@ -76,7 +76,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     colour_model = colour_model or RawIntensity()
     loop = _Loop(dataset, colour_model, backend, tracker, poses, initial_pose, refresh_coverage,
                  max_consecutive_failures, histogram_label or colour_model.name)
-    bar = _progress_bar(len(dataset), progress, getattr(dataset, "name", ""))
+    bar = _progress_bar(len(dataset), progress, dataset.name)
     status = "failed"
     try:
         for i in range(len(dataset)):
@@ -235,7 +235,7 @@ class _Loop:
         fused = sum(r.fused for r in self.records)
         reasons = Counter(reason_kind(r.reason) for r in self.records if not r.fused)
         check_fused(fused, len(self.records), dict(reasons),
-                    str(getattr(self.dataset, "root", None) or getattr(self.dataset, "name", "the sequence")))
+                    str(getattr(self.dataset, "root", None) or self.dataset.name or "the sequence"))  # a folder, if any
 
     def drop_unfinished(self) -> None:
         """Forget the frame an interruption cut short (neither fused nor skipped for a reason): it was not

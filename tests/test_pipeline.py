@@ -258,6 +258,40 @@ def test_a_frame_without_depth_is_skipped_and_not_fused():
     assert run.records[5].fused and run.ate.rmse < 0.01
 
 
+class _RecordingColour(RawIntensity):
+    """Raw intensities that reject every pixel of frame 2 and the left half of the others, recording what the
+    pipeline hands over."""
+
+    def __init__(self):
+        self.calls = []
+
+    def to_map(self, frame, view=None, pose=None):
+        self.calls.append((frame.index, view, None if pose is None else pose.copy()))
+        valid = np.ones(frame.depth.shape, bool)
+        valid[:, : frame.width // 2] = False
+        if frame.index == 2:
+            valid[:] = False
+        return FrameColour(frame.rgb.astype(np.float32), valid, "colour rejected: the test says so")
+
+
+def test_the_frame_contract_pose_view_and_valid_pixels():
+    """The colour model gets the view rendered for the frame and the pose it is fused at; its valid mask reaches
+    the backend; a frame with nothing valid is skipped with the model's reason."""
+    ds = _box(4)
+    colour = _RecordingColour()
+    backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    fused = []
+    integrate = backend.integrate
+    backend.integrate = lambda *a, **kw: fused.append(kw["valid"]) or integrate(*a, **kw)
+    run = reconstruct(ds, colour_model=colour, backend=backend, poses="gt", progress=False)
+    assert [c[0] for c in colour.calls] == [0, 1, 2, 3]
+    for index, view, pose in colour.calls:
+        np.testing.assert_array_equal(pose, ds[index].pose)
+        np.testing.assert_array_equal(view.pose, pose)            # the backend's view of this frame, at its pose
+    assert run.fused == 3 and run.records[2].reason == "colour rejected: the test says so"
+    assert len(fused) == 3 and all(not v[:, :80].any() and v[:, 80:].all() for v in fused)
+
+
 def test_tracking_lost_for_good_raises(tmp_path):
     ds = _box(5)
     frames = [ds.frames[0]] + [RGBDFrame(f.index, f.timestamp, f.rgb, np.zeros_like(f.depth), f.K, f.pose)
