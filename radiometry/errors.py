@@ -1,5 +1,8 @@
 """The project's exceptions: one base class, a subclass per area.
 
+These are the errors radiometry raises (and mapping raises too); an error only mapping raises lives next to
+the code that raises it, under the same base class (``mapping.tracking.TrackingError``).
+
 The CLI prints ``str(error)`` of any :class:`RadiomapError` as one line and exits with code 1, so a
 message must name the file or parameter at fault and say how to fix it.
 """
@@ -33,7 +36,3 @@ class ModelMismatchError(RadiomapError):
 
 class OutputError(RadiomapError):
     """An output cannot be written (permissions, full disk, existing file without --force)."""
-
-
-class TrackingError(RadiomapError):
-    """Camera tracking failed in a way that cannot be recovered by skipping frames."""

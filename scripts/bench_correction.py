@@ -14,22 +14,12 @@ so the numbers are single-core numbers. Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+from _bench import pin_to_one_core  # before NumPy: one BLAS/OpenMP/Numba thread
 
 import numpy as np  # noqa: E402
-
-
-def pin_to_one_core() -> str:
-    if hasattr(os, "sched_setaffinity"):
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        return f"pinned to CPU {cpu}"
-    return "not pinned (no sched_setaffinity on this platform)"
 
 
 def rate(fn, seconds: float, min_runs: int = 5) -> float:

@@ -154,7 +154,7 @@ def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
     assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [f"frame_{i:06d}.png" for i in range(4)]
     result = invoke("correct", video, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "w",
                     "--scale", "-2")
-    assert result.exit_code == 2 and "must be positive" in result.output
+    assert result.exit_code == 1 and "--scale -2 is outside the sensible range 0.0001..10000" in result.output
 
 
 def test_correct_resolution_mismatch(sweep, model_file, tmp_path):

@@ -14,7 +14,7 @@ from mapping.datasets import FORMATS, detect_format, open_dataset
 from mapping.datasets._common import parse_intrinsics
 from mapping.datasets.base import RGBDDataset, RGBDFrame
 from mapping.datasets.redwood import read_log_trajectory, write_log_trajectory
-from mapping.datasets.synthetic import ArrayDataset
+from mapping.datasets.in_memory import ArrayDataset
 from mapping.metrics import associate_timestamps, write_tum_trajectory
 from radiometry.errors import DatasetError
 from radiometry.images import write_depth, write_image
@@ -145,20 +145,16 @@ def test_tum_pairing_drops_unmatched_frames(tmp_path):
         open_dataset(_tum_folder(tmp_path / "far", stamps_rgb=[1.0], stamps_depth=[1.5]))
 
 
-def test_tum_malformed_lists_name_file_and_line(tmp_path):
+@pytest.mark.parametrize("name, text, match", [
+    ("rgb.txt", "# header\n1.0 rgb/1.000000.png\n1.1 rgb/x.png extra\n", r"rgb\.txt:3: expected 'timestamp filename'"),
+    ("rgb.txt", "abc rgb/1.000000.png\n", r"rgb\.txt:1: timestamp 'abc' is not a number"),
+    ("groundtruth.txt", "1.0 0 0 0 0 0 1\n", r"groundtruth\.txt:1: TUM trajectory files must have 8 entries"),
+    ("groundtruth.txt", "1.0 0 0 0 0 0 0 5\n", r"groundtruth\.txt:1: quaternion"),
+])
+def test_tum_malformed_lists_name_file_and_line(tmp_path, name, text, match):
     root = _tum_folder(tmp_path, stamps_rgb=[1.0], stamps_depth=[1.0])
-    (root / "rgb.txt").write_text("# header\n1.0 rgb/1.000000.png\n1.1 rgb/x.png extra\n")
-    with pytest.raises(DatasetError, match=r"rgb\.txt:3: expected 'timestamp filename'"):
-        open_dataset(root)
-    (root / "rgb.txt").write_text("abc rgb/1.000000.png\n")
-    with pytest.raises(DatasetError, match=r"rgb\.txt:1: timestamp 'abc' is not a number"):
-        open_dataset(root)
-    (root / "rgb.txt").write_text("1.0 rgb/1.000000.png\n")
-    (root / "groundtruth.txt").write_text("1.0 0 0 0 0 0 1\n")
-    with pytest.raises(DatasetError, match=r"groundtruth\.txt:1: TUM trajectory files must have 8 entries"):
-        open_dataset(root)
-    (root / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 5\n")
-    with pytest.raises(DatasetError, match=r"groundtruth\.txt:1: quaternion"):
+    (root / name).write_text(text)
+    with pytest.raises(DatasetError, match=match):
         open_dataset(root)
 
 

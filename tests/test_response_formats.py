@@ -194,10 +194,14 @@ def _decreasing_table():
     (crf_bytes(np.zeros((256, 3))), "zero at level 255"),
 ])
 def test_malformed_crf(tmp_path, data, match):
-    path = tmp_path / "bad.crf"
-    path.write_bytes(data)
+    assert_refused(read_radical_crf, tmp_path / "bad.crf", data, match)
+
+
+def assert_refused(reader, path, data: bytes | str, match: str) -> None:
+    """``reader`` refuses ``data`` written to ``path`` with a CalibrationFileError that names the file."""
+    path.write_bytes(data.encode() if isinstance(data, str) else data)
     with pytest.raises(CalibrationFileError, match=match) as info:
-        read_radical_crf(path)
+        reader(path)
     assert str(path) in str(info.value)
 
 
@@ -231,11 +235,7 @@ INCREASING = 255 * U ** 2.2
     ("1_0 " + _line(INCREASING[1:]), "found 0 numbers"),
 ])
 def test_malformed_pcalib(tmp_path, text, match):
-    path = tmp_path / "pcalib.txt"
-    path.write_text(text)
-    with pytest.raises(CalibrationFileError, match=match) as info:
-        read_pcalib(path)
-    assert str(path) in str(info.value)
+    assert_refused(read_pcalib, tmp_path / "pcalib.txt", text, match)
 
 
 def test_pcalib_binary_and_trailing_text(tmp_path):

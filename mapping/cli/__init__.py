@@ -7,8 +7,6 @@ Each subcommand lives in its own module ``mapping/cli/<name>.py`` exposing a ``c
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import logging
 import sys
 
@@ -16,17 +14,11 @@ import click
 
 from radiometry import __version__
 from radiometry.errors import RadiomapError
+from radiometry.registry import Registry
 
-# name -> module holding `command`, in the order the help lists them
-SUBCOMMANDS = {
-    "demo": "mapping.cli.demo",
-    "response": "mapping.cli.response",
-    "simulate": "mapping.cli.simulate",
-    "vignetting": "mapping.cli.vignetting",
-    "correct": "mapping.cli.correct",
-    "reconstruct": "mapping.cli.reconstruct",
-    "compare": "mapping.cli.compare",
-}
+#: name -> the subcommand (imported on first use), in the order the help lists them
+SUBCOMMANDS = Registry("command", {name: f"mapping.cli.{name}:command" for name in
+                                   ("demo", "response", "simulate", "vignetting", "correct", "reconstruct", "compare")})
 
 EPILOG = """\b
 Examples:
@@ -58,16 +50,19 @@ class LazyGroup(click.Group):
     """A group whose subcommands are imported on first use and whose known errors print one line."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        lazy = [name for name, mod in SUBCOMMANDS.items() if importlib.util.find_spec(mod) is not None]
-        return lazy + sorted(set(self.commands) - set(lazy))
+        return list(SUBCOMMANDS) + sorted(set(self.commands) - set(SUBCOMMANDS))
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name in self.commands:
             return self.commands[cmd_name]
-        module = SUBCOMMANDS.get(cmd_name)
-        if module is None or importlib.util.find_spec(module) is None:
-            return None
-        return importlib.import_module(module).command
+        return SUBCOMMANDS[cmd_name] if cmd_name in SUBCOMMANDS else None
+
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        name = args[0]
+        if not ctx.resilient_parsing and not name.startswith("-") and self.get_command(ctx, name) is None:
+            raise click.UsageError(f"No such command {name!r}; choose one of {', '.join(self.list_commands(ctx))}",
+                                   ctx)
+        return super().resolve_command(ctx, args)
 
     def invoke(self, ctx: click.Context):
         try:

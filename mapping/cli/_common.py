@@ -20,11 +20,10 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
+from mapping.datasets import FORMATS
+from mapping.export import plain_value
 from radiometry import __version__
 from radiometry.errors import RadiomapError
-from mapping.export import plain_value
-from radiometry.tables import format_table
-from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
 CONFIG_VERSION = 1
@@ -294,7 +293,49 @@ def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2)
                    "was neither fused nor tracked; raise --depth-max if the scene is deeper", err=True)
 
 
+# --------------------------------------------------------------------------------------------------
+# options alike in every command that reads an RGB-D sequence and fuses it (reconstruct, compare)
+# --------------------------------------------------------------------------------------------------
+def positive(ctx: click.Context, param: click.Parameter, value):
+    """Option callback: a number that must be > 0 (None = not given)."""
+    if value is not None and not value > 0:
+        raise click.BadParameter(f"must be positive, got {value}")
+    return value
+
+
+def sequence_options(f):
+    """--frames, --depth-scale, --intrinsics and --format: which frames of SEQUENCE and how to read them."""
+    options = [
+        click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2)."),
+        click.option("--depth-scale", type=float, default=None, callback=positive,
+                     help="Raw depth units per metre [format default: TUM 5000, 7-Scenes/Redwood 1000]."),
+        click.option("--intrinsics", type=str, default=None,
+                     help="fx,fy,cx,cy or a file (3x3 matrix, 'fx fy cx cy', Open3D camera JSON) "
+                          "[default: the sequence's own]."),
+        click.option("--format", type=click.Choice(list(FORMATS)), default=None,
+                     help="Sequence layout [default: detected]."),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+def fusion_options(f):
+    """--backend, --voxel-size and --depth-max: the map the sequence is fused into."""
+    options = [
+        click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
+                     help="Fusion backend."),
+        click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=positive,
+                     help="TSDF voxel size in metres."),
+        click.option("--depth-max", type=float, default=3.0, show_default=True, callback=positive,
+                     help="Depth beyond this many metres is neither tracked nor fused."),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
-           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "format_table",
-           "load_replay_config", "plain_value", "replay_manifest", "run_manifest", "settings_line",
-           "warn_far_depth", "atomic_write_json", "atomic_write_text", "ensure_dir", "json"]
+           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "fusion_options",
+           "load_replay_config", "positive", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
+           "warn_far_depth"]

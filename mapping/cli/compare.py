@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import FrameRange, RadiomapCommand, config_option, settings_line, warn_far_depth
+from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, fusion_options, replay_manifest,
+                                 sequence_options, settings_line, warn_far_depth)
 
 EPILOG = """\b
 Examples:
@@ -33,12 +34,6 @@ printed, with the settings used; OUT/config.json the options (replayable with --
 """
 
 
-def _positive(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be positive, got {value}")
-    return value
-
-
 def _methods(ctx, param, value):
     if value is None:
         return None
@@ -62,8 +57,7 @@ def _methods(ctx, param, value):
               help="Polynomial vignetting model (radiomap .npz, radical .vgn).")
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the comparison (created).")
-@click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
-              help="Fusion backend.")
+@fusion_options
 @click.option("--exposure-compensation", is_flag=True,
               help="Also run every corrected method with exposure compensation (reconstruct's default with "
                    "--response is on; here it adds methods).")
@@ -72,19 +66,10 @@ def _methods(ctx, param, value):
                    "response, poly, lut, and response+ec, poly+ec, lut+ec.")
 @click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
               help="Ground-truth poses, or ICP tracked once and reused by every method (reconstruct's default).")
-@click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2).")
-@click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=_positive,
-              help="TSDF voxel size in metres.")
-@click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
-              help="Depth beyond this many metres is neither tracked nor fused.")
+@sequence_options
 @click.option("--brightness", type=click.Choice(["mean", "calibrated"]), default="mean", show_default=True,
               help="mean: compare the corrections at equal brightness (each V rescaled to an image mean of 1); "
                    "calibrated: V = 1 at the optical centre as calibrated.")
-@click.option("--depth-scale", type=float, default=None, callback=_positive,
-              help="Raw depth units per metre [format default].")
-@click.option("--intrinsics", type=str, default=None, help="fx,fy,cx,cy or a file [default: the sequence's own].")
-@click.option("--format", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
-              help="Sequence layout [default: detected].")
 @click.option("--views", type=click.IntRange(0, 6), default=3, show_default=True,
               help="Viewpoints of the side-by-side renders (0: none).")
 @click.option("--render-width", type=click.IntRange(32, 1920), default=320, show_default=True,
@@ -103,7 +88,6 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded comparison's."""
-    from mapping.cli._common import drop_replayed, replay_manifest
     from mapping.compare import compare, load_method_vignetting, make_methods
     from mapping.datasets import open_dataset
     from radiometry.formats import load_response

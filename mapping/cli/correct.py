@@ -27,8 +27,6 @@ def _scale_type(value: str) -> float | str:
         number = float(value)
     except ValueError:
         raise click.BadParameter(f"{value!r} is neither a number nor 'auto'") from None
-    if not number > 0:
-        raise click.BadParameter(f"must be positive, got {value}")
     from mapping.validation import check_exposure_factor
 
     return check_exposure_factor(number, "--scale")  # 1e-4..1e4 (mapping/validation.py)
@@ -107,7 +105,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     import numpy as np
 
-    from mapping.pipeline import load_vignetting_option
+    from mapping.colour import read_vignetting
     from radiometry.correction import Corrector
     from radiometry.fileio import check_outputs, check_overwrite, ensure_dir
     from radiometry.formats import load_response
@@ -120,7 +118,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     except click.BadParameter as exc:
         raise click.BadParameter(str(exc), param_hint="--scale") from None
     response = load_response(response_path)
-    vignetting = load_vignetting_option(vignetting_path)  # as reconstruct --vignetting: also a V array .npy
+    vignetting = read_vignetting(vignetting_path)  # as reconstruct --vignetting: also a V array .npy
     corrector = Corrector(response, vignetting)
     source = open_frames(input_path)
     if isinstance(source, FolderFrames):

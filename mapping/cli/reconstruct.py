@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import (FrameRange, RadiomapCommand, config_option, deprecated_alias, settings_line,
-                                 warn_far_depth)
+from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, fusion_options,
+                                 positive, replay_manifest, sequence_options, settings_line, warn_far_depth)
 
 EPILOG = """\b
 Examples:
@@ -29,12 +29,6 @@ of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --
 with exposure compensation exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source
 map|frame|fallback). A RUNNING file marks a run that has not finished.
 """
-
-
-def _positive(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be positive, got {value}")
-    return value
 
 
 def _mesh_exposure(ctx, param, value):
@@ -61,24 +55,12 @@ def _mesh_exposure(ctx, param, value):
                    "H x W x C). Needs --response.")
 @click.option("--poses", type=click.Choice(["icp", "gt"]), default="icp", show_default=True,
               help="Track with frame-to-model ICP, or take the sequence's ground-truth poses (compare's default).")
-@click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=_positive,
-              help="TSDF voxel size in metres.")
-@click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2).")
-@click.option("--depth-scale", type=float, default=None, callback=_positive,
-              help="Raw depth units per metre [format default: TUM 5000, 7-Scenes/Redwood 1000].")
-@click.option("--intrinsics", type=str, default=None,
-              help="fx,fy,cx,cy or a file (3x3 matrix, 'fx fy cx cy', Open3D camera JSON) "
-                   "[default: the sequence's own].")
-@click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
-              help="Fusion backend.")
+@sequence_options
+@fusion_options
 @click.option("--surfel-mesh", is_flag=True,
               help="With --backend surfel: also write surfels_mesh.ply, a Poisson mesh of the stable surfels "
                    "(Open3D; beside surfels.ply).")
-@click.option("--format", type=click.Choice(["simulated", "tum", "7scenes", "redwood"]), default=None,
-              help="Sequence layout [default: detected].")
-@click.option("--depth-max", type=float, default=3.0, show_default=True, callback=_positive,
-              help="Depth beyond this many metres is neither tracked nor fused.")
-@click.option("--display-exposure", type=float, default=1.0, show_default=True, callback=_positive, metavar="K",
+@click.option("--display-exposure", type=float, default=1.0, show_default=True, callback=positive, metavar="K",
               help="Exposure k at which map irradiance becomes display levels: the histogram's units and, without "
                    "exposure compensation, the mesh colours (with it, k relative to the first frame; the mesh "
                    "then follows --mesh-exposure).")
@@ -104,9 +86,10 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
     from dataclasses import asdict
 
-    from mapping.cli._common import drop_replayed, format_table, plain_value, replay_manifest
-    from mapping.export import ResultsFolder
-    from mapping.pipeline import ReconstructConfig, build_run, reconstruct
+    from mapping.export import ResultsFolder, plain_value
+    from mapping.factory import ReconstructConfig, build_run
+    from mapping.pipeline import reconstruct
+    from radiometry.tables import format_table
 
     ctx = click.get_current_context()
     if vignetting is not None and response is None:

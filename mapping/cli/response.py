@@ -8,6 +8,19 @@ from pathlib import Path
 import click
 
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
+#: the names of radiometry.response_fit.FITTERS (listed here so that --help imports no NumPy)
+RESPONSE_METHODS = ("debevec", "engel", "opencv-debevec", "robertson")
+
+
+class LambdaType(click.ParamType):
+    """A positive number or ``auto``."""
+
+    name = "LAMBDA|auto"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.strip().lower() == "auto":
+            return "auto"
+        return click.FloatRange(min=0, min_open=True).convert(value, param, ctx)
 
 EPILOG = """\b
 Examples:
@@ -17,6 +30,11 @@ Examples:
       the memorial stack without its blue border fill, saved for radical
   radiomap response brackets/ --times times.txt --method robertson -o pcalib.txt
       OpenCV's Robertson, saved as a DSO pcalib.txt (mean of R, G, B; or --channel G)
+  radiomap response brackets/ --method engel -o crf.npz
+      Engel's maximum likelihood: no smoothness prior, keeps a knee; needs exposure ratios that are not
+      all equal (brackets at exactly 2x steps leave f^-1 undetermined up to an octave-periodic factor)
+  radiomap response brackets/ --lambda auto -o crf.npz
+      Debevec with the smoothness weight chosen by cross-validation on held-out pixels
   radiomap response --gamma 2.2 -o gamma.npz
       no calibration: the standard response f^-1(I) = (I/255)^2.2, the documented assumption for a camera
       whose response is unknown (sRGB is close to it); --linear writes f^-1(I) = I/255
@@ -34,15 +52,16 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
               help="Exposure times file ('name seconds' per line). Default: FOLDER/times.txt or image_list.txt.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Response file: .npz (radiomap), .crf (radical) or .txt (DSO/TUM pcalib, one channel).")
-@click.option("--method", type=click.Choice(["debevec", "opencv-debevec", "robertson"]), default="debevec",
-              show_default=True, help="Our sparse Debevec & Malik, or OpenCV's Debevec / Robertson.")
-@click.option("--lambda", "lam", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Smoothness weight (debevec: per level of data, default 10; opencv-debevec: OpenCV's "
-                   "lambda, default 10).")
+@click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default="debevec",
+              show_default=True, help="Our sparse Debevec & Malik, Engel's maximum likelihood, or OpenCV's "
+                                      "Debevec / Robertson.")
+@click.option("--lambda", "lam", type=LambdaType(), default=None,
+              help="Smoothness weight (debevec: per level of data, default 10, or 'auto': chosen by "
+                   "cross-validation on held-out pixels; opencv-debevec: OpenCV's lambda, default 10).")
 @click.option("--samples", type=click.IntRange(min=1), default=None,
               help="debevec: observations per intensity level (default 50); opencv-debevec: pixel locations (70).")
 @click.option("--mask-blue", is_flag=True,
-              help="Ignore pure-blue fill (registered stacks such as memorial); debevec only.")
+              help="Ignore pure-blue fill (registered stacks such as memorial); debevec and engel.")
 @click.option("--channel", type=click.Choice(["mean", "R", "G", "B"], case_sensitive=False), default=None,
               help="For a .txt (pcalib, one channel) OUTPUT of colour images: the channel to write [default: "
                    "mean, with a warning].")
@@ -64,7 +83,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     """
     import numpy as np
 
-    from mapping.cli._common import format_table, run_manifest
+    from mapping.cli._common import run_manifest
+    from radiometry.tables import format_table
     from radiometry.errors import CalibrationError, DatasetError, OutputError
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set
     from radiometry.response_fit import (blue_fill_mask, find_times_file, fit_response, load_brackets,
@@ -91,12 +111,14 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         raise click.UsageError("give the FOLDER of bracketed images to calibrate, or --gamma G / --linear to write "
                                "a standard response")
     kwargs = {}
-    if method == "robertson" and (lam is not None or samples is not None):
-        raise click.UsageError("--lambda and --samples apply to debevec and opencv-debevec, not robertson")
+    if method in ("robertson", "engel") and (lam is not None or samples is not None):
+        raise click.UsageError(f"--lambda and --samples apply to debevec and opencv-debevec, not {method}")
+    if lam == "auto" and method != "debevec":
+        raise click.UsageError("--lambda auto (cross-validation) needs --method debevec")
     if channel is not None and suffix != ".txt":
         raise click.UsageError("--channel applies to a .txt (pcalib) output only")
-    if mask_blue and method != "debevec":
-        raise click.UsageError("--mask-blue needs --method debevec (OpenCV's methods take no mask)")
+    if mask_blue and method not in ("debevec", "engel"):
+        raise click.UsageError("--mask-blue needs --method debevec or engel (OpenCV's methods take no mask)")
     if lam is not None:
         kwargs["lam"] = lam
     if samples is not None:
@@ -133,7 +155,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     plot_path = output.with_suffix(".png")
     repaired = meta.get("repaired_levels")
     monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
-    if method == "debevec":
+    if method in ("debevec", "engel"):
         sampled = "/".join(str(p) for p in meta["pixels"]) + " px"
     elif method == "opencv-debevec":
         sampled = f"{meta['samples']} px"
@@ -152,6 +174,12 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         atomic_write_json(files.path(output.with_suffix(".json")), record)
     click.echo(summary)
     click.echo("fit RMS: error of predicting every unsaturated pixel of every exposure from the merged radiance")
+    if meta.get("lambda_selection") == "cross-validation":
+        click.echo(f"lambda {meta['lambda']:g}, chosen by cross-validation on held-out pixels")
+    if "observed_range" in meta:
+        spans = ", ".join(f"{lo}..{hi}" for lo, hi in meta["observed_range"])
+        click.echo(f"levels constrained by data: {spans} (per channel); the others are extrapolated "
+                   "(meta 'extrapolated_levels')")
     click.echo(f"wrote {output} ({FORMATS[suffix]}), {plot_path}, {output.with_suffix('.json')}")
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "

@@ -97,7 +97,7 @@ def command(kind: str, output: Path, seed: int, num_frames: int | None, width: i
             no_progress: bool) -> None:
     """Render a simulated sequence with ground truth: KIND is room (RGB-D, TUM layout), paper
     (white-paper vignetting sweep) or brackets (bracketed exposures)."""
-    from mapping.cli._common import format_table
+    from radiometry.tables import format_table
     from mapping.simulation import sequences
     from radiometry.simulation import CameraSpec, VignettingSpec, crf_spec_from_file, find_lensfun_vignetting
     from radiometry.simulation import CRF_PRESETS, vignetting_preset as make_vignetting_preset

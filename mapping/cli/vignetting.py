@@ -114,18 +114,18 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     """
     from radiometry.errors import OutputError
     from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set
-    from radiometry.formats import load_response
+    from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
-    from mapping.cli._common import format_table, run_manifest
+    from mapping.cli._common import run_manifest
+    from radiometry.tables import format_table
 
     source = click.get_current_context().get_parameter_source("smooth_sigma")
     if model_name != "lut" and source is not click.core.ParameterSource.DEFAULT:
         raise click.BadParameter(f"applies to --model lut only, got --model {model_name}; drop --smooth-sigma "
                                  "or use --model lut", param_hint="--smooth-sigma")
     out = Path(output)
-    suffix = out.suffix.lower()
-    if suffix not in (".npz", ".vgn", ".png"):
+    if out.suffix.lower() not in VIGNETTING_WRITERS:
         raise OutputError(f"{out}: unknown model format {out.suffix!r}; use .npz (radiomap), .vgn (radical) "
                           "or .png (DSO vignette)")
     check_overwrite(out, force=force)
@@ -150,7 +150,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     prefix = out.with_name(out.stem)
     # the model, its figures, summaries and the accumulation: all published together or none (the old set stays)
     with publish_set(out) as files:
-        _write_model(model, files.path(out), suffix)
+        save_vignetting(model, files.path(out))
         if save_accumulation:
             acc.save(files.path(save_accumulation))
         staged = files.path(prefix)
@@ -173,16 +173,3 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
                                                               else None})})
     click.echo(text)
 
-
-def _write_model(model, path: Path, suffix: str) -> None:
-    """The model in the format its suffix names: .vgn (radical), .png (DSO vignette) or .npz (radiomap)."""
-    if suffix == ".vgn":
-        from radiometry.formats.vgn import write_radical_vgn
-
-        write_radical_vgn(model, path)
-    elif suffix == ".png":
-        from radiometry.formats.dso_vignette import write_dso_vignette
-
-        write_dso_vignette(model, path)
-    else:
-        model.save(path)

@@ -19,14 +19,15 @@ from mapping.datasets.sevenscenes import SevenScenesDataset
 from mapping.datasets.simulated import SimulatedDataset
 from mapping.datasets.tum import TUMDataset
 from radiometry.errors import DatasetError
+from radiometry.registry import Registry
 
 #: format name -> loader class; detection tries them in this order (simulated before its parent, TUM)
-FORMATS: dict[str, type] = {
+FORMATS = Registry("format", {
     "simulated": SimulatedDataset,
     "tum": TUMDataset,
     "7scenes": SevenScenesDataset,
     "redwood": RedwoodDataset,
-}
+})
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -56,11 +57,7 @@ def open_dataset(path: str | os.PathLike, *, format: str | None = None, depth_sc
                  ``"fx,fy,cx,cy"``, four numbers or a (3, 3) matrix.
     frames:      a slice (range and stride, e.g. ``slice(0, 100, 2)``) or explicit frame positions.
     """
-    if format is None:
-        format = detect_format(path)
-    cls = FORMATS.get(format)
-    if cls is None:
-        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {format!r}")
+    cls = FORMATS[detect_format(path) if format is None else format]
     return cls(path, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames)
 
 

@@ -10,7 +10,7 @@ import json
 import logging
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,10 +58,7 @@ def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: no such intrinsics file; check the path or pass --intrinsics fx,fy,cx,cy")
-    try:
-        text = read_list_text(path)
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read the intrinsics ({exc.strerror}); check the file") from None
+    text = read_text(path, "the intrinsics")
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
         try:
             doc = json.loads(text)
@@ -148,6 +145,19 @@ def parse_intrinsics(value) -> np.ndarray | None:
     if values.shape == (3, 3):
         return _check_matrix(values, "intrinsics")
     raise ValueError(f"intrinsics must be a 3x3 matrix, four numbers fx,fy,cx,cy or a file path, got {value!r}")
+
+
+def resolve_intrinsics(option, candidates: Iterable[Path], default: Callable[[], tuple[np.ndarray, str]]
+                       ) -> tuple[np.ndarray, str]:
+    """A loader's intrinsics and where they came from: the ``intrinsics`` option when given ("option"), else the
+    first of the format's ``candidates`` files that exists (its path), else ``default()`` (the format's own)."""
+    K = parse_intrinsics(option)
+    if K is not None:
+        return K, "option"
+    for candidate in candidates:
+        if candidate.is_file():
+            return read_intrinsics_file(candidate), str(candidate)
+    return default()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -362,14 +372,19 @@ class FileSequence:
 # --------------------------------------------------------------------------------------------------
 # small text-file readers that report file and line
 # --------------------------------------------------------------------------------------------------
+def read_text(path: Path, what: str) -> str:
+    """A list or matrix file's text (:func:`radiometry.textlists.read_list_text`: byte-order marks, CRLF,
+    non-UTF-8 names), or :class:`DatasetError` naming the file and ``what`` it holds when it cannot be read."""
+    try:
+        return read_list_text(path)
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read {what} ({exc.strerror or exc}); check the file") from None
+
+
 def read_pose_matrix_file(path: Path) -> np.ndarray | None:
     """A 4 x 4 camera-to-world matrix in a text file (7-Scenes ``frame-NNNNNN.pose.txt``)."""
     rows = []
-    try:
-        text = read_list_text(path)
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read the pose ({exc.strerror}); check the file") from None
-    for lineno, line in enumerate(text.splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "the pose").splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -393,11 +408,7 @@ def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
     (:func:`tidy_stamped`, which warns with the counts); malformed lines raise :class:`DatasetError` with
     file and line."""
     out = []
-    try:
-        text = read_list_text(path)
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read ({exc.strerror}); check the sequence folder") from None
-    for lineno, line in enumerate(text.splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "the frame list").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

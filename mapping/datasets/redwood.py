@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, check_pose, optional_file, parse_intrinsics, \
-    read_intrinsics_file
+from mapping.datasets._common import FileSequence, FrameFiles, check_pose, optional_file, read_text, \
+    resolve_intrinsics
 from radiometry.errors import DatasetError
 from radiometry.fileio import atomic_write_text
 from radiometry.images import IMAGE_EXTENSIONS
-from radiometry.textlists import list_lines, read_list_text
+from radiometry.textlists import list_lines
 
 DEFAULT_INTRINSICS = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1.0]])
 DEFAULT_DEPTH_SCALE = 1000.0
@@ -41,10 +41,7 @@ def read_log_trajectory(path: str | os.PathLike) -> dict[int, np.ndarray]:
 
     Malformed blocks raise :class:`DatasetError` naming the file and line."""
     path = Path(path)
-    try:
-        lines = read_list_text(path).splitlines()
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read the trajectory ({exc.strerror})") from None
+    lines = read_text(path, "the trajectory").splitlines()
     rows = [(i + 1, ln.strip()) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if len(rows) % 5:
         lineno = rows[-(len(rows) % 5)][0]
@@ -136,17 +133,8 @@ class RedwoodDataset(FileSequence):
         self.trajectory_file = traj if traj.is_file() else None
         files = [FrameFiles(index=i, timestamp=i / FRAME_RATE, rgb=c, depth=d, pose=gt.get(i))
                  for i, (c, d) in enumerate(pairs)]
-        K = parse_intrinsics(intrinsics)
-        self.intrinsics_source = "option"
-        if K is None:
-            for name in CAMERA_FILES:
-                for folder in (root, root.parent):
-                    if (folder / name).is_file():
-                        K, self.intrinsics_source = read_intrinsics_file(folder / name), str(folder / name)
-                        break
-                if K is not None:
-                    break
-            else:
-                K, self.intrinsics_source = DEFAULT_INTRINSICS.copy(), "PrimeSense default (525, 525, 319.5, 239.5)"
+        K, self.intrinsics_source = resolve_intrinsics(
+            intrinsics, (folder / name for name in CAMERA_FILES for folder in (root, root.parent)),
+            lambda: (DEFAULT_INTRINSICS.copy(), "PrimeSense default (525, 525, 319.5, 239.5)"))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames)

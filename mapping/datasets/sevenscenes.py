@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, optional_file, parse_intrinsics, \
-    read_intrinsics_file
+from mapping.datasets._common import FileSequence, FrameFiles, optional_file, resolve_intrinsics
 from radiometry.errors import DatasetError
 
 DEFAULT_INTRINSICS = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1.0]])
@@ -70,15 +69,8 @@ class SevenScenesDataset(FileSequence):
         numbers = [f.index for f in files]
         if len(set(numbers)) != len(numbers):
             raise DatasetError(f"{folder}: two colour images share a frame number; keep one format per frame")
-        K = parse_intrinsics(intrinsics)
-        self.intrinsics_source = "option"
-        if K is None:
-            for candidate in (root / "camera-intrinsics.txt", folder / "camera-intrinsics.txt",
-                              root.parent / "camera-intrinsics.txt"):
-                if candidate.is_file():
-                    K, self.intrinsics_source = read_intrinsics_file(candidate), str(candidate)
-                    break
-            else:
-                K, self.intrinsics_source = DEFAULT_INTRINSICS.copy(), "7-Scenes default (585, 585, 320, 240)"
+        K, self.intrinsics_source = resolve_intrinsics(
+            intrinsics, (base / "camera-intrinsics.txt" for base in (root, folder, root.parent)),
+            lambda: (DEFAULT_INTRINSICS.copy(), "7-Scenes default (585, 585, 320, 240)"))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames, invalid_raw_depth=65535)

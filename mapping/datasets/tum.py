@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, optional_file, parse_intrinsics, \
-    read_intrinsics_file, read_stamped_list
+from mapping.datasets._common import FileSequence, FrameFiles, optional_file, read_intrinsics_file, \
+    read_stamped_list, resolve_intrinsics
 from mapping.metrics import associate_timestamps, interpolate_poses, read_tum_trajectory
 from radiometry.errors import DatasetError
 
@@ -102,9 +102,6 @@ class TUMDataset(FileSequence):
             files.append(FrameFiles(index=k, timestamp=float(rgb_t[a]), rgb=root / rgb_list[a][1],
                                     depth=root / depth_list[b][1],
                                     pose=None if gt_poses is None else gt_poses[k]))
-        K = parse_intrinsics(intrinsics)
-        self.intrinsics_source = "option"
-        if K is None:
-            K, self.intrinsics_source = tum_default_intrinsics(root)
+        K, self.intrinsics_source = resolve_intrinsics(intrinsics, (), lambda: tum_default_intrinsics(root))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames)

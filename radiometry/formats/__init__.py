@@ -1,8 +1,10 @@
-"""Foreign calibration formats, and loaders that pick the format from the file name.
+"""Foreign calibration formats, and loaders and writers that pick the format from the file name.
 
 - radical (C++ toolbox of Alexandrov et al.): ``.crf`` response, ``.vgn`` vignetting (LUT and polynomial).
 - TUM / DSO photometric calibration: ``pcalib.txt`` (inverse response), 16-bit ``vignette.png``.
 - radiomap's own ``.npz`` model files (:mod:`radiometry.fileio`).
+
+Each table maps a suffix to a ``"module:function"`` imported on first use.
 """
 
 from __future__ import annotations
@@ -10,22 +12,53 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from radiometry.errors import CalibrationFileError
+from radiometry.registry import Registry
+
+#: response readers by suffix; any other suffix is read as radiomap's .npz (``CameraResponse.load``)
+RESPONSE_READERS = Registry("response file suffix", {".crf": "radiometry.formats.crf:read_radical_crf",
+                                                     ".txt": "radiometry.formats.pcalib:read_pcalib"})
+#: vignetting readers by suffix; any other suffix is read as radiomap's .npz (``VignettingModel.load``)
+VIGNETTING_READERS = Registry("vignetting file suffix", {
+    ".vgn": "radiometry.formats.vgn:read_radical_vgn",
+    ".png": "radiometry.formats.dso_vignette:read_dso_vignette"})
+
+
+def _save_npz(model, path: str | os.PathLike) -> Path:
+    """radiomap's own model file (the model's ``save``)."""
+    return model.save(path)
+
+
+#: vignetting writers ``(model, path)`` by suffix; the keys are the formats a calibration can be saved in
+VIGNETTING_WRITERS = Registry("vignetting file suffix", {
+    ".npz": _save_npz,
+    ".vgn": "radiometry.formats.vgn:write_radical_vgn",
+    ".png": "radiometry.formats.dso_vignette:write_dso_vignette"})
+
+
+def read_file(path: Path, what: str) -> bytes:
+    """The bytes of the model file ``path`` (``what`` names it in the errors: "the radical response"), or
+    :class:`CalibrationFileError` when it is missing, a folder or unreadable."""
+    if not path.is_file():
+        raise CalibrationFileError(f"{path}: no such file; check the path of {what}")
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc}); check its permissions") from None
+
+
+def _reader(path: Path, readers: Registry, own):
+    """The reader of ``path``'s suffix, or ``own`` (radiomap's .npz reader) for any other suffix."""
+    suffix = path.suffix.lower()
+    return readers[suffix] if suffix in readers else own
+
 
 def load_response(path: str | os.PathLike):
     """Read a response from radiomap ``.npz``, radical ``.crf`` or DSO ``pcalib.txt`` (by suffix)."""
     from radiometry.response import CameraResponse
 
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".crf":
-        from radiometry.formats.crf import read_radical_crf
-
-        return read_radical_crf(path)
-    if suffix == ".txt":
-        from radiometry.formats.pcalib import read_pcalib
-
-        return read_pcalib(path)
-    return CameraResponse.load(path)
+    return _reader(path, RESPONSE_READERS, CameraResponse.load)(path)
 
 
 def load_vignetting(path: str | os.PathLike):
@@ -33,13 +66,15 @@ def load_vignetting(path: str | os.PathLike):
     from radiometry.vignetting import VignettingModel
 
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".vgn":
-        from radiometry.formats.vgn import read_radical_vgn
+    return _reader(path, VIGNETTING_READERS, VignettingModel.load)(path)
 
-        return read_radical_vgn(path)
-    if suffix == ".png":
-        from radiometry.formats.dso_vignette import read_dso_vignette
 
-        return read_dso_vignette(path)
-    return VignettingModel.load(path)
+def save_vignetting(model, path: str | os.PathLike) -> Path:
+    """Write ``model`` in the format its suffix names: ``.npz`` (radiomap), ``.vgn`` (radical) or ``.png`` (DSO
+    16-bit vignette, the channel mean); ValueError naming the three for any other suffix."""
+    path = Path(path)
+    return VIGNETTING_WRITERS[path.suffix.lower()](model, path)
+
+
+__all__ = ["RESPONSE_READERS", "VIGNETTING_READERS", "VIGNETTING_WRITERS", "load_response", "load_vignetting",
+           "read_file", "save_vignetting"]

@@ -25,6 +25,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationFileError
 from radiometry.fileio import atomic_write_bytes
+from radiometry.formats import read_file
 from radiometry.response import LEVELS, CameraResponse, repair_monotone
 
 MAGIC = 0xC4A1FDD9
@@ -40,12 +41,7 @@ def _fail(path: Path, what: str) -> CalibrationFileError:
 def read_radical_crf(path: str | os.PathLike) -> CameraResponse:
     """Read a radical ``.crf`` file as an RGB :class:`CameraResponse` (BGR in the file)."""
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file; check the path of the radical response")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc}); check its permissions") from None
+    data = read_file(path, "the radical response")
     if len(data) < HEADER.size:
         raise _fail(path, f"truncated header ({len(data)} of {HEADER.size} bytes)")
     magic, cv_type, dims, rows, cols = HEADER.unpack_from(data)

@@ -23,6 +23,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationFileError, OutputError
 from radiometry.fileio import atomic_write_bytes
+from radiometry.formats import read_file
 from radiometry.images import png_defect
 from radiometry.vignetting import LUTVignetting, VignettingModel
 
@@ -44,12 +45,7 @@ def read_dso_vignette(path: str | os.PathLike) -> LUTVignetting:
     import cv2
 
     path = Path(path)
-    try:
-        if not path.is_file():
-            raise CalibrationFileError(f"{path}: no such file; check the path of the vignetting image")
-        raw = np.fromfile(path, dtype=np.uint8)
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc}); check its permissions") from None
+    raw = np.frombuffer(read_file(path, "the vignetting image"), dtype=np.uint8)
     _check_png_header(path, raw)
     img = None
     if raw.size:

@@ -22,6 +22,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationFileError
 from radiometry.fileio import atomic_write_text
+from radiometry.formats import read_file
 from radiometry.response import LEVELS, CameraResponse
 
 log = logging.getLogger(__name__)
@@ -38,12 +39,8 @@ def _fail(path: Path, what: str) -> CalibrationFileError:
 def read_pcalib(path: str | os.PathLike) -> CameraResponse:
     """Read a DSO/TUM ``pcalib.txt`` as a 1-channel :class:`CameraResponse` (DSO's normalisation)."""
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file; check the path of the pcalib.txt")
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc}); check its permissions") from None
+        text = read_file(path, "the pcalib.txt").decode("utf-8")
     except UnicodeDecodeError:
         raise _fail(path, "not a text file") from None
     lines = text.splitlines()

@@ -31,6 +31,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationFileError
 from radiometry.fileio import atomic_write_bytes
+from radiometry.formats import read_file
 from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal
 
 log = logging.getLogger(__name__)
@@ -112,12 +113,7 @@ def read_radical_vgn(path: str | os.PathLike) -> VignettingModel:
     NaN/inf values, or a ``V`` that is not strictly positive.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file; check the path of the vignetting model")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc.strerror}); check the file") from None
+    data = read_file(path, "the vignetting model")
     newline = data.find(b"\n", 0, _MAX_HEADER_LINE)
     if newline < 0:
         raise CalibrationFileError(f"{path}: no header line; a radical .vgn file starts with "
