@@ -14,6 +14,13 @@ Methods (one function each, plus the :func:`fit_response` dispatcher):
   factorised with the ``ln E`` block eliminated first, so time and memory grow linearly with samples.
   Noise biases any such fit towards the radiances that fill many pixels (errors in the regressor);
   averaging several frames per exposure, as radical does, reduces it.
+  ``lam="auto"`` chooses the smoothness weight by cross-validation on held-out pixels
+  (:mod:`radiometry.response_lambda`).
+- ``"engel"`` (:func:`radiometry.response_engel.fit_response_engel`): maximum likelihood over all
+  (subsampled) pixels without a smoothness prior, alternating closed-form updates of irradiance and response
+  as TUM's ``mono_dataset_code`` and radical do. It keeps a knee, but needs exposure ratios that are not all
+  equal: with brackets at exactly 2x steps ``f^-1`` is determined only up to a factor periodic in ``ln E``
+  (period ``ln 2``) that nothing but noise and quantisation constrain.
 - ``"opencv-debevec"``, ``"robertson"``: OpenCV's ``CalibrateDebevec`` / ``CalibrateRobertson``, for
   comparison.
 
@@ -36,11 +43,11 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError, DatasetError
+from radiometry.registry import Registry
 from radiometry.response import LEVELS, CameraResponse
 
 log = logging.getLogger(__name__)
 
-METHODS = ("debevec", "opencv-debevec", "robertson")
 DEFAULT_LAMBDA = 10.0
 DEFAULT_SAMPLES = 50
 GAUGE_LEVEL = 128
@@ -277,12 +284,14 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
     return {"g": g, "ln_e": x[:n_pix], "img": img_idx, "pix": pix_idx, "z": z}
 
 
-def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float = DEFAULT_LAMBDA,
+def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float | str = DEFAULT_LAMBDA,
                          samples: int = DEFAULT_SAMPLES, mask: np.ndarray | None = None,
                          levels: tuple[int, int] = (1, 254), seed: int = 0) -> CameraResponse:
     """Debevec & Malik on a sparse least-squares solve (see the module docstring).
 
-    ``lam``: smoothness weight per level of data (> 0). ``samples``: target number of observations per
+    ``lam``: smoothness weight per level of data (> 0), or ``"auto"``: chosen by cross-validation on held-out
+    pixels among :data:`radiometry.response_lambda.LAMBDA_GRID` (``meta["lambda_scores"]`` records every
+    candidate's held-out error). ``samples``: target number of observations per
     intensity level. ``mask``: boolean ``(H, W)``, True = usable pixel (see :func:`blue_fill_mask`).
     ``levels``: the valid intensity range (inclusive, like radical's ``--valid-min/--valid-max``):
     observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
@@ -291,8 +300,10 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     also records the sampled pixels and observations per channel, the levels never observed and
     ``fit_rms_levels`` (observed level minus ``f(E_i t_j)`` over the samples, 8-bit levels).
     """
-    if not (np.isfinite(lam) and lam > 0):
-        raise ValueError(f"lam must be a positive number (smoothness weight, e.g. {DEFAULT_LAMBDA}), got {lam}")
+    auto = isinstance(lam, str) and lam == "auto"
+    if not auto and (isinstance(lam, str) or not (np.isfinite(lam) and lam > 0)):
+        raise ValueError(f"lam must be a positive number (smoothness weight, e.g. {DEFAULT_LAMBDA}) or 'auto', "
+                         f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
     try:
@@ -310,14 +321,22 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     flat = stack.reshape(n_img, h * w, n_ch)
     log_t = np.log(t)
     g = np.empty((LEVELS, n_ch))
-    solved = []
+    sampled = []
     for c in range(n_ch):
         values = np.ascontiguousarray(flat[:, :, c])
         idx = select_samples(values, t, samples=int(samples), valid=valid_flat, levels=(lo, hi), seed=seed + c)
         if idx.size == 0:
             raise CalibrationError(f"channel {c}: every pixel is saturated, empty or masked in every image (no "
                                    f"level in {lo}..{hi}); use shorter or longer exposures or check the mask")
-        sol = _solve_debevec_channel(values[:, idx], log_t, float(lam), (lo, hi))
+        sampled.append(values[:, idx])
+    scores = None
+    if auto:
+        from radiometry.response_lambda import cross_validate_lambda
+
+        lam, scores = cross_validate_lambda(sampled, log_t, (lo, hi), seed=seed)
+    solved = []
+    for c, values in enumerate(sampled):
+        sol = _solve_debevec_channel(values, log_t, float(lam), (lo, hi))
         g[:, c] = sol["g"]
         solved.append(sol)
     unobserved = []
@@ -335,6 +354,8 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         "observations": [int(sol["z"].size) for sol in solved],
         "unobserved_levels": unobserved,
     }
+    if scores is not None:
+        meta.update({"lambda_selection": "cross-validation", "lambda_scores": scores})
     response = _finish(g, meta)
     # fit residual in 8-bit levels: observed level vs f(E_i t_j) on the sampled pixels
     sq, n = [], 0
@@ -462,27 +483,21 @@ def _from_opencv(table: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
 # --------------------------------------------------------------------------------------------------
 # dispatcher
 # --------------------------------------------------------------------------------------------------
-_FITTERS = {
+FITTERS = Registry("method", {
     "debevec": fit_response_debevec,
+    "engel": "radiometry.response_engel:fit_response_engel",
     "opencv-debevec": fit_response_opencv_debevec,
     "robertson": fit_response_robertson,
-}
+})
+#: the method names, in the order the CLI lists them
+METHODS = FITTERS.names()
 
 
 def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method: str = "debevec",
                  **kwargs: Any) -> CameraResponse:
-    """Fit ``f^-1`` with ``method`` in :data:`METHODS`; ``kwargs`` go to that method's function."""
-    fitter = _FITTERS.get(method)
-    if fitter is None:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    import inspect
-
-    accepted = {p for p in inspect.signature(fitter).parameters if p not in ("images", "times")}
-    unknown = sorted(set(kwargs) - accepted)
-    if unknown:
-        raise TypeError(f"method {method!r} does not take {', '.join(unknown)}; "
-                        f"it takes {', '.join(sorted(accepted))}")
-    return fitter(images, times, **kwargs)
+    """Fit ``f^-1`` with ``method`` in :data:`METHODS`; ``kwargs`` go to that method's function (keyword-only:
+    a keyword the method does not take is a TypeError naming it)."""
+    return FITTERS[method](images, times, **kwargs)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -655,6 +670,6 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
     return images, times, [name for name, _ in entries]
 
 
-__all__ = ["METHODS", "DEFAULT_LAMBDA", "DEFAULT_SAMPLES", "HAT_WEIGHTS", "fit_response", "fit_response_debevec",
-           "fit_response_opencv_debevec", "fit_response_robertson", "select_samples", "blue_fill_mask",
+__all__ = ["METHODS", "FITTERS", "DEFAULT_LAMBDA", "DEFAULT_SAMPLES", "HAT_WEIGHTS", "fit_response",
+           "fit_response_debevec", "fit_response_opencv_debevec", "fit_response_robertson", "select_samples", "blue_fill_mask",
            "merge_radiance", "prediction_rms", "read_times_file", "find_times_file", "load_brackets"]
