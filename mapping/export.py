@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import socket
 import struct
 import time
@@ -212,7 +213,11 @@ class ResultsFolder:
     A run that writes results folders inside its own (a comparison: one per method) makes them with
     :meth:`subfolder`; they are listed under ``"folders"``, and ``force`` cleans each listed (or known,
     :attr:`result_folders`) subfolder by the same rule and removes it when nothing else is left in it.
-    Subclasses set the class attributes below for another kind of run (:class:`mapping.compare`'s folder)."""
+
+    Subclasses set the class attributes below for another kind of run: a comparison
+    (:class:`mapping.compare.ComparisonFolder`), the demo (:class:`mapping.demo.DemoFolder`: an empty or new folder
+    only, its own folders removed whole by ``force``) and a simulated sequence
+    (:class:`mapping.simulation.sequences.SequenceFolder`: ``force`` removes only a simulation's files)."""
 
     #: the kind of run (the lock's record and the RUNNING marker)
     what = "run"
@@ -221,10 +226,21 @@ class ResultsFolder:
     markers: tuple[str, ...] = ("metrics.json", RUNNING_MARKER, MANIFEST)
     #: the refusal without ``force``, after the folder's name
     refusal = "already holds the results of a run; pass --force to overwrite them or choose another output folder"
-    #: the files such a run writes (removed with ``force``, with those the previous run's MANIFEST lists)
+    #: the refusal without ``force`` of a folder holding anything else (but the lock), after the folder's name
+    #: (None: other files are no obstacle)
+    refusal_other: str | None = None
+    #: the files such a run writes, names or glob patterns (removed with ``force``, with those the previous run's
+    #: MANIFEST lists)
     result_names: frozenset[str] = RESULT_NAMES
     #: the results folders such a run writes inside its own (cleaned with ``force``, as MANIFEST-listed ones)
     result_folders: frozenset[str] = frozenset()
+    #: the folders such a run writes whole (removed with everything in them by ``force``)
+    owned_folders: frozenset[str] = frozenset()
+    #: ``force`` removes the previous run's files even where no marker shows one (False: such a folder is written
+    #: into as it is, with a warning, so that files of another kind that happen to share a name are kept)
+    clean_unmarked: bool = True
+    #: list the files the run wrote in MANIFEST when it ends (False: a fixed layout, :attr:`result_names`)
+    listing: bool = True
     #: written with ``"status": "running"`` when the run starts (None: no status file)
     status_file: str | None = "metrics.json"
 
@@ -235,10 +251,17 @@ class ResultsFolder:
         self.folders: list[str] = []   # results folders made inside by :meth:`subfolder`
         self.lock = FolderLock(self.path, what=self.what)
         try:
-            if not force and any((self.path / n).exists() for n in self.markers):
+            marked = any((self.path / n).exists() for n in self.markers)
+            if not force and marked:
                 raise OutputError(f"{self.path} {self.refusal}")
+            if not force and self.refusal_other is not None and self._holds_anything():
+                raise OutputError(f"{self.path} {self.refusal_other}")
             remove_strays(self.path)
-            self._remove_previous_run()
+            if marked or self.clean_unmarked:
+                self._remove_previous_run()
+            elif self._holds_anything():
+                log.warning("%s is not empty and holds no earlier %s; writing into it anyway (--force)", self.path,
+                            self.what)
             self.started = time.time()
             self._before = self._inodes()
             atomic_write_text(self.path / RUNNING_MARKER,
@@ -251,8 +274,12 @@ class ResultsFolder:
             self.lock.release()
             raise
 
+    def _holds_anything(self) -> bool:
+        return any(entry.name != LOCK_NAME for entry in os.scandir(self.path))
+
     def _remove_previous_run(self) -> None:
-        removed = _remove_results(self.path, self.result_names, self.result_folders)
+        removed = _remove_results(self.path, self.result_names, self.result_folders, self.owned_folders,
+                                  listed=self.listing)
         if removed:
             log.info("%s: removed the previous run's %s", self.path, ", ".join(removed))
 
@@ -288,13 +315,10 @@ class ResultsFolder:
     def file(self, name: str) -> Path:
         return self.path / name
 
-    @property
-    def complete_flag(self) -> bool:
-        return not (self.path / RUNNING_MARKER).exists()
-
     def complete(self) -> None:
         """Remove the ``RUNNING`` marker: every result is in place."""
-        self._write_manifest()
+        if self.listing:
+            self._write_manifest()
         try:
             (self.path / RUNNING_MARKER).unlink()
         except FileNotFoundError:
@@ -304,7 +328,7 @@ class ResultsFolder:
 
     def release(self) -> None:
         """The run is over (complete or not): list its files and unlock the folder."""
-        if not self.lock.released:
+        if self.listing and not self.lock.released:
             self._write_manifest()
         self.lock.release()
 
@@ -336,12 +360,25 @@ def _manifest_entries(folder: Path) -> tuple[set[str], set[str]]:
         return set(), set()
 
 
-def _remove_results(folder: Path, names, folders) -> list[str]:
-    """Remove a previous run's results from ``folder``: the files ``names`` and those its MANIFEST lists, and every
-    results folder (``folders`` and the MANIFEST's) cleaned by the same rule under its own lock (a live run in
-    it is refused), then removed unless files not its own remain. The names removed (folders with a ``/``)."""
-    files, subs = _manifest_entries(folder)
+def _remove_results(folder: Path, names, folders, owned=(), *, listed: bool = True) -> list[str]:
+    """Remove a previous run's results from ``folder``: the folders ``owned`` with everything in them, the files
+    ``names`` (or glob patterns) and, if ``listed``, those its MANIFEST lists, and every results folder
+    (``folders`` and the MANIFEST's) cleaned by the same rule under its own lock (a live run in it is refused),
+    then removed unless files not its own remain. The names removed (folders with a ``/``)."""
+    files, subs = _manifest_entries(folder) if listed else (set(), set())
     removed = []
+    for name in sorted(owned):
+        sub = folder / name
+        if not sub.is_dir() or sub.is_symlink():
+            continue
+        try:
+            shutil.rmtree(sub)
+        except OSError as exc:
+            raise OutputError(f"cannot remove {sub} of the previous run ({exc.strerror or exc}); remove it by hand "
+                              "or choose another output folder") from None
+        removed.append(name + "/")
+    files |= {match.name for pattern in names if _is_pattern(pattern) for match in folder.glob(pattern)}
+    names = {name for name in names if not _is_pattern(name)}
     for name in sorted(set(folders) | subs):
         sub = folder / name
         if not sub.is_dir() or sub.is_symlink():
@@ -370,6 +407,10 @@ def _remove_results(folder: Path, names, folders) -> list[str]:
                               "it by hand or choose another output folder") from None
         removed.append(name)
     return removed
+
+
+def _is_pattern(name: str) -> bool:
+    return any(ch in name for ch in "*?[")
 
 
 def is_complete(folder: str | os.PathLike) -> bool:

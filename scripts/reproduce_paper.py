@@ -5,7 +5,7 @@
   simulated camera ("xtion" preset), each fitted with the free-centre polynomial, the fixed-centre polynomial
   and the LUT; every fit scored against the mean flat image of each other session (RMS, 8-bit levels).
   This is ``scripts/repeatability.py`` (itself ``radiometry.vignetting_calibration.repeatability``), run as is.
-- Fig. 9, colour-disagreement histograms: the demo (``mapping.cli.demo.run_demo``, its "asymmetric" camera with
+- Fig. 9, colour-disagreement histograms: the demo (``mapping.demo.run_demo``, its "asymmetric" camera with
   strong non-radial vignetting: response from brackets,
   LUT and polynomial vignetting from a paper sweep, a room with auto exposure, fused with no correction, the
   polynomial and the LUT at ground-truth poses) and its normalised L1 histograms.
@@ -92,7 +92,7 @@ def figure6(out: Path, *, sessions: int, frames: int, width: int, height: int) -
 # Fig. 9
 # --------------------------------------------------------------------------------------------------
 def figure9(out: Path, *, quick: bool, seed: int) -> dict:
-    from mapping.cli.demo import run_demo, summary_text
+    from mapping.demo import run_demo, summary_text
 
     t0 = time.perf_counter()
     result = run_demo(out / "fig9", quick=quick, seed=seed, force=True, progress=False,

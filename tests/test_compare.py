@@ -395,7 +395,6 @@ def test_cli_compare_smoke_with_exposure_compensation(room, models, tmp_path):
     from click.testing import CliRunner
 
     from mapping.cli import cli
-    from mapping.compare import exposure_compensation_available
 
     seq, _ = room
     response, poly, lut = models
@@ -404,16 +403,14 @@ def test_cli_compare_smoke_with_exposure_compensation(room, models, tmp_path):
     poly.save(tmp_path / "poly.npz")
     args = ["compare", str(seq), "--response", str(tmp_path / "crf.npz"), "--vignetting-lut",
             str(tmp_path / "lut.npz"), "--vignetting-poly", str(tmp_path / "poly.npz"), "-o", str(tmp_path / "out"),
-            "--poses", "gt", "--frames", "0:5", "--voxel-size", "0.02", "--views", "2", "--no-progress"]
-    ec = exposure_compensation_available()
-    if ec:
-        args.append("--exposure-compensation")
+            "--poses", "gt", "--frames", "0:5", "--voxel-size", "0.02", "--views", "2", "--no-progress",
+            "--exposure-compensation"]
     res = CliRunner().invoke(cli, args)
     assert res.exit_code == 0, res.output
     assert "ranking by L1 mean" in res.output and "report:" in res.output
     doc = json.loads((tmp_path / "out" / "compare.json").read_text())
     names = [row["method"] for row in doc["table"]]
-    assert names == (["none", "poly", "lut", "poly+ec", "lut+ec"] if ec else ["none", "poly", "lut"])
+    assert names == ["none", "poly", "lut", "poly+ec", "lut+ec"]
     assert all(row["frames fused"] == 5 for row in doc["table"])
     config = json.loads((tmp_path / "out" / "config.json").read_text())
     assert config["command"] == "compare" and config["parameters"]["frames"] == "0:5"   # A:B:S, as --frames reads it

@@ -128,8 +128,13 @@ def test_models_written_by_the_demo_load(demo):
 # the output-folder policy (cheap: no demo run)
 # --------------------------------------------------------------------------------------------------
 def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
-    from mapping.cli.demo import prepare_output
+    from mapping.demo import DemoFolder
+    from mapping.export import LOCK_NAME, RUNNING_MARKER
     from radiometry.errors import OutputError
+
+    def prepare(folder, *, force):
+        with DemoFolder(folder, force=force) as demo_folder:
+            demo_folder.complete()
 
     out = tmp_path / "d"
     (out / "compare" / "none").mkdir(parents=True)
@@ -138,18 +143,28 @@ def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     (out / "notes.txt").write_text("mine")
     with pytest.raises(OutputError, match=f"^{out} holds an earlier demo; pass --force to overwrite it or choose "
                                           "another folder$"):
-        prepare_output(out, force=False)
+        prepare(out, force=False)
     assert (out / "compare" / "none" / "mesh.ply").read_text() == "old" and (out / "demo.json").is_file()
-    prepare_output(out, force=True)
+    prepare(out, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     with pytest.raises(OutputError, match="holds no earlier demo"):
-        prepare_output(out, force=False)
-    prepare_output(out, force=True)
+        prepare(out, force=False)
+    prepare(out, force=True)
     assert (out / "notes.txt").read_text() == "mine"
+    # an interrupted demo (RUNNING, no demo.json) is an earlier demo too, its folders removed with --force
+    DemoFolder(out, force=True).release()
+    (out / "sequence" / "rgb").mkdir(parents=True)
+    assert sorted(p.name for p in out.iterdir()) == [RUNNING_MARKER, "notes.txt", "sequence"]
+    with pytest.raises(OutputError, match="holds an earlier demo"):
+        prepare(out, force=False)
+    prepare(out, force=True)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     (tmp_path / "f").write_text("x")
     with pytest.raises(OutputError, match="existing file"):
-        prepare_output(tmp_path / "f", force=True)
-    assert prepare_output(tmp_path / "new", force=False).is_dir()
+        prepare(tmp_path / "f", force=True)
+    prepare(tmp_path / "new", force=False)
+    assert (tmp_path / "new").is_dir() and not any((tmp_path / "new").iterdir())
+    assert not (out / LOCK_NAME).exists()
 
 
 def test_demo_run_twice_needs_force(demo):
@@ -170,7 +185,7 @@ def test_demo_run_twice_needs_force(demo):
 
 
 def test_response_error_measure():
-    from mapping.cli.demo import response_error_percent
+    from mapping.demo import response_error_percent
     from radiometry.response import CameraResponse
 
     g = CameraResponse.gamma(2.2)

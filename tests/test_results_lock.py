@@ -106,7 +106,7 @@ def test_a_second_run_into_a_folder_being_written_is_refused(long_seq, tmp_path)
 
 def test_a_folder_locked_by_a_live_process_refuses_compare_and_demo(idle_process, long_seq, tmp_path):
     """The same lock guards a comparison's folder and the demo's (the owner here is any live process)."""
-    from mapping.cli.demo import run_demo
+    from mapping.demo import run_demo
 
     lock_file(tmp_path / "cmp", idle_process.pid, _process_start(idle_process.pid))
     error_line(run("compare", long_seq, "-r", REPO / "data_samples" / "brackets" / "ground_truth_response.npz",
@@ -304,3 +304,32 @@ def test_correct_refuses_two_inputs_into_one_output(models, tmp_path):
                       tmp_path / "out" / "a.png", "separate output folders")
     assert str(frames / "a.bmp") in line and str(frames / "a.jpg") in line     # the first collision, by name
     assert not (tmp_path / "out").exists()                                     # nothing written, not even the folder
+
+
+def test_a_simulation_folder_with_force_removes_only_an_earlier_simulation(tmp_path, caplog):
+    """simulate's policy on the one results-folder mechanism (SequenceFolder): a non-empty folder is refused without
+    --force; with it an earlier simulation's files (frames, lists, truth, brackets) go and the user's stay; a folder
+    that holds no simulation is written into as it is, with a warning."""
+    import logging
+
+    from mapping.simulation.sequences import MANIFEST as SEQUENCE_MANIFEST, SequenceFolder
+
+    seq = tmp_path / "seq"
+    for rel in ("rgb/1.png", "truth/camera.json", "rgb.txt", "exposure_00.png", SEQUENCE_MANIFEST, "notes.txt"):
+        (seq / rel).parent.mkdir(parents=True, exist_ok=True)
+        (seq / rel).write_text("x")
+    with pytest.raises(OutputError, match=f"^{seq} is not empty; pass --force to overwrite it or choose an empty "
+                                          "folder$"):
+        SequenceFolder(seq)
+    assert sorted(p.name for p in seq.iterdir()) == ["exposure_00.png", "notes.txt", SEQUENCE_MANIFEST, "rgb",
+                                                     "rgb.txt", "truth"]
+    with SequenceFolder(seq, force=True) as folder:
+        assert sorted(p.name for p in seq.iterdir()) == [LOCK_NAME, "RUNNING", "notes.txt"]
+        folder.complete()
+    assert sorted(p.name for p in seq.iterdir()) == ["notes.txt"]        # no MANIFEST: the layout is fixed
+    (seq / "rgb").mkdir()
+    (seq / "rgb" / "mine.png").write_text("mine")
+    with caplog.at_level(logging.WARNING, logger="mapping.export"):
+        SequenceFolder(seq, force=True).release()
+    assert "holds no earlier simulation; writing into it anyway (--force)" in caplog.text
+    assert (seq / "rgb" / "mine.png").read_text() == "mine" and (seq / "RUNNING").is_file()

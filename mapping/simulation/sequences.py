@@ -26,9 +26,7 @@ noise and depth holes of frame ``i`` come from ``SeedSequence([seed, stream, i])
 
 from __future__ import annotations
 
-import logging
 import os
-import shutil
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from mapping.export import RUNNING_MARKER, ResultsFolder
 from mapping.simulation.render import Renderer, RenderResult
 from mapping.simulation.room import Room, make_room
 from mapping.simulation.sensor import DepthSensor
@@ -43,12 +42,10 @@ from mapping.simulation.targets import PaperScene, hdr_chart, make_paper_scene
 from mapping.simulation.trajectory import (HandheldMotion, PaperSweep, paper_trajectory, pose_to_tum,
                                            room_trajectory)
 from radiometry import __version__
-from radiometry.errors import OutputError
-from radiometry.fileio import atomic_write_json, atomic_write_text, ensure_dir
+from radiometry.fileio import atomic_write_json, atomic_write_text
 from radiometry.images import write_depth, write_image
 from radiometry.simulation import (Capture, CameraSpec, ExposureController, SimulatedCamera, default_intrinsics)
-
-log = logging.getLogger(__name__)
+from radiometry.vignetting import LUTVignetting
 
 SEQUENCE_FORMAT = "radiomap-sim"
 SEQUENCE_VERSION = 1
@@ -226,38 +223,40 @@ def simulate_room(out_dir: str | os.PathLike, *, camera: CameraSpec | SimulatedC
                          "passing room, or drop room")
     cam = resolve_camera(camera, width, height, jpeg_quality=jpeg_quality)
     room = room if room is not None else make_room(seed, pictures=pictures)   # bad pictures fail early
-    out = prepare_output(out_dir, force=force)
-    K = default_intrinsics(cam.width, cam.height)
-    poses = room_trajectory(room, n_frames, seed=seed, motion=motion or HandheldMotion())
-    scales = _light_schedule(light_scale, n_frames)
-    ts = timestamps(n_frames)
-    exposures = []
-    frames = iter_room_frames(room, cam, poses, K=K, seed=seed, auto_exposure=auto_exposure,
-                              auto_white_balance=auto_white_balance, exposure_time=exposure_time,
-                              light_scale=scales, depth_sensor=depth_sensor, supersample=supersample)
-    for fr in _progress(frames, n_frames, "room", progress):
-        name = stamp(fr.timestamp)
-        write_image(out / "rgb" / f"{name}.png", fr.rgb)
-        write_depth(out / "depth" / f"{name}.png", fr.depth, DEPTH_SCALE)
-        exposures.append((fr.exposure_time, fr.gains))
-    _write_tum_lists(out, ts, kind="room", seed=seed, depth=True)
-    _write_groundtruth(out / "groundtruth.txt", ts, poses)
-    _write_intrinsics(out / "intrinsics.txt", K)
-    truth = _write_camera_truth(out, cam)
-    _write_exposures(out / "truth" / "exposures.txt", [stamp(t) for t in ts], exposures)
-    _write_light(out / "truth" / "light_scale.txt", ts, scales)
-    room.save(out / "truth" / "room.json")
-    colour_scale = room.write_mesh(out / "truth" / "room_mesh.ply", spacing=mesh_spacing)
-    truth.update({"room": "truth/room.json", "room_mesh": "truth/room_mesh.ply"})
-    ae = "auto" if auto_exposure else "fixed"
-    awb = _awb_switch(auto_exposure, auto_white_balance)
-    awb = cam.spec.auto_white_balance is not None if awb is None else awb
-    _write_manifest(out, "room", cam, K, seed, n_frames, truth, {
-        "exposure": ae, "white_balance": "auto" if awb else "fixed",
-        "room_seed": room.seed, "mesh_colour": {"encoding": "linear radiance / scale", "scale": colour_scale},
-        "supersample": supersample, "light_scale": "truth/light_scale.txt",
-        "depth_sensor": None if depth_sensor is None else _dc(depth_sensor),
-        "motion": _dc(motion or HandheldMotion())})
+    with SequenceFolder(out_dir, force=force) as folder:
+        out = folder.path
+        K = default_intrinsics(cam.width, cam.height)
+        poses = room_trajectory(room, n_frames, seed=seed, motion=motion or HandheldMotion())
+        scales = _light_schedule(light_scale, n_frames)
+        ts = timestamps(n_frames)
+        exposures = []
+        frames = iter_room_frames(room, cam, poses, K=K, seed=seed, auto_exposure=auto_exposure,
+                                  auto_white_balance=auto_white_balance, exposure_time=exposure_time,
+                                  light_scale=scales, depth_sensor=depth_sensor, supersample=supersample)
+        for fr in _progress(frames, n_frames, "room", progress):
+            name = stamp(fr.timestamp)
+            write_image(out / "rgb" / f"{name}.png", fr.rgb)
+            write_depth(out / "depth" / f"{name}.png", fr.depth, DEPTH_SCALE)
+            exposures.append((fr.exposure_time, fr.gains))
+        _write_tum_lists(out, ts, kind="room", seed=seed, depth=True)
+        _write_groundtruth(out / "groundtruth.txt", ts, poses)
+        _write_intrinsics(out / "intrinsics.txt", K)
+        truth = _write_camera_truth(out, cam)
+        _write_exposures(out / "truth" / "exposures.txt", [stamp(t) for t in ts], exposures)
+        _write_light(out / "truth" / "light_scale.txt", ts, scales)
+        room.save(out / "truth" / "room.json")
+        colour_scale = room.write_mesh(out / "truth" / "room_mesh.ply", spacing=mesh_spacing)
+        truth.update({"room": "truth/room.json", "room_mesh": "truth/room_mesh.ply"})
+        ae = "auto" if auto_exposure else "fixed"
+        awb = _awb_switch(auto_exposure, auto_white_balance)
+        awb = cam.spec.auto_white_balance is not None if awb is None else awb
+        _write_manifest(out, "room", cam, K, seed, n_frames, truth, {
+            "exposure": ae, "white_balance": "auto" if awb else "fixed",
+            "room_seed": room.seed, "mesh_colour": {"encoding": "linear radiance / scale", "scale": colour_scale},
+            "supersample": supersample, "light_scale": "truth/light_scale.txt",
+            "depth_sensor": None if depth_sensor is None else _dc(depth_sensor),
+            "motion": _dc(motion or HandheldMotion())})
+        folder.complete()
     return out
 
 
@@ -316,38 +315,40 @@ def simulate_paper(out_dir: str | os.PathLike, *, camera: CameraSpec | Simulated
     _check_frames(n_frames)
     cam = resolve_camera(camera, width, height, jpeg_quality=jpeg_quality)
     scales = flicker_schedule(n_frames, flicker, seed=seed)
-    out = prepare_output(out_dir, force=force)
-    scene = scene if scene is not None else make_paper_scene(seed)
-    K = default_intrinsics(cam.width, cam.height)
-    poses = paper_trajectory(n_frames, K, cam.width, cam.height, seed=seed, sweep=sweep or PaperSweep())
-    ts = timestamps(n_frames)
-    gains = np.asarray(cam.spec.gains, float)
-    k = paper_exposure(cam, scene, gains=gains) if exposure_time is None else float(exposure_time)
-    sensor = DepthSensor(projector_shadow=False) if write_depth_images else None
-    coverage = np.zeros((cam.height, cam.width), np.int32)
-    frames = iter_paper_frames(scene, cam, poses, K=K, seed=seed, exposure_time=k, gains=gains,
-                               light_scale=scales, depth_sensor=sensor)
-    for fr in _progress(frames, n_frames, "paper", progress):
-        name = stamp(fr.timestamp)
-        write_image(out / "rgb" / f"{name}.png", fr.rgb)
-        if fr.depth is not None:
-            write_depth(out / "depth" / f"{name}.png", fr.depth, DEPTH_SCALE)
-        mask = fr.render.face == scene.sheet_face
-        coverage += mask
-        write_image(out / "truth" / "masks" / f"{name}.png", mask.astype(np.uint8) * 255)
-    _write_tum_lists(out, ts, kind="paper", seed=seed, depth=write_depth_images)
-    _write_groundtruth(out / "groundtruth.txt", ts, poses)
-    _write_intrinsics(out / "intrinsics.txt", K)
-    truth = _write_camera_truth(out, cam)
-    _write_exposures(out / "truth" / "exposures.txt", [stamp(t) for t in ts], [(k, gains)] * n_frames)
-    _write_light(out / "truth" / "light_scale.txt", ts, scales)
-    atomic_write_json(out / "truth" / "paper.json", scene.to_dict())
-    truth.update({"paper": "truth/paper.json", "masks": "truth/masks"})
-    _write_manifest(out, "paper", cam, K, seed, n_frames, truth, {
-        "exposure": "fixed", "white_balance": "fixed", "exposure_time": k, "flicker": flicker,
-        "light_scale": "truth/light_scale.txt", "sheet_coverage_min": int(coverage.min()),
-        "sheet_coverage_median": float(np.median(coverage)), "sweep": _dc(sweep or PaperSweep()),
-        "depth": write_depth_images})
+    with SequenceFolder(out_dir, force=force) as folder:
+        out = folder.path
+        scene = scene if scene is not None else make_paper_scene(seed)
+        K = default_intrinsics(cam.width, cam.height)
+        poses = paper_trajectory(n_frames, K, cam.width, cam.height, seed=seed, sweep=sweep or PaperSweep())
+        ts = timestamps(n_frames)
+        gains = np.asarray(cam.spec.gains, float)
+        k = paper_exposure(cam, scene, gains=gains) if exposure_time is None else float(exposure_time)
+        sensor = DepthSensor(projector_shadow=False) if write_depth_images else None
+        coverage = np.zeros((cam.height, cam.width), np.int32)
+        frames = iter_paper_frames(scene, cam, poses, K=K, seed=seed, exposure_time=k, gains=gains,
+                                   light_scale=scales, depth_sensor=sensor)
+        for fr in _progress(frames, n_frames, "paper", progress):
+            name = stamp(fr.timestamp)
+            write_image(out / "rgb" / f"{name}.png", fr.rgb)
+            if fr.depth is not None:
+                write_depth(out / "depth" / f"{name}.png", fr.depth, DEPTH_SCALE)
+            mask = fr.render.face == scene.sheet_face
+            coverage += mask
+            write_image(out / "truth" / "masks" / f"{name}.png", mask.astype(np.uint8) * 255)
+        _write_tum_lists(out, ts, kind="paper", seed=seed, depth=write_depth_images)
+        _write_groundtruth(out / "groundtruth.txt", ts, poses)
+        _write_intrinsics(out / "intrinsics.txt", K)
+        truth = _write_camera_truth(out, cam)
+        _write_exposures(out / "truth" / "exposures.txt", [stamp(t) for t in ts], [(k, gains)] * n_frames)
+        _write_light(out / "truth" / "light_scale.txt", ts, scales)
+        atomic_write_json(out / "truth" / "paper.json", scene.to_dict())
+        truth.update({"paper": "truth/paper.json", "masks": "truth/masks"})
+        _write_manifest(out, "paper", cam, K, seed, n_frames, truth, {
+            "exposure": "fixed", "white_balance": "fixed", "exposure_time": k, "flicker": flicker,
+            "light_scale": "truth/light_scale.txt", "sheet_coverage_min": int(coverage.min()),
+            "sheet_coverage_median": float(np.median(coverage)), "sweep": _dc(sweep or PaperSweep()),
+            "depth": write_depth_images})
+        folder.complete()
     return out
 
 
@@ -407,56 +408,46 @@ def simulate_brackets(out_dir: str | os.PathLike, *, camera: CameraSpec | Simula
         raise ValueError(f"times must be at least 2 positive exposure times in seconds, got {times!r}")
     if scene not in BRACKET_SCENES:
         raise ValueError(f"unknown bracket scene {scene!r}; valid names: {', '.join(BRACKET_SCENES)}")
-    out = prepare_output(out_dir, force=force)
-    radiance = bracket_radiance(cam.width, cam.height, seed=seed, scene=scene, times=times)
-    names = [f"exposure_{i:02d}.png" for i in range(times.size)]
-    gains = np.asarray(cam.spec.gains, float)
-    caps = iter_brackets(cam, radiance, times, seed=seed, gains=gains)
-    for name, cap in zip(names, _progress(caps, times.size, "brackets", progress)):
-        write_image(out / name, cap.image)
-    atomic_write_text(out / "times.txt", "".join(f"{n} {t:.9g}\n" for n, t in zip(names, times)))
-    truth = _write_camera_truth(out, cam)
-    _write_exposures(out / "truth" / "exposures.txt", names, [(t, gains) for t in times], key="name")
-    _save_npy(out / "truth" / "radiance.npy", radiance)
-    truth.update({"radiance": "truth/radiance.npy"})
-    K = default_intrinsics(cam.width, cam.height)
-    _write_manifest(out, "brackets", cam, K, seed, int(times.size), truth, {
-        "images": names, "times": times.tolist(), "times_file": "times.txt", "scene": scene,
-        "exposure": "bracketed", "white_balance": "fixed"})
+    with SequenceFolder(out_dir, force=force) as folder:
+        out = folder.path
+        radiance = bracket_radiance(cam.width, cam.height, seed=seed, scene=scene, times=times)
+        names = [f"exposure_{i:02d}.png" for i in range(times.size)]
+        gains = np.asarray(cam.spec.gains, float)
+        caps = iter_brackets(cam, radiance, times, seed=seed, gains=gains)
+        for name, cap in zip(names, _progress(caps, times.size, "brackets", progress)):
+            write_image(out / name, cap.image)
+        atomic_write_text(out / "times.txt", "".join(f"{n} {t:.9g}\n" for n, t in zip(names, times)))
+        truth = _write_camera_truth(out, cam)
+        _write_exposures(out / "truth" / "exposures.txt", names, [(t, gains) for t in times], key="name")
+        _save_npy(out / "truth" / "radiance.npy", radiance)
+        truth.update({"radiance": "truth/radiance.npy"})
+        K = default_intrinsics(cam.width, cam.height)
+        _write_manifest(out, "brackets", cam, K, seed, int(times.size), truth, {
+            "images": names, "times": times.tolist(), "times_file": "times.txt", "scene": scene,
+            "exposure": "bracketed", "white_balance": "fixed"})
+        folder.complete()
     return out
 
 
 # ==================================================================================================
 # writing
 # ==================================================================================================
-_OWN_DIRS = ("rgb", "depth", "truth")
-_OWN_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.txt", "times.txt", MANIFEST)
+class SequenceFolder(ResultsFolder):
+    """A simulated sequence's folder (the layout in the module doc), locked while it is written and marked
+    ``RUNNING`` until it is complete (:class:`mapping.export.ResultsFolder`). A non-empty folder is refused unless
+    ``force``; with ``force`` an earlier simulation there (its manifest, or ``RUNNING`` if it was interrupted) is
+    removed first so that no stale frame survives, other content is left alone, and a folder that holds no
+    simulation is written into as it is (with a warning)."""
 
-
-def prepare_output(out_dir: str | os.PathLike, *, force: bool) -> Path:
-    """Create ``out_dir``; refuse a non-empty folder unless ``force``. With ``force``, the outputs of
-    an earlier simulation there (recognised by its manifest) are removed first so that no stale frame
-    survives; other content is left alone."""
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out} is an existing file; choose a folder name for the sequence")
-    if out.is_dir() and any(out.iterdir()):
-        if not force:
-            raise OutputError(f"{out} is not empty; pass --force to overwrite it or choose an empty folder")
-        if (out / MANIFEST).is_file():
-            try:
-                for d in _OWN_DIRS:
-                    if (out / d).is_dir():
-                        shutil.rmtree(out / d)
-                for f in _OWN_FILES:
-                    (out / f).unlink(missing_ok=True)
-                for f in out.glob("exposure_*.png"):
-                    f.unlink()
-            except OSError as exc:
-                raise OutputError(f"cannot clear the earlier simulation in {out}: {exc}; remove it by hand") from None
-        else:
-            log.warning("%s is not empty and holds no earlier simulation; writing into it anyway (--force)", out)
-    return ensure_dir(out)
+    what = "simulation"
+    markers = (MANIFEST, RUNNING_MARKER)
+    refusal = refusal_other = "is not empty; pass --force to overwrite it or choose an empty folder"
+    result_names = frozenset({"rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.txt", "times.txt", MANIFEST,
+                              RUNNING_MARKER, "exposure_*.png"})
+    owned_folders = frozenset({"rgb", "depth", "truth"})
+    clean_unmarked = False
+    listing = False
+    status_file = None
 
 
 def _check_frames(n_frames: int) -> None:
@@ -511,17 +502,10 @@ def _write_camera_truth(out: Path, cam: SimulatedCamera) -> dict[str, str]:
     cam.response.save(truth / "response.npz")
     _save_npy(truth / "vignetting.npy", cam.vignetting)
     cam.spec.save(truth / "camera.json")
-    files = {"response": "truth/response.npz", "vignetting": "truth/vignetting.npy", "camera": "truth/camera.json",
-             "exposures": "truth/exposures.txt"}
-    try:
-        from radiometry.vignetting import LUTVignetting
-    except ImportError:
-        LUTVignetting = None
-    if LUTVignetting is not None:
-        LUTVignetting(cam.vignetting, info={"source": "radiomap simulation (ground truth)",
-                                            "vignetting": cam.spec.vignetting.to_dict()}).save(truth / "vignetting.npz")
-        files["vignetting_model"] = "truth/vignetting.npz"
-    return files
+    LUTVignetting(cam.vignetting, info={"source": "radiomap simulation (ground truth)",
+                                        "vignetting": cam.spec.vignetting.to_dict()}).save(truth / "vignetting.npz")
+    return {"response": "truth/response.npz", "vignetting": "truth/vignetting.npy", "camera": "truth/camera.json",
+            "exposures": "truth/exposures.txt", "vignetting_model": "truth/vignetting.npz"}
 
 
 def _write_exposures(path: Path, keys: Sequence[str], exposures: Sequence[tuple[float, Any]], *,

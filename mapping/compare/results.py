@@ -1,0 +1,123 @@
+"""What a comparison yields: per method a :class:`MethodResult`, together a :class:`CompareResult` (the table,
+the ranking), and the folder they are written to, :class:`ComparisonFolder`.
+
+Layout (``OUT``)::
+
+    OUT/compare.json, compare.csv, compare.txt   the table (and everything else, in JSON)
+    OUT/histograms.png                           normalised histograms of all methods (Fig. 9), linear + log
+    OUT/renders.jpg                              the meshes side by side from 2-3 trajectory viewpoints (their
+                                                 poses and camera: "renders" in compare.json)
+    OUT/report.html                              everything above in one self-contained page
+    OUT/<method>/                                a reconstruct results folder per method (histogram,
+                                                 trajectory, metrics, mesh.ply, mesh_colours.npz)
+    OUT/config.json, summary.txt                 the CLI's options and printed summary (``config``, ``summary``)
+    OUT/.radiomap-files.json                     the files and method folders the comparison wrote: the next
+                                                 ``force`` run removes them (:class:`ComparisonFolder`)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.compare.colour_error import ColourError
+from mapping.compare.geometry import MapGeometry
+from mapping.compare.methods import METHOD_NAMES, Method
+from mapping.export import MANIFEST, RUNNING_MARKER, ResultsFolder
+from radiometry.tables import format_table
+
+TABLE_COLUMNS = ["method", "description", "frames fused", "pairs", "L1 mean", "L1 median", "L1 p90",
+                 "colour err", "colour err p90", "seconds"]
+MARKER = "compare.json"
+
+
+@dataclass
+class MethodResult:
+    """One method's run."""
+
+    method: Method
+    run: Any                        # mapping.results.RunResult
+    folder: Path
+    colour_model: Any
+    geometry: MapGeometry
+    colour_error: ColourError | None
+    files: dict[str, Path] = field(default_factory=dict)
+    seconds: float = math.nan
+
+    def row(self) -> dict[str, Any]:
+        s = self.run.histogram.stats()
+        err = self.colour_error
+        return {"method": self.method.name, "description": self.method.label, "frames fused": self.run.fused,
+                "pairs": s["count"], "L1 mean": s["mean"], "L1 median": s["median"], "L1 p90": s["p90"],
+                "colour err": math.nan if err is None else err.mean,
+                "colour err p90": math.nan if err is None else err.p90, "seconds": self.seconds}
+
+
+@dataclass
+class CompareResult:
+    """The outcome of :func:`compare`."""
+
+    results: list[MethodResult]
+    stamps: np.ndarray
+    poses: np.ndarray
+    pose_source: str
+    output: Path
+    files: dict[str, Path]
+    seconds: float
+    ate: Any = None
+    parameters: dict[str, Any] = field(default_factory=dict)
+    renders: dict[str, Any] | None = None   # the side-by-side renders' camera and viewpoints (compare.json)
+
+    def __getitem__(self, name: str) -> MethodResult:
+        for r in self.results:
+            if r.method.name == name:
+                return r
+        raise KeyError(f"no method {name!r}; the comparison ran {', '.join(self.names)}")
+
+    @property
+    def names(self) -> list[str]:
+        return [r.method.name for r in self.results]
+
+    def table(self) -> list[dict[str, Any]]:
+        return [r.row() for r in self.results]
+
+    def table_text(self) -> str:
+        rows = []
+        for row in self.table():
+            rows.append({k: ("-" if isinstance(v, float) and not math.isfinite(v) else
+                             round(v, 2) if isinstance(v, float) else v) for k, v in row.items()})
+        return format_table(rows, TABLE_COLUMNS)
+
+    @property
+    def poses_identical(self) -> bool:
+        """Every method fused the same frames at bit-identical poses."""
+        first = self.results[0].run
+        return all(np.array_equal(r.run.poses, first.poses) and np.array_equal(r.run.stamps, first.stamps)
+                   for r in self.results[1:])
+
+    def ranking(self, column: str = "L1 mean") -> list[str]:
+        """Method names from best (smallest ``column``) to worst."""
+        rows = self.table()
+        return [r["method"] for r in sorted(rows, key=lambda r: (not math.isfinite(r[column]), r[column]))]
+
+
+
+class ComparisonFolder(ResultsFolder):
+    """The comparison's folder (``OUT``): a :class:`~mapping.export.ResultsFolder` whose results are the files of
+    the module doc's layout and one results folder per method (:meth:`subfolder`). ``force`` removes the previous
+    comparison's files and method folders (those its ``.radiomap-files.json`` lists, and folders named like a
+    method) before the new one starts; the user's other files are left alone."""
+
+    what = "comparison"
+    markers = (MARKER, *ResultsFolder.markers)
+    refusal = ("already holds a comparison or the results of a run; pass --force to overwrite them or choose another "
+               "output folder")
+    result_names = frozenset({MARKER, "compare.csv", "compare.txt", "histograms.png", "colour_error.png",
+                              "renders.jpg", "report.html", "exposures.png", "trajectory.png", "config.json",
+                              "summary.txt", RUNNING_MARKER, MANIFEST})
+    result_folders = frozenset(METHOD_NAMES)
+    status_file = None

@@ -1,0 +1,236 @@
+"""The comparison run: every method fuses the same frames at identical poses (:func:`compare`).
+
+Identical poses. With ``poses="gt"`` every run takes the dataset's ground truth. With ``poses="icp"`` the
+first method's run tracks (frame-to-model ICP on depth only, so the choice of method does not matter) and
+every later run fuses at exactly the poses it estimated, skipping exactly the frames it skipped
+(:class:`FixedPoses`). ``CompareResult.poses_identical`` checks it after the fact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.colour import IrradianceColour, RawIntensity
+from mapping.compare.colour_error import colour_error
+from mapping.compare.geometry import map_geometry
+from mapping.compare.methods import BRIGHTNESS, Method, equal_brightness
+from mapping.compare.outputs import write_compare_json, write_outputs
+from mapping.compare.results import CompareResult, ComparisonFolder, MethodResult
+from radiometry.errors import RadiomapError
+from radiometry.response import CameraResponse
+
+
+class FixedPoses:
+    """A dataset view whose frames carry given poses instead of their own (``None``: the frame has no pose,
+    so :func:`mapping.pipeline.reconstruct` with ``poses="gt"`` skips it); ``on_frame`` is called once per
+    frame read (the shared progress bar)."""
+
+    def __init__(self, dataset, poses: Sequence[np.ndarray | None] | None = None, *,
+                 on_frame: Callable[[], None] | None = None) -> None:
+        if poses is not None and len(poses) != len(dataset):
+            raise ValueError(f"poses must have one entry per frame ({len(dataset)}), got {len(poses)}")
+        self.dataset = dataset
+        self.poses = None if poses is None else list(poses)
+        self.on_frame = on_frame
+        self.name = getattr(dataset, "name", "")
+        self.K = dataset.K
+        self.width = dataset.width
+        self.height = dataset.height
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int):
+        frame = self.dataset[index]
+        if self.on_frame is not None:
+            self.on_frame()
+        if self.poses is None:
+            return frame
+        pose = self.poses[index]
+        return dataclasses.replace(frame, pose=None if pose is None else np.array(pose, dtype=np.float64))
+
+    def ground_truth(self):
+        return self.dataset.ground_truth()
+
+
+def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: str = "tsdf", poses: str = "gt",
+            voxel_size: float = 0.01, depth_max: float = 3.0, backend_options: Mapping[str, Any] | None = None,
+            tracker_options: Mapping[str, Any] | None = None, brightness: str = "mean", scene=None,
+            display_response: CameraResponse | None = None, views: int = 3, render_width: int = 320,
+            progress: bool = True, force: bool = False, title: str | None = None,
+            report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
+            parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply", "glb"),
+            config: Mapping[str, Any] | None = None,
+            summary: Callable[[CompareResult], str] | None = None) -> CompareResult:
+    """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report. The
+    folder ``output`` and each method's folder in it are locked against a second run
+    (:class:`mapping.export.FolderLock`) from their creation until the comparison ends.
+
+    dataset:          an :class:`~mapping.datasets.base.RGBDDataset` (range and stride applied).
+    methods:          :class:`~mapping.compare.methods.Method` list (:func:`~mapping.compare.methods.make_methods`),
+                      in table order.
+    output:           the comparison's folder (refused if it holds one, unless ``force``: then the previous
+                      comparison's files and method folders are removed first, :class:`ComparisonFolder`).
+    backend:          ``tsdf`` or ``surfel`` (:func:`mapping.factory.make_backend`), ``backend_options`` to it.
+    poses:            ``gt`` (ground truth) or ``icp`` (tracked once by the first method, reused).
+    brightness:       ``mean`` (equal brightness, the default) or ``calibrated`` (:mod:`mapping.compare.methods`).
+    scene:            the true scene (a :class:`mapping.simulation.room.Room`) for the colour error and the
+                      "truth" column of the renders; None for real data.
+    display_response: linearises raw intensities for the colour error (default: the first method's response).
+    views:            viewpoints of the side-by-side renders (0 for none); ``render_width`` pixels wide each.
+    report_sections:  extra :class:`mapping.report.ReportSection` s placed before the results (e.g. the demo's
+                      calibration accuracy), or a function of the (unfinished) :class:`CompareResult` returning them.
+    mesh_formats:     formats of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj; PLY and GLB
+                      by default, as :func:`mapping.pipeline.reconstruct` writes); the ``mesh_colours.npz`` with
+                      map-unit colours is always written.
+    config, summary:  written as ``config.json`` (a JSON document, e.g. the CLI's replay manifest) and
+                      ``summary.txt`` (the text ``summary(result)`` returns) when the comparison has finished, in
+                      the locked folder before it is marked complete: they belong to this run (its MANIFEST).
+    """
+    from mapping._open3d import o3d
+    from mapping.factory import make_backend, make_tracker
+    from mapping.pipeline import POSE_SOURCES, reconstruct
+    from mapping.validation import check_run
+    from radiometry.fileio import atomic_write_json, atomic_write_text
+    from radiometry.progress import progress_bar
+
+    methods = list(methods)
+    if not methods:
+        raise ValueError("methods must hold at least one Method")
+    names = [m.name for m in methods]
+    if len(set(names)) != len(names):
+        raise ValueError(f"method names must be unique, got {names}")
+    if poses not in POSE_SOURCES:
+        raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
+    if brightness not in BRIGHTNESS:
+        raise ValueError(f"brightness must be one of {', '.join(BRIGHTNESS)}, got {brightness!r}")
+    if not (isinstance(voxel_size, (int, float)) and math.isfinite(voxel_size) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
+    if not (isinstance(views, (int, np.integer)) and views >= 0):
+        raise ValueError(f"views must be a whole number >= 0 (0: no renders), got {views!r}")
+    if views and not (isinstance(render_width, (int, np.integer)) and 16 <= render_width <= 4096):
+        raise ValueError(f"render_width must be a whole number of pixels in 16..4096, got {render_width!r}")
+    if len(dataset) == 0:
+        raise RadiomapError(f"{getattr(dataset, 'name', 'the sequence')}: no frames to compare; check --frames")
+    if display_response is None:
+        display_response = next((m.response for m in methods if m.response is not None), None)
+    check_run(dataset, backend=backend, voxel_size=voxel_size, depth_max=depth_max, poses=poses,
+              **{k: v for k, v in dict(backend_options or {}).items()
+                 if k in ("block_resolution", "trunc_voxel_multiplier", "depth_min")})
+    output = Path(output)
+    height, width = dataset.height, dataset.width
+    n = len(dataset)
+
+    # the comparison's folder, then each method's: released (their files listed) in reverse when it ends
+    with contextlib.ExitStack() as folders:
+        top = folders.enter_context(ComparisonFolder(output, force=force))  # the previous comparison removed
+        start = time.perf_counter()
+        bar = progress_bar(total=n * len(methods), desc="compare", enabled=progress)
+        results: list[MethodResult] = []
+        fixed: list[np.ndarray | None] | None = None
+        ate = None
+        try:
+            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+                for method in methods:
+                    bar.set_postfix_str(method.name, refresh=True)
+                    colour_model = _colour_model(method, height, width, brightness)
+                    fusion = make_backend(backend, voxel_size=voxel_size, depth_max=depth_max,
+                                          **dict(backend_options or {}))
+                    track = poses == "icp" and fixed is None
+                    view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed, on_frame=bar.update)
+                    folder = folders.enter_context(top.subfolder(method.name))
+                    t0 = time.perf_counter()
+                    tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
+                    run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
+                                      poses="icp" if track else "gt", output=folder, progress=False,
+                                      histogram_label=method.label, write_mesh=False)
+                    seconds = time.perf_counter() - t0
+                    if track:
+                        fixed = _poses_by_frame(run, n)
+                        ate = run.ate
+                    results.append(_method_result(method, run, folder.path, fusion, colour_model, seconds,
+                                                  backend=backend, scene=scene, display_response=display_response,
+                                                  max_distance=max(3 * voxel_size, 0.03), mesh_formats=mesh_formats))
+                    del fusion
+        finally:
+            bar.close()
+
+        first = results[0].run
+        result = CompareResult(results=results, stamps=first.stamps, poses=first.poses,
+                               pose_source="ground truth" if poses == "gt" else
+                               f"ICP (tracked with '{methods[0].name}')",
+                               output=output, files={}, seconds=0.0, ate=ate,
+                               parameters={"backend": backend, "poses": poses, "voxel_size": voxel_size,
+                                           "depth_max": depth_max, "brightness": brightness, "frames": n,
+                                           "width": width, "height": height, **dict(parameters or {})})
+        if not result.poses_identical:  # cannot happen by construction; never report a comparison that breaks it
+            raise RadiomapError("the methods were fused at different poses; this is a bug, please report it")
+        write_outputs(result, dataset, scene, views=views, render_width=render_width, title=title,
+                      report_sections=report_sections)
+        if config is not None:
+            result.files["config"] = atomic_write_json(output / "config.json", config)
+        if summary is not None:
+            result.files["summary"] = atomic_write_text(output / "summary.txt", summary(result))
+        result.seconds = time.perf_counter() - start
+        write_compare_json(result)
+        top.complete()
+    return result
+
+
+def _method_result(method: Method, run, folder: Path, fusion, colour_model, seconds: float, *, backend: str,
+                   scene, display_response: CameraResponse | None, max_distance: float,
+                   mesh_formats: Sequence[str]) -> MethodResult:
+    """A method's fused map as a mesh (and surfels) in its folder, its colour error against ``scene`` and its
+    ``compare_method.json``."""
+    from mapping.export import write_mesh
+    from radiometry.fileio import atomic_write_json
+
+    geometry = map_geometry(fusion)
+    files = dict(run.files)
+    if backend == "surfel" and hasattr(fusion, "export"):
+        files.update(fusion.export(folder, colour_model.to_display))
+    files.update(write_mesh(folder, geometry.vertices, geometry.triangles, geometry.colours,
+                            colour_model.to_display, normals=geometry.normals, formats=mesh_formats))
+    err = None
+    if scene is not None:
+        err = colour_error(geometry, colour_model, scene, display_response=display_response, max_distance=max_distance)
+    result = MethodResult(method, run, folder, colour_model, geometry, err, files, seconds)
+    atomic_write_json(folder / "compare_method.json",
+                      {"method": method.describe(), "row": result.row(),
+                       "colour_error": None if err is None else err.to_dict(),
+                       "geometry": {"kind": geometry.kind, "vertices": len(geometry),
+                                    "triangles": int(geometry.triangles.shape[0])}})
+    return result
+
+
+def _colour_model(method: Method, height: int, width: int, brightness: str):
+    if method.response is None:
+        return RawIntensity()
+    vig = method.vignetting
+    if vig is not None and brightness == "mean":
+        vig = equal_brightness(vig, height, width)
+    base = IrradianceColour(method.response, vig, name=method.name)
+    if not method.exposure_compensation:
+        return base
+    from mapping.exposure_compensation import CompensatedColour
+
+    return CompensatedColour(base, compensate=True)
+
+
+def _poses_by_frame(run, n: int) -> list[np.ndarray | None]:
+    """Per dataset position: the pose the run fused that frame at, or None if it skipped it."""
+    out: list[np.ndarray | None] = [None] * n
+    k = 0
+    for i, record in enumerate(run.records):
+        if record.fused:
+            out[i] = run.poses[k]
+            k += 1
+    return out
