@@ -13,7 +13,7 @@ inflate them; wall time of integrate is printed beside.
 
 "Fusion" is what the issue counts: association and update (``integrate``) plus the histogram of the colour
 pairs, timed as the pipeline does it (``mapping.pipeline._Loop._measure``): the display conversion of the
-pairs (``mapping.colour.display_l1``: for ``--colour irradiance``, the default, the corrected runs' response
+pairs (``ColourModel.display_l1``: for ``--colour irradiance``, the default, the corrected runs' response
 forward at k_ref through a gamma 2.2 response; for ``--colour raw`` a clip) and
 ``DisagreementHistogram.add_distances``. The ``hist`` column is that step alone, ``fusion fps`` counts both.
 
@@ -41,24 +41,14 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from mapping.simulation.trajectory import look_at  # noqa: E402
+
 
 # --------------------------------------------------------------------------------------------------
 # analytic room
 # --------------------------------------------------------------------------------------------------
 def intrinsics(w: int = 640, h: int = 480, f: float = 525.0) -> np.ndarray:
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
-
-
-def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
-    return pose
 
 
 def albedo(p: np.ndarray) -> np.ndarray:
@@ -84,7 +74,7 @@ def trajectory(i: int) -> np.ndarray:
     a = 0.05 * i
     eye = [0.6 * np.sin(0.3 * a), 0.1 * np.cos(0.5 * a), 0.6 * np.cos(0.3 * a) - 0.3]
     target = [2.5 * np.sin(a), 0.2 * np.sin(0.7 * a), 2.5 * np.cos(a) + 1.0]
-    return look_at(eye, target)
+    return look_at(eye, target, up=(0.0, -1.0, 0.0))  # world axes as the first camera's: y down
 
 
 def make_frames(start: int, count: int, K, w, h, seed: int, response=None):
@@ -124,7 +114,7 @@ def time_backend(backend, frames, K, w, h, first_index: int, colour_model):
     step (display conversion of the pairs and binning, as the pipeline does it) and of render; the median wall
     seconds of integrate, mean colour pairs, mean surfels in view, the mean CPU ms per stage and the
     histogram (its mean L1, a check that the pairs were counted)."""
-    from mapping.colour import display_l1
+
     from mapping.histogram import DisagreementHistogram
 
     histogram = DisagreementHistogram(label="bench")
@@ -135,7 +125,7 @@ def time_backend(backend, frames, K, w, h, first_index: int, colour_model):
         p = backend.integrate(depth, colour, K, pose, frame_index=first_index + i)
         w1, t1 = time.perf_counter(), time.process_time()
         if len(p):
-            histogram.add_distances(display_l1(colour_model, p.map_colour, p.sample_colour))
+            histogram.add_distances(colour_model.display_l1(p.map_colour, p.sample_colour))
         t2 = time.process_time()
         backend.render(pose, K, h, w)
         t3 = time.process_time()
@@ -220,7 +210,7 @@ def main() -> None:
     warm = make_frames(0, args.warmup, K, w, h, seed=1, response=response)
     timed = make_frames(args.warmup, args.num_frames, K, w, h, seed=2, response=response)
 
-    base = SurfelBackend(pixel_stride=args.stride, max_depth=args.max_depth)
+    base = SurfelBackend(pixel_stride=args.stride, depth_max=args.max_depth)
     for i, (depth, colour, pose) in enumerate(warm):
         base.integrate(depth, colour, K, pose, frame_index=i)
     base.stats()  # applies the pending unstable rule

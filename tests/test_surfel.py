@@ -12,11 +12,13 @@ import pytest
 
 from mapping.fusion.base import ColourPairs, ModelView
 from mapping.fusion.surfel import SurfelBackend, SurfelMap, vertex_normal_maps, write_surfel_ply
+from mapping.simulation.trajectory import look_at
 from conftest import shared_path
 
 W, H, F = 160, 120, 131.25  # a Kinect-like camera at a quarter of 640x480
 C_STABLE = 10.0
 EXP_CORNER = math.exp(-1.0 / 0.72)  # per-sample confidence at rho = 1 (image corner), sigma = 0.6
+UP = (0.0, -1.0, 0.0)  # the analytic scenes' world up for look_at: -y (world axes as the first camera's)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -24,17 +26,6 @@ EXP_CORNER = math.exp(-1.0 / 0.72)  # per-sample confidence at rho = 1 (image co
 # --------------------------------------------------------------------------------------------------
 def intrinsics(w: int = W, h: int = H, f: float = F) -> np.ndarray:
     return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-
-
-def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, np.cross(z, x), z, eye
-    return pose
 
 
 def translation(x=0.0, y=0.0, z=0.0) -> np.ndarray:
@@ -281,7 +272,7 @@ def test_border_samples_move_the_colour_less_than_central_ones():
 # --------------------------------------------------------------------------------------------------
 def _orbit(i: int) -> np.ndarray:
     return look_at([0.25 * math.sin(i / 5), 0.15 * math.cos(i / 7), -0.6 + 0.02 * i],
-                   [0.4 * math.sin(i / 9), 0.1 * math.cos(i / 6), 2.0])
+                   [0.4 * math.sin(i / 9), 0.1 * math.cos(i / 6), 2.0], up=UP)
 
 
 def test_stable_colours_converge_to_the_true_colour_with_noisy_samples():
@@ -314,7 +305,7 @@ def test_simulated_room_stable_surfels_average_the_noise_away():
     radiance samples carrying 6 % noise and without. Association never looks at colour, so both runs build
     the same surfels; their colour difference is what is left of the sample noise after averaging. The
     noise-free run shows the floor set by the texture (5 % change per pixel) blurred over a surfel's reach."""
-    sim = pytest.importorskip("mapping.simulation")
+    from mapping import simulation as sim
     from radiometry.simulation import default_intrinsics
 
     w, h = 320, 240
@@ -329,7 +320,7 @@ def test_simulated_room_stable_surfels_average_the_noise_away():
         r = renderer.render(pose)
         views.append((sensor.measure(r, rng=rng, pose=pose, scene=room), r.radiance, pose))
     noise = 0.06
-    noisy, clean = SurfelBackend(max_depth=4.0), SurfelBackend(max_depth=4.0)
+    noisy, clean = SurfelBackend(depth_max=4.0), SurfelBackend(depth_max=4.0)
     per_sample = []
     for i, (depth, radiance, pose) in enumerate(views):
         colour = (radiance * (1 + rng.normal(0, noise, radiance.shape))).astype(np.float32)
@@ -426,10 +417,10 @@ def test_render_depth_of_a_fused_plane_at_another_pose():
     room = ((-4, -4, -1), (4, 4, 2.5))
     b = SurfelBackend()
     for i in range(14):
-        pose = look_at([0.02 * i, 0.0, 0.0], [0.9, 0.1, 2.5])  # wall z = 2.5 seen at ~20 degrees
+        pose = look_at([0.02 * i, 0.0, 0.0], [0.9, 0.1, 2.5], up=UP)  # wall z = 2.5 seen at ~20 degrees
         depth, pts = render(pose, room=room)
         b.integrate(depth, albedo(pts).astype(np.float32), K, pose, frame_index=i)
-    other = look_at([0.2, -0.1, 0.3], [0.5, 0.0, 2.5])
+    other = look_at([0.2, -0.1, 0.3], [0.5, 0.0, 2.5], up=UP)
     truth, pts = render(other, room=room)
     view = b.render(other, K, H, W)
     ok = view.depth > 0
@@ -499,7 +490,7 @@ def test_export_poisson_mesh_behind_a_flag(tmp_path):
     b = SurfelBackend(mesh=True, poisson_depth=7)
     frames = []
     for i in range(12):
-        pose = look_at([0.02 * i, 0, 0], [0.3, 0.2, 2.0])
+        pose = look_at([0.02 * i, 0, 0], [0.3, 0.2, 2.0], up=UP)
         depth, pts = render(pose)
         frames.append((depth, albedo(pts).astype(np.float32), pose))
     fuse(b, frames)
@@ -565,7 +556,7 @@ def test_surfel_map_grows_by_doubling_and_compacts_in_order():
 
 
 def test_vertex_normal_maps_face_the_camera_and_match_the_fusion_samples():
-    pose = look_at([0, 0, 0], [0.8, 0.3, 2.0])
+    pose = look_at([0, 0, 0], [0.8, 0.3, 2.0], up=UP)
     depth, _ = render(pose)
     K = intrinsics()
     vert, nrm = vertex_normal_maps(depth, K)
@@ -590,7 +581,7 @@ def test_vertex_normal_maps_face_the_camera_and_match_the_fusion_samples():
     ({"pixel_stride": 5}, "pixel_stride must be between 1 and 4"),
     ({"index_scale": 1.5}, "index_scale must be an integer"),
     ({"normal_gate_deg": 200}, "normal_gate_deg must be below 180"),
-    ({"max_depth": float("nan")}, "max_depth must be > 0 and finite"),
+    ({"depth_max": float("nan")}, "depth_max must be > 0 and finite"),
     ({"poisson_trim": 1.0}, "poisson_trim must be a fraction"),
 ])
 def test_bad_parameters_are_named(kwargs, match):
@@ -641,18 +632,18 @@ def test_pipeline_histograms_are_ordered_as_in_the_paper_on_a_simulated_room(tmp
     """A simulated room seen by a camera with strong vignetting (the Xtion preset: corners at ~0.5), fixed
     exposure, fused with ground-truth poses by the surfel backend through the pipeline: the colour
     disagreement without correction is the worst and with the response and the LUT vignetting the best."""
-    pipeline = pytest.importorskip("mapping.pipeline")
-    sim = pytest.importorskip("mapping.simulation")
+    from mapping import factory, pipeline
+    from mapping import simulation as sim
     seq = sim.simulate_room(tmp_path / "room", camera="xtion", seed=3, n_frames=24, width=320, height=240,
                             auto_exposure=False, progress=False)
     means = {}
     for name, response, vignetting in (("none", None, None), ("response", "response.npz", None),
                                        ("lut", "response.npz", "vignetting.npy")):
-        cfg = pipeline.ReconstructConfig(
+        cfg = factory.ReconstructConfig(
             sequence=seq, backend="surfel", poses="gt", progress=False,
             response=None if response is None else seq / "truth" / response,
             vignetting=None if vignetting is None else seq / "truth" / vignetting)
-        kwargs = pipeline.build_run(cfg)
+        kwargs = factory.build_run(cfg)
         assert type(kwargs["backend"]).__name__ == "SurfelBackend"
         run = pipeline.reconstruct(**kwargs)
         assert run.fused == 24 and run.histogram.total > 100000
@@ -711,13 +702,13 @@ def test_auto_exposure_room_none_worst_lut_best_and_lut_colours_match_the_truth(
 def test_seven_scenes_sample_end_to_end_with_icp_tracking(tmp_path):
     """The 7-Scenes sample through ``reconstruct``: ICP tracking against the surfel map's render, fusion,
     histogram and export."""
-    pipeline = pytest.importorskip("mapping.pipeline")
+    from mapping import factory, pipeline
     from mapping.export import ResultsFolder
 
     path = shared_path("rgbd", "redkitchen_7scenes_000-099")
-    cfg = pipeline.ReconstructConfig(sequence=path, frames=slice(0, 100, 4), backend="surfel", poses="icp",
+    cfg = factory.ReconstructConfig(sequence=path, frames=slice(0, 100, 4), backend="surfel", poses="icp",
                                      progress=False)
-    run = pipeline.reconstruct(**pipeline.build_run(cfg), output=ResultsFolder(tmp_path / "run"))
+    run = pipeline.reconstruct(**factory.build_run(cfg), output=ResultsFolder(tmp_path / "run"))
     assert run.frames == 25 and run.fused == 25
     assert run.ate is not None and run.ate.rmse < 0.03  # metres, against the sample's ground truth
     assert run.histogram.total > 500000
@@ -769,7 +760,7 @@ def test_cli_surfel_mesh_writes_the_poisson_mesh_and_is_refused_with_tsdf(tmp_pa
 
 
 def test_make_backend_threads_the_surfel_mesh_option():
-    from mapping.pipeline import make_backend
+    from mapping.factory import make_backend
 
     assert make_backend("surfel", surfel_mesh=True).mesh is True
     assert make_backend("surfel").mesh is False

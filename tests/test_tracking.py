@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapping.datasets.synthetic import box_room_sequence
+from box_room import box_room_sequence
 from mapping.fusion.base import ModelView
 from mapping.fusion.tsdf import TSDFBackend
 from mapping.metrics import (absolute_trajectory_error, interpolate_poses, matrix_to_quaternion,

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from mapping.datasets.synthetic import box_room_sequence
+from box_room import box_room_sequence
 from mapping.fusion.base import ColourPairs, ModelView
 from mapping.fusion.tsdf import TSDFBackend
 

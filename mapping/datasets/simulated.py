@@ -1,4 +1,8 @@
-"""Sequences written by radiomap's simulator (:mod:`mapping.simulation`): TUM layout plus ground truth.
+"""The READER of simulated sequences: folders written by :mod:`mapping.simulation` (TUM layout plus ground truth).
+
+The other homes of made-up data: :mod:`mapping.simulation` renders and writes these folders with the simulated
+camera of :mod:`radiometry.simulation`; :mod:`mapping.datasets.in_memory` is a dataset over frames already in
+memory.
 
 ::
 

@@ -1,4 +1,8 @@
-"""Simulated scenes and RGB-D sequences with every hidden quantity known.
+"""Simulated SCENES and SEQUENCES: rendered rooms, paper sweeps and brackets written to folders with ground truth.
+
+Every hidden quantity is known. The other homes of made-up data: :mod:`radiometry.simulation` is the camera
+these sequences are taken with (response, vignetting, exposure, noise); :mod:`mapping.datasets.simulated` reads
+the folders written here; :mod:`mapping.datasets.in_memory` is a dataset over frames already in memory.
 
 - :mod:`~mapping.simulation.room`: a furnished, textured, lit room from a seed (:func:`make_room`,
   :func:`load_room`), with the true radiance at any 3D point (:meth:`Room.radiance_at`).
@@ -9,8 +13,6 @@
 - :mod:`~mapping.simulation.sequences`: ``simulate_room``, ``simulate_paper``, ``simulate_brackets``
   (folders with ground truth) and their in-memory ``iter_*`` counterparts.
 - :func:`sample_sequence`: small cached samples for the demo and tests.
-
-The camera model itself (CRF, vignetting, exposure, noise) is :mod:`radiometry.simulation`.
 """
 
 from mapping.simulation.render import Renderer, RenderResult

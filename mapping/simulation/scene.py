@@ -24,8 +24,6 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-INVALID = np.uint32(0xFFFFFFFF)
-
 
 @dataclass(eq=False)
 class Face:

@@ -39,7 +39,12 @@ def camera_rotation(forward: np.ndarray, *, up: np.ndarray = _UP, roll: float = 
 
 def look_at(eye: Sequence[float], target: Sequence[float], *, up: Sequence[float] = (0, 0, 1),
             roll: float = 0.0) -> np.ndarray:
-    """Camera-to-world pose at ``eye`` looking at ``target``."""
+    """Camera-to-world pose at ``eye`` looking at ``target`` (OpenCV camera axes: x right, y down, z forward).
+
+    ``up`` is the world's up direction: the camera's x axis is ``forward x up`` and its y axis points away
+    from ``up`` (see :func:`camera_rotation`). The simulator's world has z up (the default); scenes built in
+    camera-like world axes (y down) pass ``up=(0, -1, 0)``.
+    """
     eye = np.asarray(eye, dtype=np.float64)
     T = np.eye(4)
     T[:3, :3] = camera_rotation(np.asarray(target, dtype=np.float64) - eye, up=np.asarray(up, float), roll=roll)

@@ -1,10 +1,12 @@
-"""In-memory sequences: :class:`ArrayDataset` (frames already in memory) and :func:`box_room_sequence`, an
-analytic scene with exact geometry, radiance, vignetting and response for unit tests of tracking and fusion.
+"""Test helper: :func:`box_room_sequence`, an analytic scene with exact geometry, radiance, vignetting and
+response for unit tests of tracking and fusion (made up in memory; not library code).
 
 The box room is the inside of an axis-aligned box (``[-w/2, w/2] x [-h/2, h/2] x [0, d]``) whose walls carry a
 smooth, view-independent radiance pattern; the camera starts near the origin looking along +z (towards a
 corner region, so that three non-parallel planes constrain ICP) and moves along a gentle arc. Depth is the
 exact ray-box intersection; colour is ``f(k * V(x) * L)`` through the given response. Nothing touches the disk.
+The sequence is a :class:`mapping.datasets.in_memory.ArrayDataset`; the library's simulator (rendered rooms
+written to folders) is :mod:`mapping.simulation`.
 """
 
 from __future__ import annotations
@@ -14,51 +16,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from mapping.datasets.base import RGBDFrame
-from radiometry.errors import DatasetError
+from mapping.datasets.in_memory import ArrayDataset
+from mapping.simulation.trajectory import look_at
 
-
-class ArrayDataset:
-    """A dataset over frames held in memory (implements ``RGBDDataset``)."""
-
-    def __init__(self, frames: Sequence[RGBDFrame], *, name: str = "arrays") -> None:
-        frames = list(frames)
-        if not frames:
-            raise DatasetError(f"{name}: the sequence has no frames")
-        h, w = frames[0].rgb.shape[:2]
-        for f in frames:
-            if f.rgb.shape[:2] != (h, w) or f.depth.shape != (h, w):
-                raise DatasetError(f"{name}: frame {f.index} is {f.rgb.shape[1]}x{f.rgb.shape[0]} (depth "
-                                   f"{f.depth.shape[::-1]}) while the sequence is {w}x{h}")
-        self.frames = frames
-        self.name = name
-        self.K = np.asarray(frames[0].K, dtype=np.float64)
-        self.width, self.height = int(w), int(h)
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def __getitem__(self, index: int) -> RGBDFrame:
-        return self.frames[index]
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray] | None:
-        known = [f for f in self.frames if f.pose is not None]
-        if not known:
-            return None
-        return np.array([f.timestamp for f in known]), np.stack([f.pose for f in known])
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes: x right, y down, z forward) at ``eye`` looking at ``target``."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(np.asarray(up, float), z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
+#: the box room's world "up" for :func:`look_at`: +y (the camera's image y axis points to world -y)
+BOX_UP = (0.0, 1.0, 0.0)
 
 
 class BoxRoom:
@@ -126,7 +88,7 @@ def box_room_sequence(*, n_frames: int = 12, width: int = 160, height: int = 120
         eye = np.array([-0.4 + step * i, 0.1, 0.6])
         yaw = np.radians(-20.0 + turn_deg * i)
         target = eye + np.array([np.sin(yaw) * 2.0 + 0.6, 0.35, np.cos(yaw) * 2.0])
-        pose = look_at(eye, target)
+        pose = look_at(eye, target, up=BOX_UP)
         dirs = rays_cam @ pose[:3, :3].T
         t = room.intersect(np.broadcast_to(pose[:3, 3], dirs.shape), dirs)
         points = pose[:3, 3] + t[:, None] * dirs
