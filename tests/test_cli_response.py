@@ -128,7 +128,12 @@ def test_other_known_errors(tmp_path, sample_copy):
     (["--method", "robertson", "--lambda", "3"], "apply to debevec and opencv-debevec, not robertson"),
     (["--method", "opencv-debevec", "--mask-blue"], "--mask-blue needs --method debevec"),
     (["--channel", "R"], "--channel applies to a .txt"),
-    (["--method", "svd"], "'svd' is not one of"),
+    (["--method", "svd"], "'svd' is not one of 'debevec', 'engel', 'opencv-debevec', 'robertson'"),
+    (["--method", "engel", "--lambda", "3"], "apply to debevec and opencv-debevec, not engel"),
+    (["--method", "engel", "--samples", "30"], "apply to debevec and opencv-debevec, not engel"),
+    (["--method", "opencv-debevec", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),
+    (["--lambda", "abc"], "'abc' is not a valid float"),
+    (["--lambda", "-1"], "-1.0 is not in the range x>0"),
     (["--samples", "0"], "0 is not in the range x>=1"),
     (["--lambda", "0"], "0.0 is not in the range x>0"),
 ])
@@ -203,3 +208,68 @@ def test_standard_response_usage_errors(tmp_path, args, message):
     result = invoke(*args, "-o", tmp_path / "r.npz")
     assert result.exit_code == 2 and message in result.output, result.output
     assert not (tmp_path / "r.npz").exists()
+
+
+def test_method_choices_are_the_registry():
+    from mapping.cli.response import RESPONSE_METHODS
+    from radiometry.response_fit import FITTERS, METHODS
+
+    assert RESPONSE_METHODS == METHODS == FITTERS.names()
+
+
+def test_lambda_auto_on_the_sample(tmp_path):
+    out = tmp_path / "crf.npz"
+    result = invoke(SAMPLE, "-o", out, "--lambda", "AUTO")
+    assert result.exit_code == 0, result.output
+    response = CameraResponse.load(out)
+    meta = response.meta
+    assert meta["lambda_selection"] == "cross-validation" and meta["lambda"] in (0.3, 1, 3, 10, 30, 100)
+    assert f"lambda {meta['lambda']:g}, chosen by cross-validation on held-out pixels" in result.output
+    truth = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
+    levels = np.arange(5, 251)
+    # measured: lambda 3, 1.06 % of the range (lambda 10: 0.39 %)
+    assert np.abs(response.inverse_table[levels] - truth.inverse_table[levels]).max() < 0.02
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["parameters"]["lambda"] == "auto" and record["response"]["lambda_scores"]
+
+
+@pytest.fixture
+def varied_folder(tmp_path):
+    """A bracket folder rendered through the kinked test curve, exposure ratios that differ (tests/response_curves)."""
+    from response_curves import TIMES, kink_curve, render_brackets, scene
+
+    from radiometry.images import write_image
+
+    times = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
+    folder = tmp_path / "kink"
+    folder.mkdir()
+    lines = []
+    for k, (t, image) in enumerate(zip(times, render_brackets(kink_curve(), scene(120, 160), times))):
+        write_image(folder / f"b{k:02d}.png", image)
+        lines.append(f"b{k:02d}.png {float(t)!r}")
+    (folder / "times.txt").write_text("\n".join(lines) + "\n")
+    return folder, kink_curve()
+
+
+def test_engel_method(tmp_path, varied_folder):
+    folder, truth = varied_folder
+    out = tmp_path / "engel.npz"
+    result = invoke(folder, "-o", out, "--method", "engel", "--no-progress")
+    assert result.exit_code == 0, result.output
+    assert "engel" in result.output and "px" in result.output
+    assert "levels constrained by data: 1..254, 1..254, 1..254 (per channel); the others are extrapolated" in \
+        result.output
+    response = CameraResponse.load(out)
+    assert response.meta["method"] == "engel" and response.meta["extrapolated_levels"][0] == [0, 255]
+    err = np.abs(response.inverse_table[5:251] - truth[5:251, None]).max()
+    assert err < 0.015  # measured 0.87 % (160x120)
+    assert out.with_suffix(".png").is_file()
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["summary"]["method"] == "engel" and record["response"]["observed_range"] == [[1, 254]] * 3
+
+
+def test_engel_on_equal_ratios_warns(tmp_path):
+    out = tmp_path / "engel.npz"
+    result = invoke(SAMPLE, "-o", out, "--method", "engel", "--mask-blue")
+    assert result.exit_code == 0, result.output
+    assert CameraResponse.load(out).meta["equal_ratios"] == pytest.approx(4.0)
