@@ -114,10 +114,10 @@ def calibrate_vignetting(frames: Any, response: CameraResponse | PathLike, *, mo
     drift_correction: estimate per-frame brightness drift (False: plain average, as radical).
     smooth_sigma: LUT only, the Gaussian (pixels) denoising the residual to the radial fit (default 1; 0 off).
     """
+    from radiometry.registry import validate_name
     from radiometry.vignetting_calibration import MODELS, collect_vignetting, fit_vignetting
 
-    if model not in MODELS:
-        raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
+    validate_name(model, MODELS, "model")  # before the sweep is read
     if smooth_sigma is not None and model != "lut":
         raise ValueError(f"smooth_sigma applies to model='lut' only, got model={model!r}; drop smooth_sigma")
     response = as_response(response)
