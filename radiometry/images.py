@@ -1,4 +1,5 @@
-"""Image files: colour read as RGB (OpenCV's BGR converted here, exactly once), depth as float32 metres.
+"""Image files: colour read as RGB (OpenCV's BGR converted here, exactly once), depth as float32 metres, float
+images (irradiance) written as ``.npy``, ``.tiff`` or ``.exr``.
 
 Every reader names the file and the fix when it fails, and checks a PNG's or JPEG's header before decoding it
 (:func:`png_defect`, :func:`jpeg_defect`): a few corrupt bytes can claim an image of gigabytes. Writes are
@@ -171,6 +172,36 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     ok, buf = cv2.imencode(path.suffix or ".png", image)
     if not ok:
         raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def write_float_image(path: str | os.PathLike, data: np.ndarray) -> Path:
+    """Write a float image (e.g. irradiance, RGB or one channel) as float32, atomically, in the format its suffix
+    names: ``.npy`` (NumPy), ``.tiff``/``.tif`` or ``.exr`` (OpenCV, 32-bit float); OutputError naming the file
+    when OpenCV cannot encode it (an OpenCV build without OpenEXR)."""
+    path = Path(path)
+    img = np.asarray(data).astype(np.float32)
+    if path.suffix.lower() == ".npy":
+        from radiometry.fileio import atomic_path
+
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, img)
+        return path
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    cv2 = _cv2()
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    try:
+        ok, buf = cv2.imencode(path.suffix, img)
+    except cv2.error as exc:
+        ok, buf = False, None
+        reason = str(exc).strip().splitlines()[-1]
+    else:
+        reason = "the encoder refused"
+    if not ok:
+        raise OutputError(f"{path}: OpenCV cannot write 32-bit float {path.suffix.lstrip('.').upper()} ({reason}); "
+                          "use --irradiance-format npy")
     return atomic_write_bytes(path, buf.tobytes())
 
 

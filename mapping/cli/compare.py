@@ -107,7 +107,7 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
                                    exposure_compensation=exposure_compensation, names=methods)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
-    scene = _scene_of(sequence, dataset)
+    scene = _scene_of(dataset)
     ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
     settings = settings_line(ctx, [("poses", "poses", poses),
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
@@ -135,23 +135,15 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
 
 
-def _scene_of(sequence: Path, dataset):
-    """The simulated room of a simulated sequence (for the colour error), else None."""
-    room_file = Path(sequence) / "truth" / "room.json"
-    if getattr(dataset, "format_name", "") != "simulated" or not room_file.is_file():
-        return None
-    light = Path(sequence) / "truth" / "light_scale.txt"
-    if light.is_file():
-        import numpy as np
+def _scene_of(dataset):
+    """The simulated room of a simulated sequence (for the colour error), else None; a note when its light changes
+    (the colour error then also counts the change)."""
+    from mapping.datasets import SimulatedDataset
 
-        try:
-            scales = np.loadtxt(light, ndmin=2)[:, 1]
-        except (OSError, ValueError, IndexError):
-            scales = np.ones(1)
-        if scales.size and np.ptp(scales) > 1e-6:
-            click.echo(f"note: the light changes during {sequence.name} ({scales.min():.2f}..{scales.max():.2f}); the "
-                       "colour error compares with the radiance at the nominal light, so it also counts the change",
-                       err=True)
-    from mapping.simulation import load_room
-
-    return load_room(room_file)
+    room = dataset.true_room() if isinstance(dataset, SimulatedDataset) else None
+    scales = dataset.true_light_scales() if room is not None else None
+    if scales is not None and scales.size and scales.max() - scales.min() > 1e-6:
+        click.echo(f"note: the light changes during {dataset.name} ({scales.min():.2f}..{scales.max():.2f}); the "
+                   "colour error compares with the radiance at the nominal light, so it also counts the change",
+                   err=True)
+    return room

@@ -32,40 +32,6 @@ def _scale_type(value: str) -> float | str:
     return check_exposure_factor(number, "--scale")  # 1e-4..1e4 (mapping/validation.py)
 
 
-def _write_float(path: Path, data, fmt: str) -> None:
-    import numpy as np
-
-    from radiometry.errors import OutputError
-    from radiometry.fileio import atomic_path
-
-    if fmt == "npy":
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.save(fh, data.astype(np.float32))
-        return
-    import os
-
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-    import cv2
-
-    img = data.astype(np.float32)
-    if img.ndim == 3 and img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    try:
-        ok, buf = cv2.imencode(path.suffix, img)
-    except cv2.error as exc:
-        ok, buf = False, None
-        reason = str(exc).strip().splitlines()[-1]
-    else:
-        reason = "the encoder refused"
-    if not ok:
-        raise OutputError(f"{path}: OpenCV cannot write 32-bit float {fmt.upper()} ({reason}); "
-                          "use --irradiance-format npy")
-    from radiometry.fileio import atomic_write_bytes
-
-    atomic_write_bytes(path, buf.tobytes())
-
-
 @contextlib.contextmanager
 def _models_must_fit(what, response_path: str, vignetting_path: str):
     """Name the image and both model files when the models do not fit an image (size, aspect, channels)."""
@@ -109,7 +75,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     from radiometry.correction import Corrector
     from radiometry.fileio import check_outputs, check_overwrite, ensure_dir
     from radiometry.formats import load_response
-    from radiometry.images import write_image
+    from radiometry.images import write_float_image, write_image
     from radiometry.progress import progress_bar
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
@@ -156,7 +122,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
         if irradiance:
             with _models_must_fit(source_name, response_path, vignetting_path):
                 irr = corrector.irradiance(frame)
-            _write_float(target, irr, fmt)
+            write_float_image(target, irr)
         else:
             with _models_must_fit(source_name, response_path, vignetting_path):
                 result = corrector.correct(frame, scale=float(scale_value))

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import click
 
-MODEL_CHOICES = ("lut", "poly", "poly-fixed-center")
+from mapping.validation import SMOOTH_SIGMA_PX, option_range
+from radiometry.vignetting_calibration import MODELS
+
 EPILOG = """\b
 Record the sweep with exposure and white balance FIXED: move the camera over an evenly lit
 white sheet (on a darker background) so that every part of the image sees the sheet many times,
@@ -21,63 +23,8 @@ Examples:
 """
 
 
-def _centre_of(model, c: int) -> tuple[float, float]:
-    import numpy as np
-
-    from radiometry.vignetting import PolynomialVignetting
-
-    if isinstance(model, PolynomialVignetting):
-        cx, cy = model.centres[min(c, model.channels - 1)]
-        return float(cx), float(cy)
-    import cv2
-
-    v = model.evaluate()[:, :, min(c, model.channels - 1)].astype(np.float32)
-    w, h = model.resolution
-    smooth = cv2.GaussianBlur(v, (0, 0), 0.02 * float(np.hypot(w, h)))
-    y, x = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
-    return float(x), float(y)
-
-
 # the library default of fit_vignetting_lut(smooth_sigma=...); tests check that they agree
 DEFAULT_SMOOTH_SIGMA = 1.0
-
-
-def _smooth_sigma(ctx, param, value):
-    import math
-
-    if value is not None and not (math.isfinite(value) and value >= 0):
-        raise click.BadParameter(f"must be a finite number of pixels >= 0 (0 disables the smoothing), got {value}")
-    from mapping.validation import SMOOTH_SIGMA_PX, check_range
-
-    return value if value is None else check_range("--smooth-sigma", value, SMOOTH_SIGMA_PX, "px",
-                                                   "0 disables the smoothing, 2-3 suits thin sweeps")
-
-
-def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]:
-    """Per-channel rows (centre, corner/centre ratio, fit RMS) and the run's facts."""
-    import numpy as np
-
-    from radiometry.vignetting_calibration import flat_rms_levels
-
-    v = model.evaluate()
-    rms = flat_rms_levels(model, acc, response)
-    names = ("R", "G", "B") if model.channels == 3 else ("grey",)
-    rows = []
-    for c in range(model.channels):
-        cx, cy = _centre_of(model, c)
-        vc = v[:, :, c]
-        corners = float(np.mean([vc[0, 0], vc[0, -1], vc[-1, 0], vc[-1, -1]]))
-        row = int(round(np.clip(cy, 0, vc.shape[0] - 1)))
-        col = int(round(np.clip(cx, 0, vc.shape[1] - 1)))
-        centre_value = float(vc[row, col])
-        rows.append({"channel": names[c], "centre_x": round(cx, 2), "centre_y": round(cy, 2),
-                     "corner/centre": round(corners / centre_value, 4),
-                     "fit_rms_levels": round(float(rms[min(c, len(rms) - 1)]), 3)})
-    report = acc.coverage_report(min_samples)
-    facts = {"frames_used": acc.frames_used, "frames_skipped": acc.frames_skipped, "skipped": acc.skipped,
-             "coverage": str(report), "fraction_below_min_samples": report.fraction_below,
-             "thin_regions": report.thin_regions(), "channels": rows}
-    return rows, facts
 
 
 @click.command("vignetting", epilog=EPILOG)
@@ -86,7 +33,7 @@ def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]
               help="Camera response: radiomap .npz, radical .crf or DSO pcalib.txt.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Model file: .npz (radiomap), .vgn (radical) or .png (DSO 16-bit vignette, channel mean).")
-@click.option("--model", "model_name", type=click.Choice(MODEL_CHOICES), default="lut", show_default=True,
+@click.option("--model", "model_name", type=click.Choice(list(MODELS)), default="lut", show_default=True,
               help="LUT per pixel, or polynomial with free / fixed centre.")
 @click.option("--min-samples", type=click.IntRange(min=1), default=20, show_default=True,
               help="Samples per pixel wanted; coverage below it is reported.")
@@ -95,7 +42,7 @@ def summarise(model, acc, response, min_samples: int) -> tuple[list[dict], dict]
 @click.option("--no-drift-correction", is_flag=True,
               help="Do not estimate per-frame brightness drift (plain average as in radical).")
 @click.option("--smooth-sigma", type=float, default=DEFAULT_SMOOTH_SIGMA, show_default=True,
-              callback=_smooth_sigma,
+              callback=option_range(SMOOTH_SIGMA_PX, "px", "0 disables the smoothing, 2-3 suits thin sweeps"),
               help="LUT only: denoise the per-pixel residual to the radial fit with a Gaussian of this many "
                    "pixels (0 = off). Raise it (2-3) for short or noisy sweeps with few samples per pixel; "
                    "lower it to keep fine non-radial detail when every pixel has many samples.")
@@ -116,7 +63,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
-    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
+    from radiometry.vignetting_calibration import calibration_summary, collect_vignetting, fit_vignetting
     from mapping.cli._common import run_manifest
     from radiometry.tables import format_table
 
@@ -139,7 +86,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma
     model = fit_vignetting(acc, model=model_name, **fit_options)
-    rows, facts = summarise(model, acc, response, min_samples)
+    rows, facts = calibration_summary(model, acc, response, min_samples)
     skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
     text = "\n".join([
         f"vignetting model ({model_name}) -> {out}",

@@ -137,6 +137,27 @@ class SimulatedDataset(TUMDataset):
 
         return CameraResponse.load(self.truth_path("response.npz"))
 
+    def true_room(self):
+        """The simulated room (:func:`mapping.simulation.load_room` of ``truth/room.json``), or None for a sequence
+        without one (a white-paper sweep)."""
+        path = self.truth_dir / "room.json"
+        if not path.is_file():
+            return None
+        from mapping.simulation import load_room
+
+        return load_room(path)
+
+    def true_light_scales(self) -> np.ndarray | None:
+        """The light's brightness factor per frame (second column of ``truth/light_scale.txt``), or None when the
+        file is absent or unreadable (the light is then taken as constant)."""
+        path = self.truth_dir / "light_scale.txt"
+        if not path.is_file():
+            return None
+        try:
+            return np.loadtxt(path, ndmin=2)[:, 1]
+        except (OSError, ValueError, IndexError):
+            return None
+
     def true_exposures(self) -> dict[float, np.ndarray]:
         """``{timestamp: [k, gain_r, gain_g, gain_b]}`` from ``truth/exposures.txt``."""
         path = self.truth_path("exposures.txt")

@@ -47,7 +47,8 @@ Modules, one job each: :mod:`~radiometry.vignetting_calibration.sources` (folder
 from radiometry.vignetting_calibration.accumulate import (CoverageReport, VignettingAccumulation,
                                                           VignettingAccumulator)
 from radiometry.vignetting_calibration.collect import collect_vignetting
-from radiometry.vignetting_calibration.evaluate import flat_rms_levels, repeatability, vignetting_error_levels
+from radiometry.vignetting_calibration.evaluate import (calibration_summary, flat_rms_levels, model_centre,
+                                                        repeatability, vignetting_error_levels)
 from radiometry.vignetting_calibration.fit import (MAX_SMOOTH_SIGMA, MODELS, fit_vignetting, fit_vignetting_lut,
                                                    fit_vignetting_polynomial)
 from radiometry.vignetting_calibration.scales import estimate_frame_scales
@@ -60,5 +61,5 @@ __all__ = [
     "SheetDetection", "detect_sheet", "VignettingAccumulator", "VignettingAccumulation", "CoverageReport",
     "estimate_frame_scales", "collect_vignetting", "fit_vignetting", "fit_vignetting_lut",
     "fit_vignetting_polynomial", "vignetting_error_levels", "flat_rms_levels", "repeatability", "MODELS",
-    "MAX_SMOOTH_SIGMA",
+    "MAX_SMOOTH_SIGMA", "calibration_summary", "model_centre",
 ]

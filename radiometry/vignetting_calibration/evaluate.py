@@ -1,5 +1,6 @@
 """Evaluation in 8-bit levels: an estimated vignetting against the truth (simulations), a model against a
-session's mean flat, and the paper's repeatability experiment (Fig. 6)."""
+session's mean flat, the paper's repeatability experiment (Fig. 6), and a calibration's summary (centres,
+corner falloff, fit error, coverage)."""
 
 from __future__ import annotations
 
@@ -80,6 +81,50 @@ def flat_rms_levels(model: VignettingModel, accumulation: VignettingAccumulation
         pred = np.interp(a * vv, tables[:, c], levels)
         out[c] = float(np.sqrt(np.mean((pred - obs) ** 2)))
     return out
+
+
+def model_centre(model: VignettingModel, channel: int) -> tuple[float, float]:
+    """``(x, y)`` in pixels where ``model``'s channel is brightest: a polynomial's centre, else the maximum of
+    the LUT smoothed by a Gaussian of 2 % of the image diagonal (so that noise does not pick a stray pixel)."""
+    from radiometry.vignetting import PolynomialVignetting
+
+    c = min(channel, model.channels - 1)
+    if isinstance(model, PolynomialVignetting):
+        cx, cy = model.centres[c]
+        return float(cx), float(cy)
+    import cv2
+
+    v = model.evaluate()[:, :, c].astype(np.float32)
+    w, h = model.resolution
+    smooth = cv2.GaussianBlur(v, (0, 0), 0.02 * float(np.hypot(w, h)))
+    y, x = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
+    return float(x), float(y)
+
+
+def calibration_summary(model: VignettingModel, accumulation: VignettingAccumulation, response: CameraResponse,
+                        min_samples: int) -> tuple[list[dict], dict]:
+    """What a calibration reports: per-channel rows (centre, corner/centre ratio, fit RMS in levels from
+    :func:`flat_rms_levels`) and the run's facts (frames used and skipped, coverage against ``min_samples``)."""
+    v = model.evaluate()
+    rms = flat_rms_levels(model, accumulation, response)
+    names = ("R", "G", "B") if model.channels == 3 else ("grey",)
+    rows = []
+    for c in range(model.channels):
+        cx, cy = model_centre(model, c)
+        vc = v[:, :, c]
+        corners = float(np.mean([vc[0, 0], vc[0, -1], vc[-1, 0], vc[-1, -1]]))
+        row = int(round(np.clip(cy, 0, vc.shape[0] - 1)))
+        col = int(round(np.clip(cx, 0, vc.shape[1] - 1)))
+        centre_value = float(vc[row, col])
+        rows.append({"channel": names[c], "centre_x": round(cx, 2), "centre_y": round(cy, 2),
+                     "corner/centre": round(corners / centre_value, 4),
+                     "fit_rms_levels": round(float(rms[min(c, len(rms) - 1)]), 3)})
+    report = accumulation.coverage_report(min_samples)
+    facts = {"frames_used": accumulation.frames_used, "frames_skipped": accumulation.frames_skipped,
+             "skipped": accumulation.skipped, "coverage": str(report),
+             "fraction_below_min_samples": report.fraction_below, "thin_regions": report.thin_regions(),
+             "channels": rows}
+    return rows, facts
 
 
 def repeatability(accumulations: Sequence[VignettingAccumulation], response: CameraResponse, *,
