@@ -53,7 +53,8 @@ def run_method(method: str, args) -> dict:
     from mapping.colour import IrradianceColour
     from mapping.datasets import open_dataset
     from mapping.exposure_compensation import CompensatedColour
-    from mapping.pipeline import make_backend, reconstruct
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
     from radiometry.response import CameraResponse
 
     ds = open_dataset(args.sequence, frames=parse_frames(args.frames))

@@ -177,28 +177,28 @@ def test_model_files_refuse_arrays_that_are_not_real_numbers(tmp_path, model, ba
 
 @pytest.mark.parametrize("bad", sorted(BAD_DTYPES))
 def test_vignetting_array_npy_refuses_arrays_that_are_not_real_numbers(tmp_path, bad):
-    from mapping.pipeline import load_vignetting_option
+    from mapping.colour import read_vignetting
     from radiometry.errors import CalibrationFileError
 
     good = np.full((6, 8, 3), 0.9)
     np.save(tmp_path / "good.npy", good)
-    assert load_vignetting_option(tmp_path / "good.npy").resolution == (8, 6)
+    assert read_vignetting(tmp_path / "good.npy").resolution == (8, 6)
     spoil, message = BAD_DTYPES[bad]
     path = tmp_path / f"{bad}.npy"
     np.save(path, spoil(good), allow_pickle=True)
     with pytest.raises(CalibrationFileError) as info:
-        load_vignetting_option(path)
+        read_vignetting(path)
     assert str(info.value).startswith(f"{path}: holds {message}")
     assert str(info.value).endswith("pass a float (H, W[, C]) .npy with finite V > 0")
 
 
 def test_real_dtypes_of_every_kind_are_accepted(tmp_path):
     """bool, signed/unsigned integers and floats of any width are numbers: a uint16 or float16 V loads."""
-    from mapping.pipeline import load_vignetting_option
+    from mapping.colour import read_vignetting
 
     for dtype in (np.uint8, np.int32, np.uint16, np.float16, np.float64):
         np.save(tmp_path / "v.npy", np.ones((6, 8), dtype))
-        assert load_vignetting_option(tmp_path / "v.npy").channels == 1
+        assert read_vignetting(tmp_path / "v.npy").channels == 1
     arrays.check_real_arrays("x.npz", {"a": np.dtype(bool), "b": np.dtype(">i8"), "c": np.dtype("<f4")}, "fix")
 
 

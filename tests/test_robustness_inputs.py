@@ -101,7 +101,7 @@ def test_vignetting_smooth_sigma_out_of_range(paper, tmp_path):
 
 def test_library_entry_points_validate_too(room):
     """ReconstructConfig/build_run and make_backend use the same rules: a ValueError for library callers."""
-    from mapping.pipeline import ReconstructConfig, build_run, make_backend
+    from mapping.factory import ReconstructConfig, build_run, make_backend
 
     with pytest.raises(ValueError, match=r"--voxel-size 1 m is outside"):
         make_backend("tsdf", voxel_size=1.0)
