@@ -86,6 +86,7 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
     from dataclasses import asdict
 
+    from mapping.datasets import describe_dataset
     from mapping.export import ResultsFolder, plain_value
     from mapping.factory import ReconstructConfig, build_run
     from mapping.pipeline import reconstruct
@@ -115,14 +116,10 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
                                exposure_reference=mesh_exposure or "median",
                                force=force, progress=not no_progress)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
-    dataset = kwargs["dataset"]
     folder = ResultsFolder(output, force=force)
     manifest = replay_manifest(
         ctx, files=("intrinsics",),
-        dataset={"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
-                 "height": dataset.height, "K": dataset.K.tolist(),
-                 "depth_scale": getattr(dataset, "depth_scale", None),
-                 "intrinsics_source": plain_value(getattr(dataset, "intrinsics_source", None))},
+        dataset=describe_dataset(kwargs["dataset"]),
         colour_model=kwargs["colour_model"].describe(),
         pipeline={k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")})
     folder.write_json("config.json", manifest)

@@ -13,6 +13,8 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from mapping.datasets.base import RGBDDataset, RGBDFrame
 from mapping.datasets.redwood import RedwoodDataset
 from mapping.datasets.sevenscenes import SevenScenesDataset
@@ -61,5 +63,15 @@ def open_dataset(path: str | os.PathLike, *, format: str | None = None, depth_sc
     return cls(path, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames)
 
 
+def describe_dataset(dataset: RGBDDataset) -> dict:
+    """What a results folder records about the sequence it was made from (config.json's "dataset"): the loader,
+    the selected frames, the image size, K, and, for a file sequence, its depth scale and where K came from."""
+    source = getattr(dataset, "intrinsics_source", None)
+    return {"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
+            "height": dataset.height, "K": np.asarray(dataset.K).tolist(),
+            "depth_scale": getattr(dataset, "depth_scale", None),
+            "intrinsics_source": None if source is None else str(source)}
+
+
 __all__ = ["FORMATS", "RGBDDataset", "RGBDFrame", "RedwoodDataset", "SevenScenesDataset", "SimulatedDataset",
-           "TUMDataset", "detect_format", "open_dataset"]
+           "TUMDataset", "describe_dataset", "detect_format", "open_dataset"]
