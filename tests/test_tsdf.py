@@ -99,6 +99,33 @@ def test_colour_pairs_compare_the_map_before_fusion():
     assert len(pairs) == 0 and backend.frames_integrated == 3
 
 
+def test_frame_contract_view_carries_the_block_list_and_masked_pixels_are_not_fused(monkeypatch):
+    """render_for_frame hands its block search over in the view (ModelView.prepared, with the pose); integrate
+    reuses it for that frame, searches again when pixels are masked (valid) or the view is of another pose, and
+    fuses nothing where valid is False."""
+    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0)
+    searches = []
+    prepare = backend._prepare
+    monkeypatch.setattr(backend, "_prepare", lambda *a: searches.append(1) or prepare(*a))
+    depth, colour, pose = _plane(), np.full((H, W, 3), 10.0, np.float32), np.eye(4)
+    view = backend.render_for_frame(depth, K, pose)
+    assert view.prepared is not None and np.array_equal(view.pose, pose) and len(searches) == 1
+    valid = np.ones((H, W), bool)
+    valid[:, : W // 2] = False
+    backend.integrate(depth, colour, K, pose, view=view, valid=valid)
+    assert len(searches) == 2                                        # masked: the blocks are searched again
+    seen = backend.render(pose, K, H, W)
+    assert not seen.valid[:, : W // 2 - 15].any()                   # nothing fused where colour was invalid
+    assert seen.valid[10:-10, W // 2 + 15:-10].all()
+    view = backend.render_for_frame(depth, K, pose)
+    backend.integrate(depth, colour, K, pose, view=view)
+    assert len(searches) == 3                                        # reused: one search for the frame
+    moved = pose.copy()
+    moved[0, 3] = 0.05
+    backend.integrate(depth, colour, K, moved, view=backend.render_for_frame(depth, K, pose))
+    assert len(searches) == 5                                        # a view of another pose is not reused
+
+
 def test_export_and_stats(tmp_path):
     import trimesh
 

@@ -567,7 +567,7 @@ def _check_images(depth, colour) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"depth must be at least 3x3 pixels, got shape {depth.shape}")
     if not np.issubdtype(depth.dtype, np.floating):
         raise TypeError(f"depth must be float metres (0 = invalid), got dtype {depth.dtype}; "
-                        "convert with radiometry.fileio.read_depth")
+                        "convert with radiometry.images.read_depth")
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     if not np.all(np.isfinite(depth)):
         depth = np.where(np.isfinite(depth), depth, np.float32(0))
