@@ -15,11 +15,12 @@ estimated from its own observations only.
 The exposure design matters more than for Debevec. If the exposure times are all one ratio apart (a bracket
 at exactly 2x steps), the data constrain ``f^-1`` only up to a factor that is periodic in ``ln E`` with the
 period of that ratio: ``U'(z) = U(z) p(ln U(z))`` with ``p(x + ln 2) = p(x)`` predicts every image exactly as
-well, and only noise and quantisation tell them apart. Without a prior the estimate then wanders along
-that direction (5-6 % of the range on 2x brackets of the test set, 14-18 % on the embedded 4x sample) and the
-alternation converges slowly. With ratios that differ (times moved by up to 2^+-0.35 from the 2x grid, or an
-exposure sweep as in TUM's dataset) it is within 0.85 % on every curve of the test set, knees included.
-Such a design is detected (``meta["equal_ratios"]``) and warned about.
+well, and only noise and quantisation tell them apart. Without a prior the estimate then settles along
+that direction where the noise model is least wrong (5.3-6.2 % of the range on 640x480 brackets at 2x steps
+of the test set, 14-18 % on the embedded 4x sample) after 1000-1300 slow rounds. With ratios that differ (the
+same times moved by up to 2^+-0.35, or an exposure sweep as in TUM's dataset) it is within 0.82 % on every
+curve of the test set, knees included, in about 80 rounds (``scripts/bench_calibration.py``). Equal ratios
+are detected (``meta["equal_ratios"]``) and warned about.
 
 Choices made here (recorded in the model's ``meta``):
 
