@@ -137,6 +137,7 @@ def _plain(value):
 
 def _config_record(config, kwargs: dict) -> dict:
     """config.json of a run started from Python (the parameters in the command's names)."""
+    from mapping.datasets import describe_dataset
     from radiometry import __version__
 
     dataset = kwargs["dataset"]
@@ -144,8 +145,7 @@ def _config_record(config, kwargs: dict) -> dict:
             "parameters": {f.name: _plain(getattr(config, f.name)) for f in dataclasses.fields(config)},
             "radiomap_version": __version__, "python": sys.version.split()[0],
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "dataset": {"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
-                        "height": dataset.height, "K": np.asarray(dataset.K).tolist()},
+            "dataset": describe_dataset(dataset),
             "colour_model": kwargs["colour_model"].describe()}
 
 

@@ -39,12 +39,16 @@ from mapping.histogram import DisagreementHistogram
 from mapping.metrics import ATEResult, absolute_trajectory_error
 from mapping.results import (FrameRecord, RunResult, backend_stats, peak_rss_mb, reason_kind, write_partial,
                              write_results)
-from mapping.tracking import TrackingError
+from radiometry.errors import RadiomapError
 
 log = logging.getLogger(__name__)
 
 POSE_SOURCES = ("icp", "gt")
 STAGES = ("load", "track", "render", "colour", "fuse", "histogram")
+
+
+class TrackingError(RadiomapError):
+    """Tracking failed on too many consecutive frames: the run stops (skipping frames cannot recover it)."""
 
 
 def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None,
@@ -277,4 +281,4 @@ def _ate(run: RunResult, dataset, poses: str) -> ATEResult | None:
         return None
 
 
-__all__ = ["POSE_SOURCES", "STAGES", "reconstruct"]
+__all__ = ["POSE_SOURCES", "STAGES", "TrackingError", "reconstruct"]

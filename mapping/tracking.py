@@ -27,16 +27,11 @@ import numpy as np
 from mapping._open3d import o3d, open3d_message
 from mapping.fusion.base import ModelView
 from mapping.metrics import rotation_angle
-from radiometry.errors import RadiomapError
 
 log = logging.getLogger(__name__)
 
 _NAN = float("nan")
 MOTION_MODELS = ("constant_velocity", "previous")
-
-
-class TrackingError(RadiomapError):
-    """Camera tracking failed in a way that cannot be recovered by skipping frames."""
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """The project's exceptions: one base class, a subclass per area.
 
 These are the errors radiometry raises (and mapping raises too); an error only mapping raises lives next to
-the code that raises it, under the same base class (``mapping.tracking.TrackingError``).
+the code that raises it, under the same base class (``mapping.pipeline.TrackingError``, ``mapping.validation.TooLittleFusedError``).
 
 The CLI prints ``str(error)`` of any :class:`RadiomapError` as one line and exits with code 1, so a
 message must name the file or parameter at fault and say how to fix it.

@@ -296,7 +296,7 @@ def test_tracking_lost_for_good_raises(tmp_path):
     ds = _box(5)
     frames = [ds.frames[0]] + [RGBDFrame(f.index, f.timestamp, f.rgb, np.zeros_like(f.depth), f.K, f.pose)
                                for f in ds.frames[1:]]
-    from mapping.tracking import TrackingError
+    from mapping.pipeline import TrackingError
 
     out = ResultsFolder(tmp_path / "lost")
     with pytest.raises(TrackingError, match="4 consecutive frames"):

@@ -21,6 +21,7 @@ import click
 from click.core import ParameterSource
 
 from mapping.datasets import FORMATS
+from mapping.factory import BACKENDS
 from mapping.export import plain_value
 from radiometry import __version__
 from radiometry.errors import RadiomapError
@@ -323,7 +324,7 @@ def sequence_options(f):
 def fusion_options(f):
     """--backend, --voxel-size and --depth-max: the map the sequence is fused into."""
     options = [
-        click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
+        click.option("--backend", type=click.Choice(list(BACKENDS)), default="tsdf", show_default=True,
                      help="Fusion backend."),
         click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=positive,
                      help="TSDF voxel size in metres."),

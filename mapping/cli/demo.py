@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from mapping.demo import DEMO_CAMERAS, run_demo, summary_text
+from mapping.factory import BACKENDS
 
 EPILOG = """\b
 Examples:
@@ -28,7 +29,7 @@ demo in OUT, or any other non-empty folder, is refused without --force.
 @click.option("--quick", is_flag=True, help="A reduced demo (160x120, 15 room frames, 60 sweep frames) for CI.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Seed of every simulation (same seed, same results).")
-@click.option("--backend", type=click.Choice(["tsdf", "surfel"]), default="tsdf", show_default=True,
+@click.option("--backend", type=click.Choice(list(BACKENDS)), default="tsdf", show_default=True,
               help="Fusion backend.")
 @click.option("--camera", type=click.Choice(DEMO_CAMERAS), default="asymmetric", show_default=True,
               help="Simulated camera: 'asymmetric' (strong non-radial vignetting, where the LUT beats the "
