@@ -54,12 +54,9 @@ def design_times(design: str) -> np.ndarray:
 
 
 def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int = 0) -> list[dict]:
-    import logging
-
     from radiometry.response_fit import fit_response
     from response_curves import curves, max_error_percent, render_brackets, scene
 
-    logging.getLogger("radiometry").setLevel(logging.ERROR)  # repaired/extrapolated warnings: in the table
     width, height = size
     radiance = scene(height, width, seed=seed)
     rows = []
@@ -103,9 +100,13 @@ def main(argv: list[str] | None = None) -> int:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         parser.error(f"--size must be WxH, e.g. 640x480, got {args.size!r}")
+    import logging
+
     import cv2
 
     from radiometry.tables import format_table
+
+    logging.getLogger("radiometry").setLevel(logging.ERROR)  # repaired / equal-ratio warnings: in the table
 
     rows = run((width, height), args.design, args.methods, seed=args.seed)
     print(f"response calibration vs truth ({width}x{height}, 12 exposures, OpenCV {cv2.__version__})")

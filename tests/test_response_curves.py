@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import shared_path
@@ -84,3 +86,20 @@ def test_euroc_curve_matches_the_project_reader():
     # the project's model keeps f^-1(0) (0 in this file) and normalises at 255: the same table
     assert np.abs(ours - theirs).max() < 1e-9
     assert "euroc" in curves()
+
+
+def test_bench_calibration_script_runs_on_a_tiny_scene(capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("radiomap_script_bench_calibration",
+                                                  Path(__file__).resolve().parents[1] / "scripts" /
+                                                  "bench_calibration.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    rows = script.run((96, 72), ["varied"], ["debevec", "engel"])
+    assert [(r["curve"], r["method"]) for r in rows][:2] == [("gamma-2.2", "debevec"), ("gamma-2.2", "engel")]
+    assert len(rows) == 2 * len(curves()) and all(np.isfinite(r["worst 5..250 [%]"]) for r in rows)
+    assert all(0 < r["worst 5..250 [%]"] < 10 for r in rows)
+    assert script.main(["--size", "96x72", "--design", "2x", "--methods", "debevec"]) == 0
+    out = capsys.readouterr().out
+    assert "response calibration vs truth (96x72, 12 exposures" in out and "max err 5..240 [%] R/G/B" in out
