@@ -90,9 +90,9 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
     if response is not None and not isinstance(response, (CameraResponse, str, os.PathLike)):
         raise TypeError(f"response must be a CameraResponse, a response file or None, got {type(response).__name__}")
     if isinstance(vignetting, np.ndarray):
-        from mapping.colour import as_vignetting_model
+        from radiometry.api import as_vignetting
 
-        vignetting = as_vignetting_model(vignetting)
+        vignetting = as_vignetting(vignetting)
     compensate = bool(exposure_compensation) and response is not None
     if exposure_compensation and response is None:
         log.info("no response given: fusing raw intensities without exposure compensation")

@@ -28,6 +28,7 @@ import numpy as np
 
 from mapping.datasets.base import RGBDFrame
 from radiometry.errors import ModelMismatchError
+from radiometry.api import as_vignetting
 from radiometry.response import CameraResponse
 
 log = logging.getLogger(__name__)
@@ -172,42 +173,6 @@ class FastForward:
 ExposureFn = Callable[[RGBDFrame, np.ndarray, Any, "np.ndarray | None"], "float | np.ndarray"]
 
 
-def as_vignetting_model(vignetting):
-    """None, a :class:`radiometry.vignetting.VignettingModel`, an array ``V`` (H, W[, C]) (wrapped as a
-    :class:`~radiometry.vignetting.LUTVignetting`, e.g. a simulator's ``truth/vignetting.npy`` loaded), or a
-    file (:func:`read_vignetting`)."""
-    from radiometry.vignetting import LUTVignetting, VignettingModel
-
-    if vignetting is None or isinstance(vignetting, VignettingModel):
-        return vignetting
-    if isinstance(vignetting, np.ndarray):
-        return LUTVignetting(vignetting, info={"source": "array"})
-    if isinstance(vignetting, (str, os.PathLike)):
-        return read_vignetting(vignetting)
-    raise TypeError(f"vignetting must be a VignettingModel, an array V (H, W[, C]), a file or None, "
-                    f"got {type(vignetting).__name__}")
-
-
-def read_vignetting(path: str | os.PathLike):
-    """A vignetting model file: radiomap/radical/DSO files via :func:`radiometry.formats.load_vignetting`, or a
-    ``.npy`` array V (H, W[, C]) such as a simulator's ``truth/vignetting.npy`` (taken as a LUT)."""
-    path = Path(path)
-    if path.suffix.lower() == ".npy":
-        from radiometry.errors import CalibrationFileError
-        from radiometry.arrays import load_array_file
-        from radiometry.vignetting import LUTVignetting
-
-        fix = "pass a float (H, W[, C]) .npy with finite V > 0"
-        array = load_array_file(path, fix=fix)  # refuses complex, object, text and structured arrays
-        try:
-            return LUTVignetting(array, info={"source": str(path)})
-        except (ValueError, TypeError) as exc:
-            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); {fix}") from None
-    from radiometry.formats import load_vignetting
-
-    return load_vignetting(path)
-
-
 def divide_exposure(irradiance: np.ndarray, k: Any) -> np.ndarray:
     """``irradiance / k`` in place (float32), ``k`` a positive scalar or three per-channel gains."""
     k = np.asarray(k, dtype=np.float32).reshape(-1)
@@ -238,7 +203,7 @@ class IrradianceColour:
         if not isinstance(response, CameraResponse):
             raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
         self.response = response
-        self.vignetting = as_vignetting_model(vignetting)
+        self.vignetting = as_vignetting(vignetting)
         self.exposure = exposure
         self.reference_exposure = float(reference_exposure)
         self._forward = FastForward(response, reference_exposure=reference_exposure)

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mapping.colour import as_vignetting_model, make_colour_model
+from mapping.colour import make_colour_model
+from radiometry.api import as_vignetting
 from mapping.fusion.base import FusionBackend
 from radiometry.errors import ModelMismatchError
 from radiometry.registry import Registry
@@ -100,7 +101,7 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     check_run(dataset, poses=config.poses, **config_options(config))  # intrinsics, ground truth, memory
     # a file is loaded; a model object (mapping.reconstruct_sequence) is used as it is
     response = load_response(config.response) if isinstance(config.response, (str, Path)) else config.response
-    vignetting = as_vignetting_model(config.vignetting)
+    vignetting = as_vignetting(config.vignetting)
     if vignetting is not None:  # refuse a model of another aspect ratio now, before any result is written
         try:
             vignetting.check_size(dataset.height, dataset.width)

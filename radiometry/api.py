@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.errors import CalibrationError, DatasetError
+from radiometry.errors import CalibrationError, CalibrationFileError, DatasetError
 from radiometry.response import CameraResponse
 
 log = logging.getLogger(__name__)
@@ -43,8 +43,8 @@ def as_response(response: CameraResponse | PathLike) -> CameraResponse:
 
 
 def as_vignetting(vignetting):
-    """A vignetting model given as itself, as an array V (H, W[, C]) or as a file (``.npz``, ``.vgn``,
-    ``vignette.png``); None stays None."""
+    """A vignetting model given as itself, as an array V (H, W[, C]) (a LUT) or as a file
+    (:func:`read_vignetting`); None stays None."""
     from radiometry.vignetting import LUTVignetting, VignettingModel
 
     if vignetting is None or isinstance(vignetting, VignettingModel):
@@ -52,11 +52,29 @@ def as_vignetting(vignetting):
     if isinstance(vignetting, np.ndarray):
         return LUTVignetting(vignetting, info={"source": "array"})
     if isinstance(vignetting, (str, os.PathLike)):
-        from radiometry.formats import load_vignetting
-
-        return load_vignetting(vignetting)
+        return read_vignetting(vignetting)
     raise TypeError(f"vignetting must be a VignettingModel, an array V (H, W[, C]) or the path of a model file, "
                     f"got {type(vignetting).__name__}")
+
+
+def read_vignetting(path: PathLike):
+    """A vignetting model file: radiomap ``.npz``, radical ``.vgn`` and DSO ``vignette.png`` through
+    :func:`radiometry.formats.load_vignetting`, or a ``.npy`` array V (H, W[, C]) such as a simulator's
+    ``truth/vignetting.npy`` (taken as a LUT). The one reader behind every ``--vignetting`` option."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        from radiometry.arrays import load_array_file
+        from radiometry.vignetting import LUTVignetting
+
+        fix = "pass a float (H, W[, C]) .npy with finite V > 0"
+        array = load_array_file(path, fix=fix)  # refuses complex, object, text and structured arrays
+        try:
+            return LUTVignetting(array, info={"source": str(path)})
+        except (ValueError, TypeError) as exc:
+            raise CalibrationFileError(f"{path}: not a usable vignetting array ({exc}); {fix}") from None
+    from radiometry.formats import load_vignetting
+
+    return load_vignetting(path)
 
 
 def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLike | Sequence[float] | None = None, *,
@@ -158,4 +176,4 @@ def correct(image: np.ndarray | PathLike, response: CameraResponse | PathLike, v
     return corrector.correct(image, scale=scale)
 
 
-__all__ = ["as_response", "as_vignetting", "calibrate_response", "calibrate_vignetting", "correct"]
+__all__ = ["as_response", "as_vignetting", "calibrate_response", "calibrate_vignetting", "correct", "read_vignetting"]

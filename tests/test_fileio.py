@@ -177,7 +177,7 @@ def test_model_files_refuse_arrays_that_are_not_real_numbers(tmp_path, model, ba
 
 @pytest.mark.parametrize("bad", sorted(BAD_DTYPES))
 def test_vignetting_array_npy_refuses_arrays_that_are_not_real_numbers(tmp_path, bad):
-    from mapping.colour import read_vignetting
+    from radiometry.api import read_vignetting
     from radiometry.errors import CalibrationFileError
 
     good = np.full((6, 8, 3), 0.9)
@@ -194,7 +194,7 @@ def test_vignetting_array_npy_refuses_arrays_that_are_not_real_numbers(tmp_path,
 
 def test_real_dtypes_of_every_kind_are_accepted(tmp_path):
     """bool, signed/unsigned integers and floats of any width are numbers: a uint16 or float16 V loads."""
-    from mapping.colour import read_vignetting
+    from radiometry.api import read_vignetting
 
     for dtype in (np.uint8, np.int32, np.uint16, np.float16, np.float64):
         np.save(tmp_path / "v.npy", np.ones((6, 8), dtype))

@@ -130,13 +130,13 @@ def _kind_mismatch(base: str, model: VignettingModel) -> tuple[str, str] | None:
 
 def load_method_vignetting(path: str | Path, base: str) -> VignettingModel:
     """The vignetting model file of the method ``base`` (``poly`` or ``lut``; ``--vignetting-poly/-lut``): a file
-    :func:`mapping.colour.read_vignetting` reads (a V array ``.npy`` is a LUT). A model of the other kind
+    :func:`radiometry.api.read_vignetting` reads (a V array ``.npy`` is a LUT). A model of the other kind
     is a :class:`~radiometry.errors.CalibrationFileError` naming the file and the fix."""
-    from mapping.colour import as_vignetting_model, read_vignetting
+    from radiometry.api import read_vignetting
 
     if base not in ("poly", "lut"):
         raise ValueError(f"base must be 'poly' or 'lut', got {base!r}")
-    model = as_vignetting_model(read_vignetting(path))
+    model = read_vignetting(path)
     problem = _kind_mismatch(base, model)
     if problem is not None:
         raise CalibrationFileError(f"{path}: --vignetting-{base} holds {problem[0]}, {problem[1]}")

@@ -80,7 +80,8 @@ class ExposureEstimator:
                  edge_dilation: int = 2, downsample: int | None = None, smoothing_radius: int | None = None,
                  min_fill: float = 0.6,
                  frame_to_frame: bool = True, max_samples: int = 20000, fuse_fallback: bool = False) -> None:
-        from mapping.colour import FastForward, as_vignetting_model
+        from mapping.colour import FastForward
+        from radiometry.api import as_vignetting
 
         if not isinstance(response, CameraResponse):
             raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
@@ -108,7 +109,7 @@ class ExposureEstimator:
         if not (isinstance(edge_dilation, (int, np.integer)) and edge_dilation >= 0):
             raise ValueError(f"edge_dilation must be a whole number of pixels >= 0, got {edge_dilation!r}")
         self.response = response
-        self.vignetting = as_vignetting_model(vignetting)
+        self.vignetting = as_vignetting(vignetting)
         self.low, self.high = float(low), float(high)
         self.min_correspondences = int(min_correspondences)
         self.min_map_coverage = float(min_map_coverage)
