@@ -71,7 +71,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     import numpy as np
 
-    from mapping.colour import read_vignetting
+    from radiometry.api import read_vignetting
     from radiometry.correction import Corrector
     from radiometry.fileio import check_outputs, check_overwrite, ensure_dir
     from radiometry.formats import load_response
