@@ -52,7 +52,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationError
 from radiometry.response import LEVELS, CameraResponse, repair_monotone
-from radiometry.response_fit import _as_stack, _check_brightness_order, _check_mask
+from radiometry.response_fit import _as_stack, _check_brightness_order, _check_levels, _check_mask
 
 log = logging.getLogger(__name__)
 
@@ -201,12 +201,7 @@ def fit_response_engel(images: Sequence[np.ndarray], times: Sequence[float], *, 
         raise ValueError(f"max_iter must be a positive whole number, got {max_iter}")
     if not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive number, got {tol}")
-    try:
-        lo, hi = (int(v) for v in levels)
-    except (TypeError, ValueError):
-        raise TypeError(f"levels must be a pair (low, high) of intensity levels, got {levels!r}") from None
-    if not (1 <= lo and hi <= 254 and hi - lo >= 16):
-        raise ValueError(f"levels must satisfy 1 <= low, high <= 254 and span at least 16 levels, got {levels!r}")
+    lo, hi = _check_levels(levels)
     start = time.perf_counter()
     stack, t = _as_stack(images, times)
     _check_brightness_order(stack, t)

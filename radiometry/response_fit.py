@@ -123,6 +123,17 @@ def _check_brightness_order(stack: np.ndarray, times: np.ndarray) -> None:
             "not 1/t (in image_list.txt the second column is seconds, the third 1/t)")
 
 
+def _check_levels(levels) -> tuple[int, int]:
+    """The (low, high) intensity levels a fit uses, checked."""
+    try:
+        lo, hi = (int(v) for v in levels)
+    except (TypeError, ValueError):
+        raise TypeError(f"levels must be a pair (low, high) of intensity levels, got {levels!r}") from None
+    if not (1 <= lo and hi <= 254 and hi - lo >= 16):
+        raise ValueError(f"levels must satisfy 1 <= low, high <= 254 and span at least 16 levels, got {levels!r}")
+    return lo, hi
+
+
 def _check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
     if mask is None:
         return None
@@ -306,12 +317,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                          f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
-    try:
-        lo, hi = (int(v) for v in levels)
-    except (TypeError, ValueError):
-        raise TypeError(f"levels must be a pair (low, high) of intensity levels, got {levels!r}") from None
-    if not (1 <= lo and hi <= 254 and hi - lo >= 16):
-        raise ValueError(f"levels must satisfy 1 <= low, high <= 254 and span at least 16 levels, got {levels!r}")
+    lo, hi = _check_levels(levels)
     start = time.perf_counter()
     stack, t = _as_stack(images, times)
     _check_brightness_order(stack, t)
