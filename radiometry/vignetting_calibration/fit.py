@@ -19,6 +19,8 @@ MAX_SMOOTH_SIGMA = 50.0
 #: a model is fitted only when the sheet was seen at this fraction of the image at least (simulated sweeps of
 #: 30-40 frames: 100 %; ordinary room frames where a plain wall passed for a sheet: 15 %)
 MIN_OBSERVED_FRACTION = 0.5
+#: the LUT's normaliser is fitted over a disk of this fraction of the image diagonal around V's peak
+CENTRE_RADIUS = 0.08
 
 
 def observed_flat(acc: VignettingAccumulation, joint_scale: bool,
@@ -29,6 +31,58 @@ def observed_flat(acc: VignettingAccumulation, joint_scale: bool,
     weights = np.where(acc.count >= min_samples, acc.count, 0).astype(np.float64)
     flat = np.where(weights > 0, flat, np.nan)
     return flat, weights
+
+
+def centre_normalisers(smooth: np.ndarray, flat: np.ndarray, weights: np.ndarray, *,
+                       radius_fraction: float = CENTRE_RADIUS) -> tuple[np.ndarray, dict[str, Any]]:
+    """The value of ``V``'s unnormalised estimate at its centre, per channel, without the upward bias of a maximum.
+
+    The centre is the maximum of ``smooth`` (the estimate smoothed at a coarse scale). Around it, in a disk of
+    ``radius_fraction`` of the image diagonal, a quadratic surface ``a + b x + c y + d x^2 + e xy + f y^2`` is
+    fitted to the session's flat ``flat`` by least squares weighted by the sample counts ``weights``, and its
+    largest value in the disk is the normaliser: thousands of pixels average the noise out, where the maximum of
+    a noisy field sits a few of its standard deviations above the truth. Returns ``(C,)`` normalisers and what
+    the fit saw (``centre`` (x, y) per channel, ``pixels``, ``stderr``: the relative standard error of each
+    normaliser, the uniform part of the LUT's error).
+    """
+    h, w, ch = flat.shape
+    radius = max(3.0, radius_fraction * float(np.hypot(h, w)))
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    norms, centres, pixels, stderrs = [], [], [], []
+    for c in range(ch):
+        sm = np.where(np.isfinite(smooth[:, :, c]), smooth[:, :, c], -np.inf)
+        py, px = np.unravel_index(int(np.argmax(sm)), sm.shape)
+        disk = ((xx - px) ** 2 + (yy - py) ** 2 <= radius ** 2)
+        sel = disk & (weights[:, :, c] > 0) & np.isfinite(flat[:, :, c])
+        if np.count_nonzero(sel) < 30:  # too few observed pixels near the peak: the smooth estimate's peak
+            norms.append(float(sm[py, px]))
+            centres.append([float(px), float(py)])
+            pixels.append(int(np.count_nonzero(sel)))
+            stderrs.append(float("nan"))
+            continue
+        u, v = (xx[sel] - px) / radius, (yy[sel] - py) / radius
+        design = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+        wt = weights[:, :, c][sel]
+        d = flat[:, :, c][sel]
+        sw = np.sqrt(wt)
+        coef, *_ = np.linalg.lstsq(design * sw[:, None], d * sw, rcond=None)
+        fitted = design @ coef
+        k = int(np.argmax(fitted))
+        norm = float(fitted[k])
+        # standard error of the fitted value there: residual variance per unit weight times x^T (A^T W A)^-1 x
+        dof = max(1, d.size - design.shape[1])
+        sigma2 = float(np.sum(wt * (d - fitted) ** 2) / dof)
+        cov = sigma2 * np.linalg.pinv((design * wt[:, None]).T @ design)
+        se = float(np.sqrt(max(0.0, design[k] @ cov @ design[k]))) / norm if norm > 0 else float("nan")
+        if not norm > 0:
+            norm = float(sm[py, px])
+        norms.append(norm)
+        centres.append([float(xx[sel][k]), float(yy[sel][k])])
+        pixels.append(int(d.size))
+        stderrs.append(se)
+    info = {"method": "centre-quadratic", "radius_px": round(radius, 2), "centre": centres, "pixels": pixels,
+            "stderr": stderrs}
+    return np.array(norms), info
 
 
 def _poly_design(r2: np.ndarray) -> np.ndarray:
@@ -143,8 +197,9 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
       the observed region: never zero or NaN, and no seam. Pixels with only a few samples are pulled
       towards the local trend of ``q`` (with the weight of 3 samples), so a thinly covered corner does not
       carry single-frame noise into the LUT.
-    - Normalisation: divided by the maximum of ``P * q_coarse`` (``q`` smoothed over 1 % of the image
-      diagonal), so that one noisy pixel cannot set the scale; ``V`` is ~1 at the optical centre.
+    - Normalisation (:func:`centre_normalisers`): ``V = 1`` at its peak, the value there taken from a quadratic
+      surface fitted to the flat over a disk of 8 % of the image diagonal around the peak of ``P * q_coarse``
+      (``q`` smoothed over 1 % of the diagonal), not from a maximum, which noise biases upwards.
     """
     import cv2
 
@@ -186,12 +241,13 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
         fine = (blur(ratio * weights, smooth_sigma) + shrink * trend) / (blur(weights, smooth_sigma) + shrink)
     q = np.where(observed, fine, faded)
     q_coarse = np.where(observed, coarse, faded)
-    norm = np.array([float(np.max((base * q_coarse)[:, :, c][observed[:, :, c]])) for c in range(ch)])
+    norm, centre_info = centre_normalisers(base * q_coarse, flat, weights)
     lut = base * q / norm
     lut = np.maximum(lut, 1e-3)
     info = {"method": "lut", "joint_scale": bool(joint_scale), "smooth_sigma": float(smooth_sigma),
             "filled_fraction": float(1.0 - observed.all(axis=2).mean()), "frames_used": acc.frames_used,
-            "frames_skipped": acc.skipped, "source": acc.source, "base": poly.info["method"]}
+            "frames_skipped": acc.skipped, "source": acc.source, "base": poly.info["method"],
+            "normalisation": centre_info}
     return LUTVignetting(lut.astype(np.float32), info=info)
 
 
