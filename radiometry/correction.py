@@ -14,15 +14,20 @@ result so that they do not (``scale = min V`` keeps every unsaturated input unsa
 :meth:`Corrector.suggest_scale` proposes the scale that keeps a given percentile of real images
 unclipped.
 
-uint8 fast path. Per pixel and channel the output depends only on the input level ``I`` and the gain
-``g(x) = scale / V(x)``. The gains of an image size are quantised to ``gain_levels`` (default 2048)
-log-spaced values spanning ``[min g, max g]``; a table ``T[c, level, I]`` (uint8) is computed once per
-(size, scale) with the exact formula, and a Numba kernel gathers ``T[c, q(x), I(x)]``. The quantisation
-changes a gain by at most half a step, a relative ``log(max g / min g) / (2 (gain_levels - 1))``
-(``< 4e-4`` for V down to 0.2), which moves the unrounded output by far less than a level; the rounded
-output differs from the exactly rounded formula by at most 1 level, and only for values within that
-tiny margin of a .5 boundary (``tests/test_correction.py`` checks both). Tables and gain maps are
-cached per size (a few entries).
+uint8 fast path. Per pixel and channel the output depends only on ``log g(x) + log f^-1(I)``, the log of
+the exposure the formula feeds to ``f``, with the gain ``g(x) = scale / V(x)``. Both terms are quantised
+on one log grid: the gain to an integer ``q(x)`` (a uint16 map, once per (size, scale)), the exposure of
+each level to an integer ``k(I)`` (256 entries per channel), so the sum indexes a one-dimensional uint8
+table ``T[q(x) + k(I)] = round(f(exp(sum)))`` computed with the exact formula. The grid step is
+``s = max(log(max g / min g) / (2 (gain_levels - 1)), log(exposure range) / 65536)``; each quantisation
+moves the exposure by at most a relative ``s / 2`` (``< 4e-4`` in all for V down to 0.2 and the default
+2048 gain levels), which moves the unrounded output by far less than a level: the rounded output
+differs from the exactly rounded formula by at most 1 level, and only for values within that tiny margin
+of a .5 boundary (``tests/test_correction.py`` checks both). Without a vignetting gradient (one gain) the
+table holds the exact 256 outputs per channel. The table is small (about 55 kB per channel, instead of
+0.5 MB for a table per quantised gain), so its look-ups hit the CPU cache: that, not memory traffic,
+bounds the speed (``scripts/bench_correction.py``). Tables and gain maps are cached per size (a few
+entries).
 """
 
 from __future__ import annotations
@@ -46,33 +51,29 @@ _LEVELS = np.arange(256, dtype=np.float32)
 # Numba kernels (compiled on first use, cached on disk)
 # --------------------------------------------------------------------------------------------------
 def _kernels():
-    """Compile (or load from Numba's cache) the gather kernels. Indices are computed in unsigned 32-bit
+    """Compile (or load from Numba's cache) the look-up kernels. Indices are computed in unsigned 32-bit
     arithmetic: signed indices make Numba emit wrap-around checks that halve the throughput."""
     global _KERNELS
     if _KERNELS is None:
         from numba import njit
 
         @njit(cache=True, nogil=True, boundscheck=False)
-        def gather_rgb(img, q, table, out, n_levels):  # pragma: no cover - compiled
-            # img, out: flat (N * 3) uint8; q: flat (N * 3) uint16; table: flat (3 * L * 256) uint8
-            lv = np.uint32(n_levels)
-            eight = np.uint32(8)
+        def lookup_rgb(img, q, k, table, out):  # pragma: no cover - compiled
+            # img, out, q: flat (N * 3), a gain index per value; k: (3, 256) offsets; table: flat uint8
             for p in range(img.size // 3):
                 b = 3 * p
-                out[b] = table[(np.uint32(q[b]) << eight) | np.uint32(img[b])]
-                out[b + 1] = table[((lv + np.uint32(q[b + 1])) << eight) | np.uint32(img[b + 1])]
-                out[b + 2] = table[((lv + lv + np.uint32(q[b + 2])) << eight) | np.uint32(img[b + 2])]
+                out[b] = table[np.uint32(q[b]) + np.uint32(k[0, img[b]])]
+                out[b + 1] = table[np.uint32(q[b + 1]) + np.uint32(k[1, img[b + 1]])]
+                out[b + 2] = table[np.uint32(q[b + 2]) + np.uint32(k[2, img[b + 2]])]
 
         @njit(cache=True, nogil=True, boundscheck=False)
-        def gather_shared(img, q, table, out, n_levels, channels):  # pragma: no cover - compiled
-            # one gain per pixel for every channel: q flat (N,); img/out flat (N * C)
-            lv = np.uint32(n_levels)
-            eight = np.uint32(8)
+        def lookup_shared(img, q, k, table, out, channels):  # pragma: no cover - compiled
+            # one gain index per pixel for every channel: q flat (N,); img/out flat (N * C)
             for p in range(q.size):
                 level = np.uint32(q[p])
                 b = p * channels
                 for c in range(channels):
-                    out[b + c] = table[((np.uint32(c) * lv + level) << eight) | np.uint32(img[b + c])]
+                    out[b + c] = table[level + np.uint32(k[c, img[b + c]])]
 
         @njit(cache=True, nogil=True, boundscheck=False)
         def irradiance_kernel(img, lut, gain, out):  # pragma: no cover - compiled
@@ -84,7 +85,7 @@ def _kernels():
                     g = gain[p, 0] if shared else gain[p, c]
                     out[p, c] = lut[c, np.uint32(img[p, c])] * g
 
-        _KERNELS = (gather_rgb, gather_shared, irradiance_kernel)
+        _KERNELS = (lookup_rgb, lookup_shared, irradiance_kernel)
     return _KERNELS
 
 
@@ -115,6 +116,15 @@ def _float_levels(arr: np.ndarray) -> np.ndarray:
                              f"[{arr.min()}, {arr.max()}]")
         return arr.astype(np.float32)
     raise TypeError(f"image must be uint8, uint16 or float (levels 0..255), got dtype {arr.dtype}")
+
+
+def _dark_floor(inv: np.ndarray, largest_log_gain: float) -> float:
+    """The smallest positive ``f^-1`` level worth a place in the fast path's table: darker exposures stay
+    below level 0.5 even at the largest gain, so they round to level 0 like exposure 0."""
+    half = 0.5 * (inv[0] + inv[1]) if inv[1] > inv[0] else inv[0]
+    positive = inv[inv > 0]
+    floor = max(half * np.exp(-largest_log_gain), positive.min() if positive.size else 1.0)
+    return float(min(floor, inv[-1]))
 
 
 class Corrector:
@@ -178,30 +188,51 @@ class Corrector:
         gain.setflags(write=False)
         return self._remember(self._gains, key, gain)
 
-    def _fast_tables(self, height: int, width: int, channels: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    def _fast_tables(self, height: int, width: int, channels: int,
+                     scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(q, k, table)`` of the uint8 fast path (module doc): ``out = table[q[pixel, c] + k[c, I]]``.
+
+        ``q`` is the quantised log gain, uint16 (uint32 past 65536 steps) ``(H * W, Cv)``; ``k`` (uint32
+        ``(C, 256)``) holds each level's quantised log exposure plus its channel's place in ``table``, or
+        the start of a run of zeros for levels too dark to reach level 0.5 at the largest gain."""
         key = (int(height), int(width), int(channels), float(scale))
         hit = self._tables.get(key)
         if hit is not None:
             self._tables.move_to_end(key)
             return hit
-        gain = self.gain_map(height, width).astype(np.float64) * scale
-        log_g = np.log(gain)
+        log_g = np.log(self.gain_map(height, width).astype(np.float64) * scale)
         lo, hi = float(log_g.min()), float(log_g.max())
-        n_levels = self.gain_levels if hi - lo > 1e-12 else 1
-        step = (hi - lo) / (n_levels - 1) if n_levels > 1 else 1.0
-        q = np.rint((log_g - lo) / step).astype(np.uint16) if n_levels > 1 else np.zeros(gain.shape, np.uint16)
-        level_gains = np.exp(lo + step * np.arange(n_levels)) if n_levels > 1 else np.exp([lo])
-        inv = self.response.channel_tables(channels).astype(np.float64)  # (256, C)
-        fwd = self.response.channel_tables(channels)
-        table = np.empty((channels, n_levels, 256), dtype=np.uint8)
+        tables = self.response.channel_tables(channels).astype(np.float64)  # (256, C): f^-1, also f's knots
+        flat = hi - lo <= 1e-12
+        if flat:  # one gain: the exact outputs of the 256 levels
+            step, q = 1.0, np.zeros(log_g.shape, dtype=np.int64)
+        else:
+            floors = [_dark_floor(tables[:, c], hi) for c in range(channels)]
+            spans = [np.log(tables[-1, c] / floors[c]) for c in range(channels)]
+            step = max((hi - lo) / (2 * (self.gain_levels - 1)), max(spans) / 65536)
+            q = np.rint((log_g - lo) / step).astype(np.int64)
+        n_q = int(q.max()) + 1
+        k = np.empty((channels, 256), dtype=np.uint32)
+        parts, start = [], 0
         for c in range(channels):
-            e = level_gains[:, None] * inv[None, :, c]
-            out = np.interp(e, fwd[:, c].astype(np.float64), _LEVELS.astype(np.float64))
-            table[c] = np.clip(np.rint(out), 0, 255).astype(np.uint8)
-        q = np.ascontiguousarray(q.reshape(-1, q.shape[2]))
-        q.setflags(write=False)
-        table.setflags(write=False)
-        return self._remember(self._tables, key, (q, table))
+            inv = tables[:, c]
+            if flat:
+                exposure = np.exp(lo) * inv
+                k[c] = start + np.arange(256)
+            else:
+                usable = inv >= floors[c]
+                ln_min = np.log(inv[usable].min())
+                k_c = np.rint((np.log(np.where(usable, inv, 1.0)) - ln_min) / step).astype(np.int64)
+                exposure = np.concatenate([np.zeros(n_q), np.exp(lo + ln_min + step * np.arange(n_q + k_c.max()))])
+                k[c] = np.where(usable, start + n_q + k_c, start)
+            part = np.clip(np.rint(np.interp(exposure, inv, _LEVELS.astype(np.float64))), 0, 255).astype(np.uint8)
+            parts.append(part)
+            start += part.size
+        table = np.concatenate(parts)
+        q = np.ascontiguousarray(q.reshape(-1, q.shape[2]).astype(np.uint16 if n_q <= 65536 else np.uint32))
+        for arr in (q, k, table):
+            arr.setflags(write=False)
+        return self._remember(self._tables, key, (q, k, table))
 
     # ---------------------------------------------------------------- public API
     def irradiance(self, image: np.ndarray) -> np.ndarray:
@@ -232,14 +263,14 @@ class Corrector:
         if arr.dtype != np.uint8:
             out = self.correct_exact(arr, scale=scale)
         else:
-            q, table = self._fast_tables(h, w, ch, scale)
+            q, k, table = self._fast_tables(h, w, ch, scale)
             src = np.ascontiguousarray(arr).reshape(-1)
             out = np.empty_like(src)
-            gather_rgb, gather_shared, _ = _kernels()
+            lookup_rgb, lookup_shared, _ = _kernels()
             if q.shape[1] == ch == 3:
-                gather_rgb(src, q.reshape(-1), table.reshape(-1), out, table.shape[1])
+                lookup_rgb(src, q.reshape(-1), k, table, out)
             else:
-                gather_shared(src, q.reshape(-1), table.reshape(-1), out, table.shape[1], ch)
+                lookup_shared(src, q.reshape(-1), k, table, out, ch)
             out = out.reshape(h, w, ch)
         return out[:, :, 0] if flat else out
 

@@ -272,3 +272,30 @@ def test_lut_and_polynomial_models_correct_alike():
     a = Corrector(s_curve(), model).correct(img)
     b = Corrector(s_curve(), lut).correct(img)
     assert np.abs(a.astype(int) - b.astype(int)).max() <= 1
+
+
+@pytest.mark.parametrize("gain_levels", [1000, 65535])
+def test_fast_path_bound_holds_for_fewer_and_more_gain_levels(gain_levels):
+    """Fewer levels (a coarser grid) and many more (a uint32 gain map) alike."""
+    response, model = s_curve(), vignetting()
+    img = image((H, W, 3), seed=8)
+    out = Corrector(response, model, gain_levels=gain_levels).correct(img, scale=0.7)
+    ref = exact(img, response, model.evaluate(H, W), 0.7)
+    assert np.abs(out - ref).max() <= 0.55
+
+
+def test_fast_path_table_stays_small_for_a_huge_dynamic_range():
+    """A response with a huge dynamic range (level 1 at 1e-12) keeps the table small (the grid step grows with
+    the range of exposures), and the darkest levels still come out right."""
+    x = np.linspace(0, 1, 256)
+    table = np.concatenate([[0.0, 1e-12, 1e-9], x[3:] ** 2.2])
+    response = CameraResponse.from_table(np.repeat(table[:, None], 3, axis=1))
+    model = vignetting()
+    cor = Corrector(response, model)
+    img = image((H, W, 3), seed=9)
+    out = cor.correct(img, scale=0.9)
+    q, k, lut = cor._fast_tables(H, W, 3, 0.9)
+    assert lut.size < 3 * 80_000 and q.dtype == np.uint16
+    ref = exact(img, response, model.evaluate(H, W), 0.9)
+    assert np.abs(out - ref).max() <= 0.55
+    np.testing.assert_array_equal(out[img <= 2], np.rint(ref[img <= 2]))
