@@ -16,13 +16,19 @@ alternating order, ``--repeats`` times; the table reports medians.
             correction to float irradiance (a gamma-2.2 response and a polynomial vignetting model),
             frame-to-model ICP, TSDF fusion of float colour, the colour-disagreement histogram.
 
-Reported: ms per frame, frames/s, the time ratio (ours / Open3D; target <= 1.15), ATE RMSE after Horn
-alignment against the dataset's ground truth (target < 5 cm and <= 1.2x Open3D's), peak RSS.
+Reported: ms per frame, frames/s, the time ratios (ours / each Open3D loop; issue 17's target: <= 1.0 against
+open3d-colour), ATE RMSE after Horn alignment against the dataset's ground truth (target: no worse than Open3D's),
+peak RSS (target <= 1.2x Open3D's).
 
     python scripts/bench_pipeline.py                       # 7-Scenes sample, every frame, 1 cm voxels
     python scripts/bench_pipeline.py --frames 0:100:2 --voxel-size 0.02 --repeats 3 --json bench.json
+    radiomap simulate room -o /tmp/room -n 500
+    python scripts/bench_pipeline.py --sequence /tmp/room --frames 0:500 --scaling 100,250,500 \
+        --methods open3d-colour,radiomap              # a 500-frame simulated room, time per frame as the map grows
 
-The time ratio is the median over back-to-back pairs (the machine's load drifts between runs).
+The time ratio is the median over back-to-back pairs (the machine's load drifts between runs). ``--scaling``
+adds the time per frame over the ``--window`` frames before each listed frame number (every method times each
+frame: from the start of one frame, its loading included, to the start of the next).
 
 The figures are in README.md (section Benchmarks).
 """
@@ -83,7 +89,9 @@ def worker_open3d(args) -> dict:
     stamps, poses = [], []
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
+        marks = []
         for i, f in enumerate(files):
+            marks.append(time.perf_counter())
             depth = o3d.t.io.read_image(str(f.depth)).to(device)
             color = o3d.t.io.read_image(str(f.rgb)).to(device)
             input_frame.set_data_from_image("depth", depth)
@@ -98,10 +106,28 @@ def worker_open3d(args) -> dict:
             model.integrate(input_frame, ds.depth_scale, args.depth_max, args.trunc)
             model.synthesize_model_frame(raycast_frame, ds.depth_scale, 0.1, args.depth_max, args.trunc,
                                          args.worker == "open3d-colour")
-        seconds = time.perf_counter() - t0
+        marks.append(time.perf_counter())
+        seconds = marks[-1] - t0
     return {"method": args.worker, "frames": len(files), "fused": len(files), "seconds": seconds,
             "ate_m": _ate(np.array(stamps), np.array(poses), ds), "peak_rss_mb": _peak_mb(),
-            "blocks": int(model.get_hashmap().size())}
+            "blocks": int(model.get_hashmap().size()), "frame_ms": (1000 * np.diff(marks)).tolist()}
+
+
+class _TimedFrames:
+    """A dataset that notes when each frame is asked for (the pipeline asks once per frame, in order)."""
+
+    def __init__(self, dataset) -> None:
+        self.dataset, self.marks = dataset, []
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, i):
+        self.marks.append(time.perf_counter())
+        return self.dataset[i]
+
+    def __getattr__(self, name):
+        return getattr(self.dataset, name)
 
 
 def worker_radiomap(args) -> dict:
@@ -133,12 +159,14 @@ def worker_radiomap(args) -> dict:
                            block_resolution=args.block_resolution, trunc_voxel_multiplier=args.trunc,
                            block_count=args.block_count, device=args.device)
     tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
-    run = reconstruct(ds, colour_model=colour, backend=backend, tracker=tracker, progress=False)
+    timed = _TimedFrames(ds)
+    run = reconstruct(timed, colour_model=colour, backend=backend, tracker=tracker, progress=False)
+    timed.marks.append(time.perf_counter())
     stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
     return {"method": "radiomap", "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
             "ate_m": None if run.ate is None else run.ate.rmse, "peak_rss_mb": _peak_mb(),
             "blocks": run.map_stats.get("blocks"), "stage_ms": stages,
-            "histogram_mean": run.histogram.mean()}
+            "histogram_mean": run.histogram.mean(), "frame_ms": (1000 * np.diff(timed.marks)).tolist()}
 
 
 def run_worker(method: str, args) -> dict:
@@ -166,6 +194,9 @@ def main(argv=None) -> int:
     p.add_argument("--motion-model", default="constant_velocity", choices=("constant_velocity", "previous"))
     p.add_argument("--device", default="CPU:0")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {', '.join(METHODS)}")
+    p.add_argument("--scaling", help="comma-separated frame numbers (e.g. 100,250,500): time per frame before each")
+    p.add_argument("--window", type=int, default=25, help="frames averaged before each --scaling frame number")
     p.add_argument("--json", type=Path, help="also write the results here")
     p.add_argument("--worker", choices=METHODS, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -178,9 +209,15 @@ def main(argv=None) -> int:
     if not args.sequence.exists():
         print(f"bench_pipeline: {args.sequence} is absent (the shared data lives beside the checkout)", file=sys.stderr)
         return 1
-    runs: dict[str, list[dict]] = {m: [] for m in METHODS}
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    if "radiomap" not in methods or not set(methods) <= set(METHODS) or not set(methods) & set(PEERS):
+        print(f"bench_pipeline: --methods must list radiomap and at least one of {', '.join(PEERS)}, got "
+              f"{args.methods!r}", file=sys.stderr)
+        return 1
+    peers = tuple(m for m in PEERS if m in methods)
+    runs: dict[str, list[dict]] = {m: [] for m in methods}
     for rep in range(args.repeats):
-        order = METHODS if rep % 2 == 0 else METHODS[::-1]
+        order = methods if rep % 2 == 0 else methods[::-1]
         for method in order:
             r = run_worker(method, args)
             runs[method].append(r)
@@ -193,7 +230,7 @@ def main(argv=None) -> int:
         return statistics.median(vals) if vals else None
 
     summary = {}
-    for m in METHODS:
+    for m in methods:
         ms = statistics.median(1000 * r["seconds"] / r["frames"] for r in runs[m])
         summary[m] = {"ms_per_frame": ms, "fps": 1000.0 / ms, "ate_cm": None if med(m, "ate_m") is None
                       else 100 * med(m, "ate_m"), "peak_rss_mb": med(m, "peak_rss_mb"), "blocks": med(m, "blocks")}
@@ -203,10 +240,9 @@ def main(argv=None) -> int:
             stages.setdefault(k, []).append(v)
     # the machine's load drifts between runs: the ratio of each back-to-back pair, then their median
     pairs = {peer: [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
-                    for r, o in zip(runs["radiomap"], runs[peer])] for peer in PEERS}
+                    for r, o in zip(runs["radiomap"], runs[peer])] for peer in peers}
     ratios = {peer: statistics.median(v) for peer, v in pairs.items()}
-    pair_ratios, ratio = pairs["open3d"], ratios["open3d"]
-    a, b = summary["radiomap"]["ate_cm"], summary["open3d"]["ate_cm"]
+    a, b = summary["radiomap"]["ate_cm"], summary[peers[0]]["ate_cm"]
     ate_ratio = a / b if (a is not None and b) else None
     from radiometry.tables import format_table
 
@@ -217,20 +253,44 @@ def main(argv=None) -> int:
           f"{args.block_resolution}, trunc {args.trunc} voxels, depth max {args.depth_max} m, {args.device}, "
           f"{args.repeats} repeats (medians)")
     print(format_table(rows))
-    print(f"time ratio radiomap / open3d: {ratio:.3f} (median of back-to-back pairs "
-          f"{', '.join(f'{x:.3f}' for x in pair_ratios)}; target <= 1.15)")
-    print(f"time ratio radiomap / open3d-colour (the same loop casting colour too, as radiomap must): "
-          f"{ratios['open3d-colour']:.3f} (pairs {', '.join(f'{x:.3f}' for x in pairs['open3d-colour'])})")
+    if "open3d" in peers:
+        print(f"time ratio radiomap / open3d: {ratios['open3d']:.3f} (median of back-to-back pairs "
+              f"{', '.join(f'{x:.3f}' for x in pairs['open3d'])})")
+    if "open3d-colour" in peers:
+        print(f"time ratio radiomap / open3d-colour (the same loop casting colour too, as radiomap must; target "
+              f"<= 1.0): {ratios['open3d-colour']:.3f} (pairs "
+              f"{', '.join(f'{x:.3f}' for x in pairs['open3d-colour'])})")
+    peak_ratio = summary["radiomap"]["peak_rss_mb"] / summary[peers[-1]]["peak_rss_mb"]
+    print(f"peak memory ratio radiomap / {peers[-1]}: {peak_ratio:.2f} (target <= 1.2)")
     if ate_ratio is not None:
-        print(f"ATE ratio radiomap / open3d: {ate_ratio:.3f} (target <= 1.2; radiomap ATE {a:.2f} cm, target < 5)")
+        print(f"ATE ratio radiomap / {peers[0]}: {ate_ratio:.3f} (target <= 1.0; radiomap ATE {a:.2f} cm)")
+    scaling = _scaling(runs, args) if args.scaling else []
+    if scaling:
+        print(f"time per frame (ms, median over repeats) over the {args.window} frames before frame n:")
+        print(format_table(scaling))
     print("radiomap stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages.items()))
     if args.json:
         args.json.write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                         "time_ratio": ratio, "pair_ratios": pair_ratios, "ate_ratio": ate_ratio,
-                                         "time_ratio_colour_peer": ratios["open3d-colour"],
-                                         "pair_ratios_colour_peer": pairs["open3d-colour"],
-                                         "runs": runs}, indent=2))
+                                         "time_ratios": ratios, "pair_ratios": pairs, "ate_ratio": ate_ratio,
+                                         "peak_ratio": peak_ratio, "scaling": scaling, "runs": runs}, indent=2))
     return 0
+
+
+def _scaling(runs: dict[str, list[dict]], args) -> list[dict]:
+    """Rows of the scaling table: per frame number n of ``--scaling``, each method's median (over repeats) of
+    its mean time per frame over frames ``n - window .. n - 1``, and radiomap's ratio to each peer."""
+    rows = []
+    for n in (int(x) for x in args.scaling.split(",") if x.strip()):
+        row: dict = {"frame": n}
+        for m, rs in runs.items():
+            means = [statistics.fmean(r["frame_ms"][max(0, n - args.window):n]) for r in rs
+                     if len(r["frame_ms"]) >= n]
+            row[m] = round(statistics.median(means), 1) if means else "-"
+        for peer in PEERS:
+            if isinstance(row.get(peer), float) and isinstance(row.get("radiomap"), float):
+                row[f"ratio to {peer}"] = round(row["radiomap"] / row[peer], 3)
+        rows.append(row)
+    return rows
 
 
 if __name__ == "__main__":
