@@ -346,4 +346,35 @@ def correct_reference_numpy(image: np.ndarray, response: CameraResponse, vignett
     return out
 
 
-__all__ = ["Corrector", "correct_reference_numpy"]
+def corrected_relative_stderr(vignetting: VignettingModel, height: int, width: int, *,
+                              image: np.ndarray | None = None, response: CameraResponse | None = None) -> np.ndarray:
+    """Relative standard error of the corrected irradiance ``f^-1(I) / V(x)`` per pixel and channel, float32
+    ``(height, width, C)`` (opt-in; the correction itself never computes it).
+
+    Without ``image``: the calibration's part, the relative standard error of ``V`` carried by a LUT fitted by
+    radiomap (:attr:`radiometry.vignetting.LUTVignetting.stderr`), resampled to the size; the same for every
+    frame. With ``image`` (uint8) and ``response``: that combined in quadrature with the image's own 8-bit
+    quantisation, ``f^-1'(I) / (sqrt(12) f^-1(I))`` (infinite at level 0, where ``f^-1 = 0``).
+    ValueError when the model carries no standard error (a polynomial, a foreign format, an older file)."""
+    from radiometry.vignetting import LUTVignetting
+
+    if not isinstance(vignetting, LUTVignetting) or vignetting.stderr is None:
+        raise ValueError(f"{type(vignetting).__name__} carries no standard error; only a LUT fitted by radiomap "
+                         "vignetting (saved as .npz) has one")
+    se = vignetting.evaluate_stderr(height, width).astype(np.float64)
+    if image is None:
+        return se.astype(np.float32)
+    if response is None:
+        raise ValueError("pass the response with the image: the quantisation error is f^-1'(I) / f^-1(I)")
+    img, _ = _as_hwc(np.asarray(image))
+    if img.dtype != np.uint8 or img.shape[:2] != (height, width):
+        raise ValueError(f"image must be uint8 of size {width}x{height}, got {img.dtype} {img.shape}")
+    ch = se.shape[2]
+    tables = response.channel_tables(ch).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        quant = np.gradient(tables, axis=0) / (np.sqrt(12.0) * tables)  # (256, C)
+    q = np.stack([quant[img[:, :, min(c, img.shape[2] - 1)], c] for c in range(ch)], axis=-1)
+    return np.hypot(se, q).astype(np.float32)
+
+
+__all__ = ["Corrector", "correct_reference_numpy", "corrected_relative_stderr"]

@@ -66,6 +66,26 @@ def plot_vignetting_map(ax, model: VignettingModel | np.ndarray, channel: int = 
     return im
 
 
+def plot_stderr_map(ax, stderr: np.ndarray, channel: int = 0, *, vmax: float | None = None,
+                    colorbar: bool = True):
+    """The relative standard error of ``V`` (``LUTVignetting.stderr``) of ``channel`` in percent (``magma``,
+    capped at ``vmax`` %, default the 99th percentile so that filled corners do not wash the rest out);
+    returns the image artist."""
+    se = np.asarray(stderr, dtype=np.float64)
+    channels = se.shape[2] if se.ndim == 3 else 1
+    if se.ndim == 3:
+        se = se[:, :, min(channel, se.shape[2] - 1)]
+    pct = 100.0 * se
+    top = float(np.percentile(pct, 99)) if vmax is None else float(vmax)
+    im = ax.imshow(pct, cmap="magma", vmin=0.0, vmax=max(top, 1e-6), interpolation="nearest")
+    ax.set_title(f"stderr of V [%], channel {_channel_label(channel, channels)}")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if colorbar:
+        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    return im
+
+
 def plot_radial_profiles(ax, accumulation: "VignettingAccumulation", model: VignettingModel, *,
                          max_points: int = 4000, seed: int = 0):
     """Samples of the normalised flat against the radius ``r`` (1 = half-diagonal) from each channel's
@@ -193,8 +213,8 @@ def save_coverage_png(path: str | os.PathLike, count: np.ndarray, min_samples: i
 
 def save_calibration_figures(prefix: str | os.PathLike, accumulation: "VignettingAccumulation",
                              model: VignettingModel, *, min_samples: int = 20) -> dict[str, Path]:
-    """Write ``<prefix>_coverage.png``, ``_vignetting.png`` (V per channel), ``_profiles.png`` and
-    ``_residuals.png``; returns ``{name: path}``."""
+    """Write ``<prefix>_coverage.png``, ``_vignetting.png`` (V per channel), ``_stderr.png`` (its standard
+    error, when the model carries one), ``_profiles.png`` and ``_residuals.png``; returns ``{name: path}``."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -210,6 +230,13 @@ def save_calibration_figures(prefix: str | os.PathLike, accumulation: "Vignettin
     for c in range(ch):
         plot_vignetting_map(axes[0, c], model, c, vmin=vmin)
     out["vignetting"] = _save(fig, prefix.with_name(prefix.name + "_vignetting.png"))
+    stderr = getattr(model, "stderr", None)
+    if stderr is not None:
+        top = float(np.percentile(100.0 * stderr, 99))
+        fig, axes = plt.subplots(1, ch, figsize=(4.6 * ch, 3.6), squeeze=False)
+        for c in range(ch):
+            plot_stderr_map(axes[0, c], stderr, c, vmax=top)
+        out["stderr"] = _save(fig, prefix.with_name(prefix.name + "_stderr.png"))
     fig, ax = plt.subplots(figsize=(7, 4.5))
     plot_radial_profiles(ax, accumulation, model)
     out["profiles"] = _save(fig, prefix.with_name(prefix.name + "_profiles.png"))
@@ -221,5 +248,5 @@ def save_calibration_figures(prefix: str | os.PathLike, accumulation: "Vignettin
     return out
 
 
-__all__ = ["plot_vignetting_map", "plot_radial_profiles", "plot_residuals", "plot_coverage", "plot_repeatability",
+__all__ = ["plot_vignetting_map", "plot_stderr_map", "plot_radial_profiles", "plot_residuals", "plot_coverage", "plot_repeatability",
            "save_coverage_png", "save_calibration_figures"]

@@ -188,7 +188,8 @@ class LUTVignetting(VignettingModel):
 
     model_name = "lut"
 
-    def __init__(self, lut: np.ndarray, *, info: dict[str, Any] | None = None) -> None:
+    def __init__(self, lut: np.ndarray, *, info: dict[str, Any] | None = None,
+                 stderr: np.ndarray | None = None) -> None:
         arr = np.asarray(lut)
         if arr.ndim == 2:
             arr = arr[:, :, None]
@@ -213,22 +214,46 @@ class LUTVignetting(VignettingModel):
         self._channels = int(arr.shape[2])
         self._resolution = (int(arr.shape[1]), int(arr.shape[0]))
         self._info = dict(info or {})
+        self._stderr = None if stderr is None else _checked_stderr(stderr, arr.shape)
 
     @property
     def lut(self) -> np.ndarray:
         """The read-only table, float32 ``(H, W, C)``."""
         return self._lut
 
-    def _evaluate(self, height: int, width: int) -> np.ndarray:
+    @property
+    def stderr(self) -> np.ndarray | None:
+        """The relative standard error of ``V`` (``se(V) / V``) per pixel and channel, read-only float32
+        ``(H, W, C)``, or None when the model does not carry one (made elsewhere, or an older file)."""
+        return self._stderr
+
+    def evaluate_stderr(self, height: int | None = None, width: int | None = None) -> np.ndarray:
+        """:attr:`stderr` resampled like :meth:`evaluate` (float32 ``(height, width, C)``); ValueError without one."""
+        if self._stderr is None:
+            raise ValueError("this vignetting model carries no standard error (fitted before radiomap kept one, or "
+                             "not a fit); re-calibrate it with radiomap vignetting")
+        if height is None and width is None:
+            width, height = self.resolution
+        if height is None or width is None:
+            raise ValueError("pass both height and width, or neither for the calibration resolution")
+        self.check_size(height, width)
+        return np.ascontiguousarray(self._resample(self._stderr, int(height), int(width)), dtype=np.float32)
+
+    def _resample(self, table: np.ndarray, height: int, width: int) -> np.ndarray:
         if (width, height) == self.resolution:
-            return self._lut.copy()
+            return table.copy()
         import cv2
 
-        out = cv2.resize(self._lut, (width, height), interpolation=cv2.INTER_LINEAR)
+        out = cv2.resize(table, (width, height), interpolation=cv2.INTER_LINEAR)
         return out.reshape(height, width, self.channels)
 
+    def _evaluate(self, height: int, width: int) -> np.ndarray:
+        return self._resample(self._lut, height, width)
+
     def _arrays(self) -> dict[str, np.ndarray]:
-        return {"lut": self._lut}
+        if self._stderr is None:
+            return {"lut": self._lut}
+        return {"lut": self._lut, "stderr": self._stderr}
 
     @classmethod
     def _from_arrays(cls, arrays, resolution, info):
@@ -237,11 +262,27 @@ class LUTVignetting(VignettingModel):
         lut = arrays["lut"]
         if lut.ndim == 3 and (lut.shape[1], lut.shape[0]) != resolution:
             raise ValueError(f"lut shape {lut.shape} disagrees with the resolution {resolution} in meta")
-        return cls(lut, info=info)
+        return cls(lut, info=info, stderr=arrays.get("stderr"))
 
     def __repr__(self) -> str:
         w, h = self.resolution
         return f"LUTVignetting({w}x{h}, channels={self.channels}, min={float(self._lut.min()):.3f})"
+
+
+def _checked_stderr(stderr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A LUT's relative standard error: finite, non-negative, the LUT's shape; read-only float32."""
+    arr = np.asarray(stderr)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.shape != shape:
+        raise ValueError(f"stderr must have the lut's shape {shape}, got {np.shape(stderr)}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise TypeError(f"stderr must be a real numeric array, got dtype {arr.dtype}")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError("stderr must be finite and non-negative (a relative standard error of V)")
+    arr.setflags(write=False)
+    return arr
 
 
 class PolynomialVignetting(VignettingModel):

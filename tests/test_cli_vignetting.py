@@ -287,3 +287,47 @@ def test_vignetting_smooth_sigma_is_for_the_lut(sweep, tmp_path):
     assert len(error) == 1 and error[0].startswith("Error: Invalid value for --smooth-sigma: applies to --model lut "
                                                    "only, got --model poly; drop --smooth-sigma or use --model lut")
     assert not (tmp_path / "v.npz").exists()
+
+
+def test_vignetting_reports_its_error_budget_and_plots_the_stderr(sweep, tmp_path):
+    out = tmp_path / "vig.npz"
+    result = invoke("vignetting", sweep["rgb"], "--response", sweep["response"], "-o", out, "--min-samples", "10")
+    assert result.exit_code == 0, result.output
+    assert "expected error, levels of a flat field at 200 (R/G/B):" in result.stdout
+    for part in ("noise:", "coverage (< 10 samples or filled):", "normalisation", "response (propagated",
+                 "total:"):
+        assert part in result.stdout, part
+    assert cv2.imread(str(tmp_path / "vig_stderr.png")) is not None
+    import json
+
+    summary = json.loads((tmp_path / "vig_summary.json").read_text())
+    budget = summary["error_budget"]
+    assert budget["min_samples"] == 10 and len(budget["total"]) == 3
+    model = load_vignetting(out)
+    assert model.stderr is not None and model.info["error_budget"] == budget
+    # the budget's total is the size of the error against the truth (simulated sweep; measured within 2x)
+    measured = vignetting_error_levels(model, sweep["truth"], CameraResponse.load(sweep["response"]))
+    assert np.all(np.array(budget["total"]) < 3.0 * measured + 0.05) and np.all(np.array(budget["total"]) > 0.02)
+
+
+def test_correct_writes_the_relative_stderr_on_request(sweep, model_file, tmp_path):
+    frame = sorted(sweep["rgb"].iterdir())[0]
+    target = tmp_path / "se" / "stderr.npy"
+    result = invoke("correct", frame, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "out",
+                    "--stderr", target)
+    assert result.exit_code == 0, result.output
+    assert "relative standard error of the corrected irradiance" in result.stdout
+    se = np.load(target)
+    model = load_vignetting(model_file)
+    assert se.dtype == np.float32 and se.shape == (H, W, 3)
+    np.testing.assert_array_equal(se, model.stderr)
+    # a model without one: a one-line error before anything is written
+    plain = tmp_path / "plain.npz"
+    LUTVignetting(model.lut).save(plain)
+    result = invoke("correct", frame, "-r", sweep["response"], "--vignetting", plain, "-o", tmp_path / "out2",
+                    "--stderr", tmp_path / "x.npy")
+    assert result.exit_code == 2 and "carries no standard error" in result.output
+    assert not (tmp_path / "out2").exists()
+    result = invoke("correct", frame, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "out3",
+                    "--stderr", tmp_path / "x.png")
+    assert result.exit_code == 2 and ".npy, .tiff or .exr" in result.output

@@ -57,12 +57,16 @@ def _models_must_fit(what, response_path: str, vignetting_path: str):
 @click.option("--irradiance", is_flag=True, help="Write float irradiance f^-1(I)/V instead of 8-bit images.")
 @click.option("--irradiance-format", "fmt", type=click.Choice(["npy", "tiff", "exr"]), default="npy",
               show_default=True, help="File format of --irradiance output.")
+@click.option("--stderr", "stderr_path", type=click.Path(dir_okay=False), default=None,
+              help="Also write the per-pixel relative standard error of the corrected irradiance that comes from "
+                   "the vignetting calibration (.npy, .tiff or .exr; float32 HxWxC at the images' size). Needs a "
+                   "LUT calibrated by radiomap vignetting.")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @deprecated_alias("-v", "vignetting_path", "--vignetting", "-v is radiomap's --verbose: radiomap -v correct ...")
 @deprecated_alias("--format", "fmt", "--irradiance-format", "--format is a sequence layout elsewhere")
 def command(input_path: str, response_path: str, vignetting_path: str, outdir: str, scale: str,
-            irradiance: bool, fmt: str, force: bool, no_progress: bool) -> None:
+            irradiance: bool, fmt: str, stderr_path: str | None, force: bool, no_progress: bool) -> None:
     """Correct INPUT (an image, a folder of images or a video): I' = f(scale * f^-1(I) / V(x)).
 
     8-bit results are written as PNG (lossless), one per input image or video frame.
@@ -86,6 +90,15 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     response = load_response(response_path)
     vignetting = read_vignetting(vignetting_path)  # as reconstruct --vignetting: also a V array .npy
     corrector = Corrector(response, vignetting)
+    if stderr_path is not None:
+        if Path(stderr_path).suffix.lower() not in (".npy", ".tiff", ".tif", ".exr"):
+            raise click.BadParameter(f"{stderr_path}: write the standard error as .npy, .tiff or .exr",
+                                     param_hint="--stderr")
+        if getattr(vignetting, "stderr", None) is None:
+            raise click.BadParameter(f"{vignetting_path} carries no standard error (only a LUT calibrated by "
+                                     "radiomap vignetting into .npz does); drop --stderr or re-calibrate",
+                                     param_hint="--stderr")
+        check_overwrite(stderr_path, force=force)
     source = open_frames(input_path)
     if isinstance(source, FolderFrames):
         names = [p.stem for p in source.paths]
@@ -113,7 +126,10 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     clipped = 0
     total = 0
     bar = progress_bar(frames, total=source.length, desc="correct", enabled=not no_progress, leave=False)
+    first_shape = None
     for i, frame in enumerate(bar):
+        if first_shape is None:
+            first_shape = np.asarray(frame).shape[:2]
         name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
                                                    else Path(input_path).stem)
         target = out / f"{name}{ext}"
@@ -130,6 +146,14 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
             total += result.size
             write_image(target, result)
         written += 1
+    if stderr_path is not None and first_shape is not None:
+        from radiometry.correction import corrected_relative_stderr
+
+        with _models_must_fit(input_path, response_path, vignetting_path):
+            se = corrected_relative_stderr(vignetting, first_shape[0], first_shape[1])
+        write_float_image(ensure_dir(Path(stderr_path).parent) / Path(stderr_path).name, se)
+        click.echo(f"wrote the relative standard error of the corrected irradiance to {stderr_path} (median "
+                   f"{100 * float(np.median(se)):.2f}%, 99th percentile {100 * float(np.percentile(se, 99)):.2f}%)")
     kind = "irradiance maps" if irradiance else "corrected images"
     click.echo(f"wrote {written} {kind} to {out}" + ("" if irradiance else
                f" (scale {float(scale_value):.4g}; {100.0 * clipped / max(total, 1):.2f}% of values newly clipped"

@@ -64,6 +64,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
     from radiometry.vignetting_calibration import calibration_summary, collect_vignetting, fit_vignetting
+    from radiometry.vignetting_calibration.evaluate import budget_text
     from mapping.cli._common import run_manifest
     from radiometry.tables import format_table
 
@@ -85,15 +86,19 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     fit_options = {"joint_scale": not no_drift_correction}
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma
+        fit_options["thin_samples"] = min_samples
     model = fit_vignetting(acc, model=model_name, **fit_options)
     rows, facts = calibration_summary(model, acc, response, min_samples)
     skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
-    text = "\n".join([
+    lines = [
         f"vignetting model ({model_name}) -> {out}",
         f"frames used: {acc.frames_used}, skipped: {acc.frames_skipped} ({skipped})",
         str(acc.coverage_report(min_samples)),
         format_table(rows),
-    ])
+    ]
+    if "error_budget" in facts:
+        lines.append(budget_text(facts["error_budget"], model.channels))
+    text = "\n".join(lines)
     prefix = out.with_name(out.stem)
     # the model, its figures, summaries and the accumulation: all published together or none (the old set stays)
     with publish_set(out) as files:

@@ -6,6 +6,14 @@ spaces; anything after them on that line, and every further line, is ignored (DS
 ``255 (G - G[0]) / (G[255] - G[0])``. The reader applies that same rescaling (so ``f^-1(0) = 0``), which
 keeps our interpretation identical to DSO's; the writer writes exactly those rescaled values.
 
+Measured files are not always monotone: a calibration fitted per level can dip by a little where the data are
+thin (near saturation, or a flat stretch of the response). Such a file is loaded through a documented repair:
+:func:`isotonic_repair`, the least-squares non-decreasing fit (pool adjacent violators: every run of levels that
+dips is replaced by its mean), then the levels pooled into one value separated by 1e-6 of the range so that the
+table is strictly increasing. A warning states how many levels changed and by how much (in 0..255 units and in
+% of the range). A repair that would move a value by more than :data:`MAX_REPAIR` of the range is refused: that
+file is no response. ``read_pcalib(path, strict=True)`` refuses any dip, as DSO does.
+
 pcalib has one channel. Writing a 3-channel response needs ``channel=``: an index (0 = R, 1 = G, 2 = B)
 or ``"mean"``; without it the mean of the normalised channels is written with a :class:`UserWarning`.
 """
@@ -36,8 +44,40 @@ def _fail(path: Path, what: str) -> CalibrationFileError:
                                 "values (0..255) on its first line")
 
 
-def read_pcalib(path: str | os.PathLike) -> CameraResponse:
-    """Read a DSO/TUM ``pcalib.txt`` as a 1-channel :class:`CameraResponse` (DSO's normalisation)."""
+#: the largest change (fraction of the range) the repair of a dipping pcalib may make to any value
+MAX_REPAIR = 0.02
+
+
+def isotonic_repair(values: np.ndarray, *, min_step: float = 1e-6) -> np.ndarray:
+    """The non-decreasing sequence closest to ``values`` in least squares (pool adjacent violators, equal
+    weights), then made strictly increasing by separating pooled levels by ``min_step`` of the range (the
+    separation is centred on the pooled mean). float64, the shape of ``values`` (1-D)."""
+    y = np.asarray(values, dtype=np.float64)
+    means: list[float] = []
+    sizes: list[int] = []
+    for v in y:
+        means.append(float(v))
+        sizes.append(1)
+        while len(means) > 1 and means[-2] > means[-1]:
+            n = sizes[-2] + sizes[-1]
+            m = (means[-2] * sizes[-2] + means[-1] * sizes[-1]) / n
+            means[-2:] = [m]
+            sizes[-2:] = [n]
+    step = min_step * max(float(y.max() - y.min()), 1e-12)
+    out = np.empty_like(y)
+    i = 0
+    for m, n in zip(means, sizes):
+        out[i:i + n] = m + step * (np.arange(n) - (n - 1) / 2.0)
+        i += n
+    return out
+
+
+def read_pcalib(path: str | os.PathLike, *, strict: bool = False) -> CameraResponse:
+    """Read a DSO/TUM ``pcalib.txt`` as a 1-channel :class:`CameraResponse` (DSO's normalisation).
+
+    A file that dips is repaired (:func:`isotonic_repair`, with a warning; ``meta["repaired"]`` records the
+    levels changed and the largest change) unless ``strict`` (then refused, as DSO does) or unless the repair
+    would move a value by more than :data:`MAX_REPAIR` of the range."""
     path = Path(path)
     try:
         text = read_file(path, "the pcalib.txt").decode("utf-8")
@@ -60,13 +100,30 @@ def read_pcalib(path: str | os.PathLike) -> CameraResponse:
     if not np.all(np.isfinite(table)):
         raise _fail(path, "a value overflows (not a finite number)")
     steps = np.diff(table)
+    meta: dict = {}
     if np.any(steps <= 0):
         level = int(np.flatnonzero(steps <= 0)[0]) + 1
-        raise _fail(path, f"not strictly increasing at level {level} (DSO rejects such files too)")
+        if strict:
+            raise _fail(path, f"not strictly increasing at level {level} (DSO rejects such files too)")
+        repaired = isotonic_repair(table)
+        span = float(repaired[-1] - repaired[0])
+        change = np.abs(repaired - table)
+        if not span > 0 or float(change.max()) > MAX_REPAIR * span:
+            worst = 100.0 * float(change.max()) / span if span > 0 else float("inf")
+            raise _fail(path, f"not strictly increasing at level {level}, and making it monotone would move a value "
+                              f"by {worst:.1f}% of the range (more than {100 * MAX_REPAIR:g}%): not a response")
+        changed = np.flatnonzero(change > 1e-9 * span)
+        log.warning("%s: not strictly increasing (first at level %d); repaired by isotonic regression (pool adjacent "
+                    "violators): %d levels changed (%d..%d), at most by %.4g of 0..255 (%.3f%% of the range); "
+                    "read it with strict=True to refuse such files", path, level, changed.size, int(changed[0]),
+                    int(changed[-1]), 255.0 * float(change.max()) / span, 100.0 * float(change.max()) / span)
+        meta["repaired"] = {"method": "isotonic (pool adjacent violators)", "levels": changed.tolist(),
+                            "max_change_fraction": float(change.max()) / span}
+        table = repaired
     table = (table - table[0]) / (table[-1] - table[0])
     if not np.all(np.isfinite(table)) or np.any(np.diff(table) <= 0):
         raise _fail(path, "the values are too close together to be told apart")
-    return CameraResponse.from_table(table[:, None], method="pcalib", source=str(path))
+    return CameraResponse.from_table(table[:, None], method="pcalib", source=str(path), **meta)
 
 
 def write_pcalib(path: str | os.PathLike, response: CameraResponse, *, channel: int | str | None = None) -> Path:
@@ -101,4 +158,4 @@ def write_pcalib(path: str | os.PathLike, response: CameraResponse, *, channel: 
     return atomic_write_text(path, text + " \n")
 
 
-__all__ = ["read_pcalib", "write_pcalib"]
+__all__ = ["MAX_REPAIR", "isotonic_repair", "read_pcalib", "write_pcalib"]

@@ -41,7 +41,8 @@ Modules, one job each: :mod:`~radiometry.vignetting_calibration.sources` (folder
 :mod:`~radiometry.vignetting_calibration.sheet` (step 1), :mod:`~radiometry.vignetting_calibration.accumulate`
 (step 2), :mod:`~radiometry.vignetting_calibration.scales` (drift), :mod:`~radiometry.vignetting_calibration.collect`
 (a source through steps 1 and 2), :mod:`~radiometry.vignetting_calibration.fit` (the models),
-:mod:`~radiometry.vignetting_calibration.evaluate` (errors in 8-bit levels, repeatability).
+:mod:`~radiometry.vignetting_calibration.evaluate` (errors in 8-bit levels, repeatability),
+:mod:`~radiometry.vignetting_calibration.uncertainty` (the LUT's standard error and error budget).
 """
 
 from radiometry.vignetting_calibration.accumulate import (CoverageReport, VignettingAccumulation,

@@ -124,7 +124,27 @@ def calibration_summary(model: VignettingModel, accumulation: VignettingAccumula
              "skipped": accumulation.skipped, "coverage": str(report),
              "fraction_below_min_samples": report.fraction_below, "thin_regions": report.thin_regions(),
              "channels": rows}
+    budget = model.info.get("error_budget")
+    if isinstance(budget, dict):
+        facts["error_budget"] = budget
     return rows, facts
+
+
+def budget_text(budget: dict, channels: int) -> str:
+    """One line per part of a LUT's error budget (:func:`radiometry.vignetting_calibration.uncertainty.error_budget`),
+    in levels of a flat field at its level, per channel."""
+    names = "R/G/B" if channels == 3 else "grey"
+    parts = [("noise", "noise"), ("coverage", f"coverage (< {budget.get('min_samples', '?')} samples or filled)"),
+             ("normalisation", "normalisation (V = 1 at the centre)"),
+             ("response", "response (propagated; its roughness only: a lower bound)"), ("total", "total")]
+    lines = [f"expected error, levels of a flat field at {budget.get('level', 200):g} ({names}):"]
+    for key, label in parts:
+        values = budget.get(key)
+        if values is None:
+            continue
+        text = "/".join("n/a" if not np.isfinite(v) else f"{v:.3f}" for v in np.asarray(values, dtype=float))
+        lines.append(f"  {label}: {text}")
+    return "\n".join(lines)
 
 
 def repeatability(accumulations: Sequence[VignettingAccumulation], response: CameraResponse, *,

@@ -13,6 +13,7 @@ from radiometry.registry import Registry
 from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal
 from radiometry.vignetting_calibration.accumulate import VignettingAccumulation
 from radiometry.vignetting_calibration.collect import SWEEP_FIX
+from radiometry.vignetting_calibration.uncertainty import error_budget, lut_stderr, relative_sample_variance
 
 #: the largest LUT denoising (pixels): beyond it the "fine" residual is a constant and OpenCV's kernel overflows
 MAX_SMOOTH_SIGMA = 50.0
@@ -183,7 +184,7 @@ def fit_vignetting_polynomial(accumulation: VignettingAccumulation, *, fixed_cen
 
 
 def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: bool = True, min_samples: int = 1,
-                       smooth_sigma: float = 1.0) -> LUTVignetting:
+                       smooth_sigma: float = 1.0, thin_samples: int = 20) -> LUTVignetting:
     """Per-pixel, per-channel LUT: the session's (drift-corrected) mean flat, normalised and denoised.
 
     The flat ``D`` is factored as ``P(x) * q(x)`` with ``P`` a free-centre polynomial fit of the same data
@@ -200,6 +201,10 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
     - Normalisation (:func:`centre_normalisers`): ``V = 1`` at its peak, the value there taken from a quadratic
       surface fitted to the flat over a disk of 8 % of the image diagonal around the peak of ``P * q_coarse``
       (``q`` smoothed over 1 % of the diagonal), not from a maximum, which noise biases upwards.
+    - Uncertainty (:mod:`~radiometry.vignetting_calibration.uncertainty`): the model carries the relative standard
+      error of ``V`` per pixel and channel (``stderr``), and ``info["error_budget"]`` splits the expected error
+      in levels (flat field at 200) into noise, coverage (pixels with fewer than ``thin_samples`` samples, or
+      none), normalisation and the response (propagated).
     """
     import cv2
 
@@ -244,11 +249,17 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
     norm, centre_info = centre_normalisers(base * q_coarse, flat, weights)
     lut = base * q / norm
     lut = np.maximum(lut, 1e-3)
+    norm_se = np.asarray(centre_info["stderr"], dtype=np.float64)
+    stderr = lut_stderr(acc.count, acc.sum, acc.sumsq, weights, ratio, fine, observed, q_coarse,
+                        smooth_sigma=smooth_sigma, shrink=shrink, normaliser_stderr=norm_se)
+    budget = error_budget(lut, stderr, acc.count, flat, norm, norm_se,
+                          relative_sample_variance(acc.count, acc.sum, acc.sumsq), acc.response,
+                          min_samples=max(min_samples, thin_samples))
     info = {"method": "lut", "joint_scale": bool(joint_scale), "smooth_sigma": float(smooth_sigma),
             "filled_fraction": float(1.0 - observed.all(axis=2).mean()), "frames_used": acc.frames_used,
             "frames_skipped": acc.skipped, "source": acc.source, "base": poly.info["method"],
-            "normalisation": centre_info}
-    return LUTVignetting(lut.astype(np.float32), info=info)
+            "normalisation": centre_info, "error_budget": budget}
+    return LUTVignetting(lut.astype(np.float32), info=info, stderr=stderr)
 
 
 MODELS = Registry("model", {

@@ -69,6 +69,19 @@ def _find_seed(blurred: np.ndarray, seed: tuple[int, int], min_pixels: int, dark
     return int(xx), int(yy)
 
 
+def _fill(blurred: np.ndarray, sx: int, sy: int, tolerance: float) -> np.ndarray:
+    """Flood fill with a floating range from ``(sx, sy)``, kept within a plausible fall-off of the seed's value."""
+    import cv2
+
+    h, w = blurred.shape
+    fill_mask = np.zeros((h + 2, w + 2), np.uint8)
+    flags = 4 | (255 << 8) | cv2.FLOODFILL_MASK_ONLY  # floating range: FLOODFILL_FIXED_RANGE not set
+    cv2.floodFill(blurred, fill_mask, (sx, sy), 0, loDiff=tolerance, upDiff=tolerance, flags=flags)
+    region = fill_mask[1:-1, 1:-1] > 0
+    # a gradual edge may let the fill creep into a darker background: keep it within a plausible falloff
+    return region & (blurred >= 0.4 * float(blurred[sy, sx]))
+
+
 def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, saturation: int = 250,
                  dark: int = 20, min_area: float = 0.02, max_saturated: float = 0.2,
                  noise_factor: float = 4.0, max_noise: float = 3.0, border: int | None = None,
@@ -117,13 +130,23 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     if sigma > max_noise:
         return SheetDetection("textured", tolerance=sigma)
     tolerance = max(1.0, noise_factor * sigma) + 0.5  # + the vignetting gradient between neighbours
-    fill_mask = np.zeros((h + 2, w + 2), np.uint8)
-    flags = 4 | (255 << 8) | cv2.FLOODFILL_MASK_ONLY  # floating range: FLOODFILL_FIXED_RANGE not set
-    cv2.floodFill(blurred, fill_mask, (sx, sy), 0, loDiff=tolerance, upDiff=tolerance, flags=flags)
-    region = fill_mask[1:-1, 1:-1] > 0
-    # a gradual edge may let the fill creep into a darker background: keep it within a plausible falloff
-    seed_value = float(blurred[sy, sx])
-    region &= blurred >= 0.4 * seed_value
+    region = _fill(blurred, sx, sy, tolerance)
+    # the previous frame's centre may lie on a bright patch of the background when the sheet has moved to a
+    # corner: if a region of at least min_area is min_contrast times brighter than the one filled, that is the
+    # sheet: fill from its most interior point instead
+    level = float(np.median(blurred[region]))
+    brighter = ((~region) & (blurred >= max(dark, min_contrast * level))).astype(np.uint8)
+    if np.count_nonzero(brighter) >= max(16, min_area * n_pixels):
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(brighter, connectivity=4)
+        largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        if stats[largest, cv2.CC_STAT_AREA] >= max(16, min_area * n_pixels):
+            dist = cv2.distanceTransform((labels == largest).astype(np.uint8), cv2.DIST_L2, 3)
+            sy, sx = (int(v) for v in np.unravel_index(int(np.argmax(dist)), dist.shape))
+            sigma = _robust_noise(blurred, sx, sy, half=max(8, min(h, w) // 20))
+            if sigma > max_noise:
+                return SheetDetection("textured", tolerance=sigma)
+            tolerance = max(1.0, noise_factor * sigma) + 0.5
+            region = _fill(blurred, sx, sy, tolerance)
     area = int(np.count_nonzero(region))
     if area < min_area * n_pixels:
         return SheetDetection("too small", area_fraction=area / n_pixels, tolerance=tolerance)
@@ -166,7 +189,11 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=4)
     if n <= 1:
         return SheetDetection("too small", tolerance=tolerance)
-    keep = labels[sy, sx] if labels[sy, sx] > 0 else 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    # the seed's piece, unless the clean-up cut it off as a crumb (a seed in the image's corner): then the largest
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    at_seed = labels[sy, sx]
+    keep = at_seed if at_seed > 0 and stats[at_seed, cv2.CC_STAT_AREA] >= 0.5 * stats[largest, cv2.CC_STAT_AREA] \
+        else largest
     mask = labels == keep
     used = int(np.count_nonzero(mask))
     if used < 0.5 * min_area * n_pixels:
