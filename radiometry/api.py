@@ -78,14 +78,15 @@ def read_vignetting(path: PathLike):
 
 
 def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLike | Sequence[float] | None = None, *,
-                       method: str = "debevec", progress: bool = True, **options: Any) -> CameraResponse:
+                       method: str = "auto", progress: bool = True, **options: Any) -> CameraResponse:
     """The inverse response ``f^-1`` from bracketed exposures of a static scene (``radiomap response``).
 
     brackets: a folder of images with its times file (``times.txt`` / ``image_list.txt``, lines
               ``name seconds``), or a list of RGB uint8 images.
     times:    with a folder, another times file (default: the folder's); with images, their exposure times
               in seconds (required).
-    method:   ``debevec`` (sparse Debevec & Malik), ``opencv-debevec`` or ``robertson``.
+    method:   ``auto`` (Engel when the exposure ratios differ, else Debevec; the default), ``debevec`` (sparse
+              Debevec & Malik), ``engel``, ``opencv-debevec`` or ``robertson``.
     options:  the method's keywords (``lam``, ``samples``, ``mask``, ...; see
               :func:`radiometry.response_fit.fit_response`).
 

@@ -489,7 +489,28 @@ def _from_opencv(table: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
 # --------------------------------------------------------------------------------------------------
 # dispatcher
 # --------------------------------------------------------------------------------------------------
+def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kwargs: Any) -> CameraResponse:
+    """Engel's maximum likelihood when the exposure ratios differ (no smoothness prior to round a knee: within 1 %
+    of the range on every curve of the test set), else Debevec & Malik (with one ratio throughout, the images
+    fix ``f^-1`` only up to a factor periodic in ``ln E``, which only Debevec's smoothness prior suppresses;
+    Grossberg & Nayar, PAMI 2003). Debevec's ``lam``/``samples`` given: Debevec. ``meta["chosen_by"]`` says why."""
+    from radiometry.response_engel import equal_ratios
+
+    ratio = equal_ratios(np.asarray(times, dtype=np.float64))
+    if "lam" in kwargs or "samples" in kwargs:
+        method, why = "debevec", "auto: Debevec's lambda or samples given"
+    elif ratio is not None:
+        method, why = "debevec", (f"auto: every exposure ratio is {ratio:.3g}x, which leaves a factor periodic in "
+                                  "ln E undetermined; Debevec's smoothness prior fixes it")
+    else:
+        method, why = "engel", "auto: the exposure ratios differ, so the data fix f^-1 without a prior"
+    response = FITTERS[method](images, times, **kwargs)
+    response.meta["chosen_by"] = why
+    return response
+
+
 FITTERS = Registry("method", {
+    "auto": fit_response_auto,
     "debevec": fit_response_debevec,
     "engel": "radiometry.response_engel:fit_response_engel",
     "opencv-debevec": fit_response_opencv_debevec,
@@ -499,10 +520,10 @@ FITTERS = Registry("method", {
 METHODS = FITTERS.names()
 
 
-def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method: str = "debevec",
+def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method: str = "auto",
                  **kwargs: Any) -> CameraResponse:
-    """Fit ``f^-1`` with ``method`` in :data:`METHODS`; ``kwargs`` go to that method's function (keyword-only:
-    a keyword the method does not take is a TypeError naming it)."""
+    """Fit ``f^-1`` with ``method`` in :data:`METHODS` (default ``auto``: :func:`fit_response_auto`); ``kwargs`` go
+    to that method's function (keyword-only: a keyword the method does not take is a TypeError naming it)."""
     return FITTERS[method](images, times, **kwargs)
 
 

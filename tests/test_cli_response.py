@@ -128,7 +128,7 @@ def test_other_known_errors(tmp_path, sample_copy):
     (["--method", "robertson", "--lambda", "3"], "apply to debevec and opencv-debevec, not robertson"),
     (["--method", "opencv-debevec", "--mask-blue"], "--mask-blue needs --method debevec"),
     (["--channel", "R"], "--channel applies to a .txt"),
-    (["--method", "svd"], "'svd' is not one of 'debevec', 'engel', 'opencv-debevec', 'robertson'"),
+    (["--method", "svd"], "'svd' is not one of 'auto', 'debevec', 'engel', 'opencv-debevec', 'robertson'"),
     (["--method", "engel", "--lambda", "3"], "apply to debevec and opencv-debevec, not engel"),
     (["--method", "engel", "--samples", "30"], "apply to debevec and opencv-debevec, not engel"),
     (["--method", "opencv-debevec", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),

@@ -50,8 +50,20 @@ def test_engel_keeps_the_knee_that_debevec_rounds(radiance):
     truth = curves(include_euroc=False)["flat-then-steep"]
     images = render_brackets(truth, radiance, VARIED_TIMES)
     engel = max_error_percent(fit_response(images, VARIED_TIMES, method="engel").inverse_table, truth).max()
-    debevec = max_error_percent(fit_response(images, VARIED_TIMES).inverse_table, truth).max()
+    debevec = max_error_percent(fit_response(images, VARIED_TIMES, method="debevec").inverse_table, truth).max()
     assert engel < 0.6 * debevec, (engel, debevec)  # measured 0.82 vs 1.76
+    chosen = fit_response(images, VARIED_TIMES)       # the default, auto: Engel, since the ratios differ
+    assert chosen.meta["method"] == "engel" and "ratios differ" in chosen.meta["chosen_by"]
+    np.testing.assert_array_equal(chosen.inverse_table, fit_response(images, VARIED_TIMES, method="engel").inverse_table)
+
+
+def test_auto_takes_debevec_for_equal_ratios_or_its_options():
+    small = scene(40, 60)
+    images = render_brackets(kink_curve(), small, TIMES)
+    response = fit_response(images, TIMES)
+    assert response.meta["method"] == "debevec" and "every exposure ratio is 2x" in response.meta["chosen_by"]
+    varied = render_brackets(kink_curve(), small, VARIED_TIMES)
+    assert fit_response(varied, VARIED_TIMES, lam=5).meta["method"] == "debevec"
 
 
 def test_equal_ratios_are_detected_and_warned(radiance, caplog):

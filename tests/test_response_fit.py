@@ -286,7 +286,7 @@ def test_integer_images_in_range_are_accepted():
 
 def test_bad_options():
     images = _stack(3)
-    with pytest.raises(ValueError, match="method must be one of debevec, engel, opencv-debevec, robertson, "
+    with pytest.raises(ValueError, match="method must be one of auto, debevec, engel, opencv-debevec, robertson, "
                                          "got 'svd'"):
         fit_response(images, [1, 2, 4], method="svd")
     with pytest.raises(TypeError, match="unexpected keyword argument 'lam'"):

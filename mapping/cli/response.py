@@ -9,7 +9,7 @@ import click
 
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
 #: the names of radiometry.response_fit.FITTERS (listed here so that --help imports no NumPy)
-RESPONSE_METHODS = ("debevec", "engel", "opencv-debevec", "robertson")
+RESPONSE_METHODS = ("auto", "debevec", "engel", "opencv-debevec", "robertson")
 
 
 class LambdaType(click.ParamType):
@@ -52,9 +52,10 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
               help="Exposure times file ('name seconds' per line). Default: FOLDER/times.txt or image_list.txt.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Response file: .npz (radiomap), .crf (radical) or .txt (DSO/TUM pcalib, one channel).")
-@click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default="debevec",
-              show_default=True, help="Our sparse Debevec & Malik, Engel's maximum likelihood, or OpenCV's "
-                                      "Debevec / Robertson.")
+@click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default="auto",
+              show_default=True, help="auto: Engel's maximum likelihood when the exposure ratios differ, our "
+                                      "sparse Debevec & Malik when they are all equal (or --lambda/--samples is "
+                                      "given); or one of them, or OpenCV's Debevec / Robertson.")
 @click.option("--lambda", "lam", type=LambdaType(), default=None,
               help="Smoothness weight (debevec: per level of data, default 10, or 'auto': chosen by "
                    "cross-validation on held-out pixels; opencv-debevec: OpenCV's lambda, default 10).")
@@ -113,11 +114,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     kwargs = {}
     if method in ("robertson", "engel") and (lam is not None or samples is not None):
         raise click.UsageError(f"--lambda and --samples apply to debevec and opencv-debevec, not {method}")
-    if lam == "auto" and method != "debevec":
+    if lam == "auto" and method not in ("debevec", "auto"):
         raise click.UsageError("--lambda auto (cross-validation) needs --method debevec")
     if channel is not None and suffix != ".txt":
         raise click.UsageError("--channel applies to a .txt (pcalib) output only")
-    if mask_blue and method not in ("debevec", "engel"):
+    if mask_blue and method not in ("auto", "debevec", "engel"):
         raise click.UsageError("--mask-blue needs --method debevec or engel (OpenCV's methods take no mask)")
     if lam is not None:
         kwargs["lam"] = lam
@@ -152,6 +153,9 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names,
                  "prediction_rms_levels": rms})
 
+    method = meta.get("method", method)  # what "auto" chose
+    if "chosen_by" in meta:
+        click.echo(f"method {method} ({meta['chosen_by']})")
     plot_path = output.with_suffix(".png")
     repaired = meta.get("repaired_levels")
     monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
