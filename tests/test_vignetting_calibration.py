@@ -629,3 +629,18 @@ def test_lut_smoothing_lowers_the_error_on_a_noisy_thin_sweep(noisy_thin_sweep):
     assert lut.info["smooth_sigma"] == 3.0
     with pytest.raises(ValueError, match=r"smooth_sigma must be >= 0, got -1"):
         fit_vignetting_lut(acc, smooth_sigma=-1)
+
+
+def test_levels_the_response_extrapolated_are_not_accumulated():
+    """A response fitted from brackets that never reached some levels records them (Engel, OpenCV); a sweep pixel
+    at such a level would carry the guess into V."""
+    table = np.repeat((np.linspace(0, 1, 256) ** 2)[:, None], 3, axis=1)
+    response = CameraResponse(table, {"extrapolated_levels": [[0, 240, 241, 255], [0, 255], [0, 255]]})
+    acc = VignettingAccumulator(4, 4, 3, response)
+    image = np.full((4, 4, 3), 240, np.uint8)
+    image[:, :, 1] = 100
+    assert acc.add(image, np.ones((4, 4), bool)) == 32
+    assert acc.count[:, :, 0].sum() == 0 and acc.count[:, :, 1].sum() == 16 and acc.count[:, :, 2].sum() == 16
+    # a response without the record (Debevec's, a file) keeps every level in (dark, saturation)
+    plain = VignettingAccumulator(4, 4, 3, CameraResponse(table))
+    assert plain.add(image, np.ones((4, 4), bool)) == 48

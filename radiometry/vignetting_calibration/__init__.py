@@ -11,8 +11,9 @@ that every part of the image sees the sheet many times. Then, per frame:
    morphologically and its border eroded (edge pixels mix sheet and background). A frame whose sheet
    is too small, too dark, or mostly saturated is skipped and counted.
 2. :class:`VignettingAccumulator` maps the sheet's pixels to irradiance with ``f^-1`` (pixels with a
-   channel ``>= saturation`` or ``<= dark`` excluded per channel) and accumulates per pixel and
-   channel the count, sum and sum of squares (float64).
+   channel ``>= saturation`` or ``<= dark`` excluded per channel, and levels where the response was
+   extrapolated rather than fitted, as its ``meta["extrapolated_levels"]`` records) and accumulates per pixel
+   and channel the count, sum and sum of squares (float64).
 
 Beyond radical: light and exposure drift. If the light (or the sheet's angle to it, or an auto
 exposure that was not quite off) changes the sheet's brightness by a factor ``s_t`` in frame ``t``,

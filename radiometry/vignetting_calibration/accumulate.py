@@ -25,6 +25,21 @@ def default_block(height: int, width: int, max_cells: int = 1200) -> int:
     return max(1, int(np.ceil(np.sqrt(height * width / max_cells))))
 
 
+def extrapolated_mask(response: CameraResponse, channels: int) -> np.ndarray:
+    """Per level and channel (bool ``(256, C)``), False where the response says its value was extrapolated, not
+    estimated from data (``meta["extrapolated_levels"]``, one list per channel, as the Engel and OpenCV fits record
+    it): a sample at such a level would carry the guess into ``V``, so it is not accumulated."""
+    keep = np.ones((256, channels), dtype=bool)
+    lists = response.meta.get("extrapolated_levels")
+    if not isinstance(lists, (list, tuple)) or not lists or not all(isinstance(v, (list, tuple)) for v in lists):
+        return keep
+    for c in range(channels):
+        for level in lists[min(c, len(lists) - 1)]:
+            if isinstance(level, (int, np.integer)) and 0 <= level < 256:
+                keep[int(level), c] = False
+    return keep
+
+
 def _accumulate_kernel():
     """One pass over a frame: per-pixel count/sum/sum of squares and per-cell sums (Numba, cached)."""
     global _ACCUMULATE
@@ -76,8 +91,8 @@ class VignettingAccumulator:
         self.saturation, self.dark = int(saturation), int(dark)
         # f^-1 per channel and level, NaN for the levels that are not used (>= saturation, <= dark)
         levels = np.arange(256)
-        usable = (levels < self.saturation) & (levels > self.dark)
-        self._table = np.ascontiguousarray(np.where(usable[:, None], self._lut, np.nan).T)  # (C, 256)
+        usable = ((levels < self.saturation) & (levels > self.dark))[:, None] & extrapolated_mask(response, channels)
+        self._table = np.ascontiguousarray(np.where(usable, self._lut, np.nan).T)  # (C, 256)
         self.count = np.zeros(self.shape, np.int32)
         self.sum = np.zeros(self.shape, np.float64)
         self.sumsq = np.zeros(self.shape, np.float64)
