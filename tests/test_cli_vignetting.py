@@ -294,7 +294,8 @@ def test_vignetting_reports_its_error_budget_and_plots_the_stderr(sweep, tmp_pat
     result = invoke("vignetting", sweep["rgb"], "--response", sweep["response"], "-o", out, "--min-samples", "10")
     assert result.exit_code == 0, result.output
     assert "expected error, levels of a flat field at 200 (R/G/B):" in result.stdout
-    for part in ("noise:", "coverage (< 10 samples or filled):", "normalisation", "response (propagated",
+    for part in ("noise (were there >= 10 samples everywhere):", "coverage (pixels with < 10 samples or none):",
+                 "normalisation", "response (propagated",
                  "total:"):
         assert part in result.stdout, part
     assert cv2.imread(str(tmp_path / "vig_stderr.png")) is not None

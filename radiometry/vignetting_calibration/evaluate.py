@@ -134,7 +134,9 @@ def budget_text(budget: dict, channels: int) -> str:
     """One line per part of a LUT's error budget (:func:`radiometry.vignetting_calibration.uncertainty.error_budget`),
     in levels of a flat field at its level, per channel."""
     names = "R/G/B" if channels == 3 else "grey"
-    parts = [("noise", "noise"), ("coverage", f"coverage (< {budget.get('min_samples', '?')} samples or filled)"),
+    wanted = budget.get("min_samples", "?")
+    parts = [("noise", f"noise (were there >= {wanted} samples everywhere)"),
+             ("coverage", f"coverage (pixels with < {wanted} samples or none)"),
              ("normalisation", "normalisation (V = 1 at the centre)"),
              ("response", "response (propagated; its roughness only: a lower bound)"), ("total", "total")]
     lines = [f"expected error, levels of a flat field at {budget.get('level', 200):g} ({names}):"]

@@ -14,8 +14,9 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
 ``level`` where ``V = 1`` (the measure of :func:`~radiometry.vignetting_calibration.evaluate.vignetting_error_levels`):
 ``dI = E f'(E) dlnV``. Parts, each an RMS over all pixels so that the squares add up:
 
-- ``noise``: pixels with at least ``min_samples`` samples;
-- ``coverage``: pixels with fewer (thin) or none (filled);
+- ``noise``: the error the sweep would leave if every pixel had at least ``min_samples`` samples (a pixel's
+  standard error scaled by ``sqrt(n / max(n, min_samples))``);
+- ``coverage``: what pixels with fewer samples (thin) or none (filled) add to it: sweeping longer removes it;
 - ``normalisation``: the uniform error of ``V = 1`` at the centre;
 - ``response``: the response's error propagated, ``dlnV(x) = d ln f^-1(z_x) - d ln f^-1(z_centre)`` at the mean
   level ``z`` each pixel saw. ``d ln f^-1`` is the response's own standard error when its ``meta`` carries one
@@ -151,10 +152,19 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     norm_se = np.nan_to_num(np.asarray(normaliser_stderr, dtype=np.float64), nan=0.0)
     pixel_se = np.sqrt(np.maximum(stderr.astype(np.float64) ** 2 - norm_se[None, None, :] ** 2, 0.0))
     d_pixel = gain * pixel_se
-    well = count >= max(1, min_samples)
     n_pixels = lut.shape[0] * lut.shape[1]
-    noise = np.sqrt(np.sum(np.where(well, d_pixel, 0.0) ** 2, axis=(0, 1)) / n_pixels)
-    coverage = np.sqrt(np.sum(np.where(well, 0.0, d_pixel) ** 2, axis=(0, 1)) / n_pixels)
+    # noise: the error had every pixel min_samples samples at least (a standard error falls as 1/sqrt(n));
+    # unobserved pixels count with the median of that over the observed ones
+    m = max(1, min_samples)
+    n = count.astype(np.float64)
+    covered = d_pixel * np.sqrt(n / np.maximum(n, m))
+    for c in range(ch):
+        seen = count[:, :, c] > 0
+        typical = float(np.median(covered[:, :, c][seen])) if seen.any() else 0.0
+        covered[:, :, c] = np.where(seen, covered[:, :, c], typical)
+    noise = np.sqrt(np.mean(covered ** 2, axis=(0, 1)))
+    # coverage: what thin and unobserved pixels add to that
+    coverage = np.sqrt(np.maximum(np.mean(d_pixel ** 2, axis=(0, 1)) - noise ** 2, 0.0))
     normalisation = np.sqrt(np.mean((gain * norm_se[None, None, :]) ** 2, axis=(0, 1)))
     resp = np.full(ch, np.nan)
     if with_response:
