@@ -58,7 +58,7 @@ def isotonic_repair(values: np.ndarray, *, min_step: float = 1e-6) -> np.ndarray
     for v in y:
         means.append(float(v))
         sizes.append(1)
-        while len(means) > 1 and means[-2] > means[-1]:
+        while len(means) > 1 and means[-2] >= means[-1]:  # ties pooled too, then separated
             n = sizes[-2] + sizes[-1]
             m = (means[-2] * sizes[-2] + means[-1] * sizes[-1]) / n
             means[-2:] = [m]

@@ -180,7 +180,8 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
             zc = float(np.interp(normaliser[c], tables[:, c], levels))
             # the noise spreads a pixel's samples over a few levels: the error it sees is the average over them
             slope = np.maximum(np.interp(z, levels, np.gradient(tables[:, c])), 1e-12)
-            sigma = max(0.5, float(np.median(np.sqrt(sample_rel_var[:, :, c][obs]) * m / slope)))
+            spread = float(np.median(np.sqrt(sample_rel_var[:, :, c][obs]) * m / slope))
+            sigma = min(20.0, max(0.5, spread)) if np.isfinite(spread) else 0.5  # garbage data: a bounded kernel
             taps = np.arange(-int(np.ceil(3 * sigma)), int(np.ceil(3 * sigma)) + 1)
             kernel = np.exp(-0.5 * (taps / sigma) ** 2)
             smooth = np.convolve(rough[:, c], kernel / kernel.sum(), mode="same")
