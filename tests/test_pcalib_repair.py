@@ -87,3 +87,12 @@ def test_the_real_euroc_pcalib_needs_no_repair(caplog):
     with caplog.at_level(logging.WARNING):
         response = read_pcalib(path)
     assert "repaired" not in response.meta and not caplog.records
+
+
+def test_a_repeated_value_is_separated(tmp_path):
+    values = 255.0 * (np.arange(256) / 255.0) ** 2
+    values[50] = values[49]
+    response = read_pcalib(_write(tmp_path / "pcalib.txt", values))
+    assert np.all(np.diff(response.inverse_table[:, 0]) > 0)
+    assert response.meta["repaired"]["levels"] == [49, 50]
+    assert response.meta["repaired"]["max_change_fraction"] < 1e-5
