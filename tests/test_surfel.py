@@ -766,3 +766,56 @@ def test_make_backend_threads_the_surfel_mesh_option():
     assert make_backend("surfel").mesh is False
     with pytest.raises(ValueError, match="surfel_mesh applies to the surfel backend only"):
         make_backend("tsdf", surfel_mesh=True)
+
+
+def test_cull_skips_blocks_out_of_view_without_changing_the_result():
+    """The per-frame pass skips blocks of the map (1024 rows) whose bounding box lies outside the view and
+    that hold no surfel due for the unstable rule. A second map whose block boxes are widened to cover
+    everything (nothing skipped) fuses the same frames into the same surfels, pairs and counts, with a far
+    block of unstable surfels that the unstable rule removes in both."""
+    frames = []
+    for i in range(30):
+        pose = look_at([0.2 * math.sin(0.2 * i), 0.0, 0.1 * i - 1.0], [2.0 * math.sin(0.3 * i), 0.5, 2.5], up=UP)
+        depth, pts = render(pose)
+        frames.append((depth, albedo(pts).astype(np.float32), pose))
+    runs = []
+    for widen in (False, True):
+        b = SurfelBackend()
+        far = np.random.default_rng(0).uniform(50, 60, (3000, 3)).astype(np.float32)  # behind no camera here
+        b.map.append(far, np.tile([0, 0, 1], (3000, 1)), np.full(3000, 0.01), np.r_[np.full(2000, 20.0),
+                     np.full(1000, 1.0)], np.zeros((3000, 3)), 0)
+        pairs, counts = [], []
+        for i, (depth, colour, pose) in enumerate(frames):
+            if widen:
+                b.map.block_lo[:] = -1e6
+                b.map.block_hi[:] = 1e6
+            pairs.append(b.integrate(depth, colour, intrinsics(), pose, frame_index=i))
+            counts.append(dict(b.last_frame))
+        runs.append((b.surfels(), pairs, counts, b.stats()))
+    (s0, p0, c0, st0), (s1, p1, c1, st1) = runs
+    assert c0 == c1 and st0 == st1
+    assert sum(c["removed_unstable"] for c in c0) >= 1000  # the far unstable block expired
+    for a, b in zip(p0, p1):
+        np.testing.assert_array_equal(a.map_colour, b.map_colour)
+        np.testing.assert_array_equal(a.sample_colour, b.sample_colour)
+    for k in s0:
+        np.testing.assert_array_equal(s0[k], s1[k])
+
+
+def test_surfel_map_block_summaries_bound_their_rows():
+    m = SurfelMap(capacity=4, stable_confidence=10.0)
+    pos = np.random.default_rng(1).normal(size=(3000, 3)).astype(np.float32)
+    conf = np.where(np.arange(3000) % 3 == 0, 20.0, 1.0)
+    m.append(pos, np.tile([0, 0, 1], (3000, 1)), np.ones(3000), conf, np.zeros((3000, 3)), 5)
+    m.kill(np.arange(0, 3000, 7))
+    m.compact()
+    for b in range((m.size + m.BLOCK - 1) // m.BLOCK):
+        rows = slice(b * m.BLOCK, min(m.size, (b + 1) * m.BLOCK))
+        np.testing.assert_array_equal(m.block_lo[b], m.position[rows].min(axis=0))
+        np.testing.assert_array_equal(m.block_hi[b], m.position[rows].max(axis=0))
+        assert m.block_oldest[b] == 5  # every block holds unstable surfels made at time 5
+    first = m.claim(2)
+    m.array("position")[first:first + 2] = 100.0
+    m.array("confidence")[first:first + 2] = 20.0
+    m.note_rows(first, first + 2)
+    assert np.all(m.block_hi[first // m.BLOCK] == 100.0)

@@ -1,23 +1,26 @@
-"""Numba kernels of the surfel backend (:mod:`mapping.fusion.surfel`).
+"""Numba kernels of the surfel backend (:mod:`mapping.fusion.surfel`); the pass over the whole map
+(``cull``, the unstable rule) lives with the map's block summaries in :mod:`mapping.fusion.surfel_map`.
 
 Each kernel is a loop NumPy cannot express without materialising far larger arrays than the answer:
 
 - :func:`frame_samples`: the per-pixel sample preparation (validity, normal from central differences,
   radius, confidence) in one pass instead of ~60 NumPy temporaries (measured more than 10x faster at
   640x480).
-- :func:`cull`: one pass over the whole map (transform, depth and image-bounds test) that writes only the
-  surfels in view into preallocated buffers; NumPy would build several full-size temporaries per frame.
-- :func:`build_index` / :func:`clear_index`: the z-buffer of the index map, a per-texel minimum with
-  write conflicts that also keeps the winner's id, and resets only the texels written (``np.minimum.at``
-  plus a winner pass and a fresh 4x map per frame: 8.5x slower, measured at 100k surfels).
-- :func:`candidates` / :func:`match`: the search for the surfels near each pixel's ray in its index-map
-  window (depth and normal gates), done as a scatter over the visible surfels into per-pixel candidate
-  lists, then the pixel -> surfel choice (nearest ray, conflicts to the closest ray) and the surfels' own
-  nearest pixel: scatter-minima with write conflicts.
-- :func:`merge`: the confidence-weighted update, a scatter into the map by surfel id that also records the
-  colour pairs before averaging.
+- :func:`build_index` / :func:`clear_index`: the z-buffer of the clean-up's image-resolution index map, a
+  per-texel minimum with write conflicts that also keeps the winner's id, and resets only the texels
+  written (``np.minimum.at`` plus a winner pass and a fresh map per frame: 8.5x slower, measured at 100k
+  surfels).
+- :func:`bin_pixels` / :func:`mark_winners` / :func:`candidates` / :func:`match`: the association's index map ``scale`` times finer
+  than the image, kept as per-pixel lists of the surfels that project into each pixel (the texel's winner
+  is the nearest surfel of the list with that texel): 1.2 MB that stay in the CPU cache instead of a dense
+  4x z-buffer and id map (39 MB at 640x480, each surfel a cache miss); then the search for the surfels near
+  each pixel's ray in its index-map window (depth and normal gates), sample by sample in image order
+  through the lists of the window's pixels, then the pixel -> surfel choice (nearest ray, conflicts to the
+  closest ray) and the surfels' own nearest pixel: scatter-minima with write conflicts.
+- :func:`merge` / :func:`append_new`: the confidence-weighted update, a scatter into the map by surfel id that
+  also records the colour pairs before averaging, and the new surfels written straight into the map (the
+  samples taken to the world frame on the way: no per-frame world-frame copies, masks or gathers).
 - :func:`clean`: ElasticFusion's free-space / duplicate test, a window search per surfel.
-- :func:`remove_unstable`: the unstable-surfel rule over the whole map (inside :func:`cull` per frame).
 - :func:`splat`: surfel-disc rendering with a per-pixel z-buffer (ray / disc intersection per pixel of each
   surfel's footprint).
 
@@ -33,66 +36,6 @@ import numpy as np
 from numba import njit
 
 # index-map ids are int32 "visible-surfel" indices into the per-frame culled arrays; -1 = empty texel
-
-
-@njit(cache=True, nogil=True)
-def cull(pos, nrm, conf, t_upd, n, rot, trans, fx, fy, cx, cy, width, height, min_conf, max_depth,
-         now, c_stable, window, out_idx, out_pc, out_nc, out_px, out_removed):
-    """Surfels in view: camera-frame position/normal and continuous pixel coordinates; and the unstable rule.
-
-    The one pass over the whole map per frame. First the unstable rule (ElasticFusion: ``time - lastUpdate >
-    20 && conf < threshold``) with ``now`` the last integrated frame: a live surfel with ``conf < c_stable``
-    not updated for more than ``window`` frames is marked dead (confidence -1) and counted in
-    ``out_removed[0]``. Then surfel ``i`` is kept when ``conf[i] >= min_conf``, ``0 < z <= max_depth`` in
-    the camera frame, and its centre projects inside the image, i.e. pixel coordinates in
-    ``[-0.5, width - 0.5) x [-0.5, height - 0.5)`` (pixel centres at integers). ``rot``/``trans`` map world
-    to camera. Returns the number of surfels written.
-    """
-    r00 = rot[0, 0]; r01 = rot[0, 1]; r02 = rot[0, 2]
-    r10 = rot[1, 0]; r11 = rot[1, 1]; r12 = rot[1, 2]
-    r20 = rot[2, 0]; r21 = rot[2, 1]; r22 = rot[2, 2]
-    t0 = trans[0]; t1 = trans[1]; t2 = trans[2]
-    umax = width - 0.5
-    vmax = height - 0.5
-    v = 0
-    removed = 0
-    for i in range(n):
-        c = conf[i]
-        if c < c_stable and c >= 0.0 and now - t_upd[i] > window:
-            conf[i] = -1.0
-            removed += 1
-            continue
-        if c < min_conf:
-            continue
-        x = np.float64(pos[i, 0])
-        y = np.float64(pos[i, 1])
-        z = np.float64(pos[i, 2])
-        zc = r20 * x + r21 * y + r22 * z + t2
-        if zc <= 1e-6 or zc > max_depth:
-            continue
-        xc = r00 * x + r01 * y + r02 * z + t0
-        u = fx * xc / zc + cx
-        if u < -0.5 or u >= umax:
-            continue
-        yc = r10 * x + r11 * y + r12 * z + t1
-        w = fy * yc / zc + cy
-        if w < -0.5 or w >= vmax:
-            continue
-        nx = np.float64(nrm[i, 0])
-        ny = np.float64(nrm[i, 1])
-        nz = np.float64(nrm[i, 2])
-        out_idx[v] = i
-        out_pc[v, 0] = xc
-        out_pc[v, 1] = yc
-        out_pc[v, 2] = zc
-        out_nc[v, 0] = r00 * nx + r01 * ny + r02 * nz
-        out_nc[v, 1] = r10 * nx + r11 * ny + r12 * nz
-        out_nc[v, 2] = r20 * nx + r21 * ny + r22 * nz
-        out_px[v, 0] = u
-        out_px[v, 1] = w
-        v += 1
-    out_removed[0] = removed
-    return v
 
 
 @njit(cache=True, nogil=True)
@@ -168,84 +111,150 @@ def clear_index(tex, v, zbuf, idxmap):
 
 
 @njit(cache=True, nogil=True)
-def candidates(pc, nc, v, tex, idxmap, ws, scale, stride, offset, win, lo0, cell_sample, sray, svert, snorm,
-               depth_gate, cos_normal_gate, grazing_nz, cand_j, cand_d, ncand):
-    """Association candidates (Keller et al. 2013 Sec. 4.2; ElasticFusion ``data.vert``).
+def bin_pixels(px, v, scale, width, height, head, nxt, tex):
+    """The association's index map (``scale`` times finer than the image) as per-pixel lists.
 
-    Sample ``k`` (a pixel on the lattice ``offset + i * stride``; ray ``sray[k] = (x/z, y/z, |ray|^2)``,
-    camera-frame vertex ``svert`` and unit normal ``snorm``) looks at the index-map texels of a window ``win``
-    texels square centred on its pixel, ``win = (stride + 1) * scale``: with stride 2 the 3x3 pixels
-    ElasticFusion's shader reaches (+-1 pixel sampled at half-pixel steps), with stride 1 2x2 pixels. Windows of neighbouring samples
-    overlap by one pixel, so a surfel whose projection jitters across a cell boundary is still found.
-    Pixel ``u``'s window starts at texel ``scale * u + lo0``.
-
-    Instead of each sample scanning ``win^2`` texels, each surfel visible in the index map (winner of its
-    texel's z-test) offers itself to the (at most 2x2) samples whose windows contain its texel: O(visible
-    surfels). A candidate must lie within ``depth_gate`` of the sample along the ray and, unless seen at a
-    grazing angle (``|n_z| < grazing_nz``), have a normal within the gate (``cos > cos_normal_gate``). Each
-    sample keeps its ``cand_j.shape[1]`` candidates nearest its ray (``cand_d``: squared distance to the ray).
-    ``cell_sample[i, j]`` is the sample at lattice row i, column j or -1.
+    Texel of continuous pixel coordinate ``u`` is ``floor((u + 0.5) * scale)`` (so pixel ``u`` owns texels
+    ``scale*u .. scale*u + scale - 1``), clamped to the map. ``tex[j]`` receives surfel j's texel; ``head``
+    (one entry per image pixel, all -1 on entry) and ``nxt`` chain the surfels of each pixel. The texel's
+    entry in a dense z-buffer would be the nearest surfel of that texel (smallest camera z, ties: lower id):
+    :func:`candidates` finds it in the pixel's list.
     """
-    nrows = cell_sample.shape[0]
-    ncols = cell_sample.shape[1]
-    cap = cand_j.shape[1]
-    step = scale * stride
-    gate2 = depth_gate * depth_gate
+    ws = width * scale
+    hs = height * scale
+    for j in range(v):
+        col = int(math.floor((px[j, 0] + 0.5) * scale))
+        row = int(math.floor((px[j, 1] + 0.5) * scale))
+        if col < 0:
+            col = 0
+        elif col >= ws:
+            col = ws - 1
+        if row < 0:
+            row = 0
+        elif row >= hs:
+            row = hs - 1
+        tex[j] = row * ws + col
+        p = (row // scale) * width + col // scale
+        nxt[j] = head[p]
+        head[p] = j
+
+
+@njit(cache=True, nogil=True)
+def mark_winners(tex, pc, v, scale, width, head, nxt, winner):
+    """``winner[j]``: surfel j is its texel's entry in the index map (no surfel of its pixel's list in the same
+    texel is nearer, or as near with a lower id: the dense z-buffer's rule, see :func:`bin_pixels`). Returns
+    the length of the longest pixel list."""
+    ws = width * scale
+    longest = 0
     for j in range(v):
         t = tex[j]
-        if idxmap[t] != j:
-            continue  # hidden behind a nearer surfel in its texel
         row = t // ws
-        col = t - row * ws
-        iy_hi = ((row - lo0) // scale - offset) // stride
-        ix_hi = ((col - lo0) // scale - offset) // stride
-        qx = pc[j, 0]
-        qy = pc[j, 1]
         qz = pc[j, 2]
-        mnx = nc[j, 0]
-        mny = nc[j, 1]
-        mnz = nc[j, 2]
-        for iy in range(iy_hi - 1, iy_hi + 1):
-            if iy < 0 or iy >= nrows:
-                continue
-            ylo = scale * offset + iy * step + lo0
-            if row < ylo or row >= ylo + win:
-                continue
-            for ix in range(ix_hi - 1, ix_hi + 1):
-                if ix < 0 or ix >= ncols:
-                    continue
-                xlo = scale * offset + ix * step + lo0
-                if col < xlo or col >= xlo + win:
-                    continue
-                k = cell_sample[iy, ix]
-                if k < 0:
-                    continue
-                rx = sray[k, 0]
-                ry = sray[k, 1]
-                lam2 = sray[k, 2]
-                dzk = qz - svert[k, 2]
-                if dzk * dzk * lam2 >= gate2:
-                    continue
-                if abs(mnz) >= grazing_nz:
-                    if mnx * snorm[k, 0] + mny * snorm[k, 1] + mnz * snorm[k, 2] <= cos_normal_gate:
-                        continue
-                ax = ry * qz - qy
-                ay = qx - rx * qz
-                az = rx * qy - ry * qx
-                d = (ax * ax + ay * ay + az * az) / lam2
-                n = ncand[k]
-                if n < cap:
-                    cand_j[k, n] = j
-                    cand_d[k, n] = d
-                    ncand[k] = n + 1
-                else:  # keep the nearest: replace the farthest if this one is nearer
-                    worst = 0
-                    for q in range(1, cap):
-                        if cand_d[k, q] > cand_d[k, worst]:
-                            worst = q
-                    if d < cand_d[k, worst]:
-                        cand_j[k, worst] = j
-                        cand_d[k, worst] = d
+        i = head[(row // scale) * width + (t - row * ws) // scale]
+        win = True
+        length = 0
+        while i >= 0:
+            if i != j and tex[i] == t and (pc[i, 2] < qz or (pc[i, 2] == qz and i < j)):
+                win = False
+            i = nxt[i]
+            length += 1
+        winner[j] = win
+        longest = max(longest, length)
+    return longest
+
+
+@njit(cache=True, nogil=True)
+def candidates(pc, nc, tex, winner, head, nxt, width, height, scale, win, lo0, su, sv, m, sray, svert, snorm,
+               depth_gate, cos_normal_gate, grazing_nz, found_j, found_d, cand_j, cand_d, ncand):
+    """Association candidates (Keller et al. 2013 Sec. 4.2; ElasticFusion ``data.vert``).
+
+    Sample ``k`` (pixel ``(su[k], sv[k])``; ray ``sray[k] = (x/z, y/z, |ray|^2)``, camera-frame vertex
+    ``svert`` and unit normal ``snorm``) looks at the index-map texels of a window ``win`` texels square,
+    ``win = (stride + 1) * scale``, starting at texel ``scale * u + lo0`` on each axis: with stride 2 the 3x3
+    pixels ElasticFusion's shader reaches (+-1 pixel sampled at half-pixel steps), with stride 1 2x2
+    pixels. Windows of neighbouring samples overlap by one pixel, so a surfel whose projection jitters
+    across a cell boundary is still found. The texels' surfels are found in the per-pixel lists of the
+    pixels the window covers (``head``/``nxt``, :func:`bin_pixels`), and only texel winners count
+    (``winner``, :func:`mark_winners`): the samples run in image order, so the lists they read stay in cache.
+
+    A candidate must lie within ``depth_gate`` of the sample along the ray and, unless seen at a grazing
+    angle (``|n_z| < grazing_nz``), have a normal within the gate (``cos > cos_normal_gate``). Each sample
+    keeps its ``cand_j.shape[1]`` candidates nearest its ray (``cand_d``: squared distance to the ray),
+    taken in ascending surfel order (a later one replaces the farthest kept one only when strictly nearer).
+    ``found_j``/``found_d`` hold one sample's candidates before that choice: room for all surfels of the
+    window's pixels (``(stride + 2)^2`` times the longest pixel list, :func:`mark_winners`).
+    """
+    ws = width * scale
+    cap = cand_j.shape[1]
+    gate2 = depth_gate * depth_gate
+    for k in range(m):
+        c0 = scale * su[k] + lo0
+        r0 = scale * sv[k] + lo0
+        c1 = c0 + win
+        r1 = r0 + win
+        pc0 = max(c0, 0) // scale
+        pc1 = min(c1 - 1, ws - 1) // scale
+        pr0 = max(r0, 0) // scale
+        pr1 = min(r1 - 1, height * scale - 1) // scale
+        rx = sray[k, 0]
+        ry = sray[k, 1]
+        lam2 = sray[k, 2]
+        sz = svert[k, 2]
+        snx = snorm[k, 0]
+        sny = snorm[k, 1]
+        snz = snorm[k, 2]
+        n = 0
+        for prow in range(pr0, pr1 + 1):
+            for pcol in range(pc0, pc1 + 1):
+                j = head[prow * width + pcol]
+                while j >= 0:
+                    nj = nxt[j]
+                    if winner[j]:
+                        t = tex[j]
+                        row = t // ws
+                        col = t - row * ws
+                        if row >= r0 and row < r1 and col >= c0 and col < c1:
+                            qx = pc[j, 0]
+                            qy = pc[j, 1]
+                            qz = pc[j, 2]
+                            dzk = qz - sz
+                            mnz = nc[j, 2]
+                            if dzk * dzk * lam2 < gate2 and (
+                                    abs(mnz) < grazing_nz
+                                    or nc[j, 0] * snx + nc[j, 1] * sny + mnz * snz > cos_normal_gate):
+                                ax = ry * qz - qy
+                                ay = qx - rx * qz
+                                az = rx * qy - ry * qx
+                                found_j[n] = j
+                                found_d[n] = (ax * ax + ay * ay + az * az) / lam2
+                                n += 1
+                    j = nj
+        for a in range(1, n):  # ascending surfel order, as a scatter over the surfels would offer them
+            jj = found_j[a]
+            dd = found_d[a]
+            b = a - 1
+            while b >= 0 and found_j[b] > jj:
+                found_j[b + 1] = found_j[b]
+                found_d[b + 1] = found_d[b]
+                b -= 1
+            found_j[b + 1] = jj
+            found_d[b + 1] = dd
+        kept = 0
+        for a in range(n):
+            d = found_d[a]
+            if kept < cap:
+                cand_j[k, kept] = found_j[a]
+                cand_d[k, kept] = d
+                kept += 1
+            else:  # keep the nearest: replace the farthest if this one is nearer
+                worst = 0
+                for q in range(1, cap):
+                    if cand_d[k, q] > cand_d[k, worst]:
+                        worst = q
+                if d < cand_d[k, worst]:
+                    cand_j[k, worst] = found_j[a]
+                    cand_d[k, worst] = d
+        ncand[k] = kept
 
 
 @njit(cache=True, nogil=True)
@@ -265,15 +274,12 @@ def match(cand_j, cand_d, ncand, m, conf, vis_idx, v, taken):
     for k in range(m):  # 1: nearest candidate per sample, closest ray per surfel
         bj = -1
         bd = np.inf
-        bc = -np.inf
         for q in range(ncand[k]):
             j = cand_j[k, q]
             d = cand_d[k, q]
-            c = conf[vis_idx[j]]
-            if d < bd or (d == bd and c > bc):
+            if d < bd or (d == bd and conf[vis_idx[j]] > conf[vis_idx[bj]]):  # confidences only on a tie
                 bj = j
                 bd = d
-                bc = c
         if bj >= 0 and bd < best_d[bj]:
             best_d[bj] = bd
             taken[bj] = k
@@ -294,24 +300,21 @@ def match(cand_j, cand_d, ncand, m, conf, vis_idx, v, taken):
 
 
 @njit(cache=True, nogil=True)
-def fill_cells(su, sv, m, offset, stride, cell_sample):
-    """``cell_sample[(v - offset) // stride, (u - offset) // stride] = k`` for every sample k."""
-    for k in range(m):
-        cell_sample[(sv[k] - offset) // stride, (su[k] - offset) // stride] = k
-
-
-@njit(cache=True, nogil=True)
-def merge(taken, v, vis_idx, pvw, pnw, prad, palpha, pcol, pos, nrm, rad, conf, col, t_upd, tick, radius_ratio,
-          pair_map, pair_sample):
+def merge(taken, v, vis_idx, svert, snorm, rot, trans, prad, palpha, pcol, pos, nrm, rad, conf, col, t_upd, tick,
+          radius_ratio, block_lo, block_hi, shift, pair_map, pair_sample):
     """Confidence-weighted averaging (ElasticFusion ``update.vert``); returns the number of colour pairs.
 
-    For each visible surfel ``j`` refined by sample ``k = taken[j]`` (map row ``s = vis_idx[j]``): when the
-    sample's radius is below ``radius_ratio`` times the surfel's, position, normal (renormalised), radius and
-    colour become ``(c * old + a * new) / (c + a)`` and the pair (surfel colour before, sample colour) is
-    recorded; otherwise only the confidence and the time are updated (the sample is too coarse to refine a
-    surfel seen from closer before). In both cases ``conf += a`` and ``t_upd = tick``.
+    For each visible surfel ``j`` refined by sample ``k = taken[j]`` (map row ``s = vis_idx[j]``; the sample's
+    camera-frame vertex ``svert[k]`` and normal ``snorm[k]`` go to the world frame with ``rot``/``trans``):
+    when the sample's radius is below ``radius_ratio`` times the surfel's, position, normal (renormalised),
+    radius and colour become ``(c * old + a * new) / (c + a)`` and the pair (surfel colour before, sample
+    colour) is recorded; otherwise only the confidence and the time are updated (the sample is too coarse to
+    refine a surfel seen from closer before). In both cases ``conf += a`` and ``t_upd = tick``. A moved
+    surfel widens its block's bounding box (rows ``1 << shift`` per block).
     """
     npairs = 0
+    pw = np.empty(3)
+    nw = np.empty(3)
     for j in range(v):
         k = taken[j]
         if k < 0:
@@ -324,13 +327,17 @@ def merge(taken, v, vis_idx, pvw, pnw, prad, palpha, pcol, pos, nrm, rad, conf, 
                 pair_map[npairs, ch] = col[s, ch]
                 pair_sample[npairs, ch] = pcol[k, ch]
             npairs += 1
+            _to_world(svert, snorm, k, rot, trans, pw, nw)
             wsum = c + a
+            blk = s >> shift
             for ch in range(3):
-                pos[s, ch] = (c * pos[s, ch] + a * pvw[k, ch]) / wsum
+                pos[s, ch] = (c * pos[s, ch] + a * pw[ch]) / wsum
                 col[s, ch] = (c * col[s, ch] + a * pcol[k, ch]) / wsum
-            nx = (c * nrm[s, 0] + a * pnw[k, 0]) / wsum
-            ny = (c * nrm[s, 1] + a * pnw[k, 1]) / wsum
-            nz = (c * nrm[s, 2] + a * pnw[k, 2]) / wsum
+                block_lo[blk, ch] = min(block_lo[blk, ch], pos[s, ch])
+                block_hi[blk, ch] = max(block_hi[blk, ch], pos[s, ch])
+            nx = (c * nrm[s, 0] + a * nw[0]) / wsum
+            ny = (c * nrm[s, 1] + a * nw[1]) / wsum
+            nz = (c * nrm[s, 2] + a * nw[2]) / wsum
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             if nn > 1e-12:
                 nrm[s, 0] = nx / nn
@@ -340,6 +347,45 @@ def merge(taken, v, vis_idx, pvw, pnw, prad, palpha, pcol, pos, nrm, rad, conf, 
         conf[s] = c + a
         t_upd[s] = tick
     return npairs
+
+
+@njit(cache=True, nogil=True)
+def append_new(ncand, m, svert, snorm, rot, trans, prad, palpha, pcol, first, tick, pos, nrm, rad, conf, col,
+               t_created, t_upd):
+    """New surfels from the samples without any candidate (``ncand[k] == 0``), written from map row ``first``
+    on (room made by the caller): world position and normal, radius, ``conf = alpha``, colour, ``created =
+    updated = tick``. Returns how many."""
+    pw = np.empty(3)
+    nw = np.empty(3)
+    r = first
+    for k in range(m):
+        if ncand[k] != 0:
+            continue
+        _to_world(svert, snorm, k, rot, trans, pw, nw)
+        for ch in range(3):
+            pos[r, ch] = pw[ch]
+            nrm[r, ch] = nw[ch]
+            col[r, ch] = pcol[k, ch]
+        rad[r] = prad[k]
+        conf[r] = palpha[k]
+        t_created[r] = tick
+        t_upd[r] = tick
+        r += 1
+    return r - first
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _to_world(svert, snorm, k, rot, trans, pw, nw):
+    """Sample k's vertex and normal in the world frame (``rot @ x + trans``, ``rot @ n``), float64."""
+    x = svert[k, 0]
+    y = svert[k, 1]
+    z = svert[k, 2]
+    a = snorm[k, 0]
+    b = snorm[k, 1]
+    c = snorm[k, 2]
+    for i in range(3):
+        pw[i] = rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z + trans[i]
+        nw[i] = rot[i, 0] * a + rot[i, 1] * b + rot[i, 2] * c + 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -397,19 +443,6 @@ def clean(test_ids, test_pc, test_nc, test_px, nt, rad, t_created, idxmap, occ_i
                 if facing and dz > fs_gap and occ_updated[j] == tick:
                     fs += 1
         remove[k] = dup >= dup_min or fs >= fs_min
-
-
-@njit(cache=True, nogil=True)
-def remove_unstable(conf, t_upd, n, tick, c_stable, window):
-    """Mark dead (confidence -1) the live surfels below ``c_stable`` not updated for more than ``window``
-    frames (ElasticFusion: ``time - lastUpdate > 20 && conf < threshold``); returns how many."""
-    removed = 0
-    for i in range(n):
-        c = conf[i]
-        if c >= 0.0 and c < c_stable and tick - t_upd[i] > window:
-            conf[i] = -1.0
-            removed += 1
-    return removed
 
 
 @njit(cache=True, nogil=True)
@@ -617,14 +650,3 @@ def frame_samples(depth, filt, colour, fx, fy, cx, cy, offset, stride, max_depth
             out_col[m, 2] = c2
             m += 1
     return m
-
-
-@njit(cache=True, nogil=True)
-def to_world(a, m, rot, trans, out):
-    """``out[k] = rot @ a[k] + trans`` for k < m (pass zeros as ``trans`` for directions)."""
-    for k in range(m):
-        x = a[k, 0]
-        y = a[k, 1]
-        z = a[k, 2]
-        for i in range(3):
-            out[k, i] = rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z + trans[i]

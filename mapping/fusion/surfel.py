@@ -67,13 +67,16 @@ window (without loop closure every surfel stays active) and RGB tracking. ``view
 :meth:`~SurfelBackend.integrate` is not used (the index map holds all surfels, which a rendered view does
 not).
 
-Cost: per frame one O(N) pass over the map (:func:`~mapping.fusion._surfel_kernels.cull`: the unstable rule,
-the transform and frustum test of every live surfel, a few ns each: 6 ms at 1M surfels, 11 ms at 3M on one
-core, a quarter of one NumPy ``pos @ R.T + t``); everything else is proportional to the surfels in view and
-the pixels sampled. Numba does the per-pixel and per-surfel loops: the sample preparation, the z-buffer (a
-per-texel minimum with conflicts), the window searches and the matching (scatter-minima with conflicts), the
-update scattered by surfel id, the clean-up windows and the disc splatting (see
-:mod:`mapping.fusion._surfel_kernels`). ``scripts/bench_surfel.py`` measures it.
+Cost: per frame one pass over the map (:func:`~mapping.fusion._surfel_kernels.cull`: the unstable rule, the
+transform and frustum test of the live surfels), block by block: blocks of 1024 rows whose bounding box lies
+outside the view and that hold no surfel due for the unstable rule are skipped whole (``SurfelMap`` keeps the
+block summaries), so a large map costs little more than the part of it in view (at 1M surfels of which 0.1M
+in view: 1.2 ms instead of 3.3 ms per frame on one core). Everything else is proportional to the surfels in
+view and the pixels sampled. Numba does the per-pixel and per-surfel loops: the sample preparation, the
+index map (per-pixel surfel lists that stand for the 4x z-buffer and stay in the CPU cache), the window
+searches sample by sample in image order and the matching (scatter-minima with conflicts), the update
+scattered by surfel id and the new surfels written in place, the clean-up windows and the disc splatting
+(see :mod:`mapping.fusion._surfel_kernels`). ``scripts/bench_surfel.py`` measures it.
 """
 
 from __future__ import annotations
@@ -89,7 +92,7 @@ import numpy as np
 
 from mapping.fusion import _surfel_kernels as kern
 from mapping.fusion.base import ColourPairs, ModelView, masked_depth
-from mapping.fusion.surfel_map import SurfelMap, write_surfel_ply
+from mapping.fusion.surfel_map import SurfelMap, cull, remove_unstable, write_surfel_ply
 from radiometry.errors import OutputError
 from radiometry.fileio import atomic_path, ensure_dir
 
@@ -189,7 +192,8 @@ class SurfelBackend:
         self.poisson_trim = _positive("poisson_trim", poisson_trim, allow_zero=True)
         if self.poisson_trim >= 1:
             raise ValueError(f"poisson_trim must be a fraction in [0, 1), got {poisson_trim}")
-        self.map = SurfelMap(_positive("initial_capacity", initial_capacity, integer=True))
+        self.map = SurfelMap(_positive("initial_capacity", initial_capacity, integer=True),
+                             stable_confidence=self.confidence_threshold)
         self._tick = 0
         self._frames: list[int] = []  # frame index of each integration
         self._scratch: dict[str, np.ndarray] = {}
@@ -264,46 +268,41 @@ class SurfelBackend:
         t0 = time.process_time()
         timings["cull"] += t0 - t1
         scale = self.index_scale
-        ws, hs = w * scale, h * scale
         taken = np.full(max(v, 1), -1, dtype=np.int64)
         ncand = np.zeros(m, np.int32)
         if v > 0 and m > 0:
-            offset = tick % self.pixel_stride
-            cells = np.full(((h - offset) // self.pixel_stride + 1, (w - offset) // self.pixel_stride + 1), -1,
-                            np.int32)
-            kern.fill_cells(smp.u, smp.v, m, offset, self.pixel_stride, cells)
-            zbuf, imap, tex = self._index_buffers("fine", ws * hs, v)
-            kern.build_index(px, pc, v, scale, ws, hs, zbuf, imap, tex)
+            head, nxt, tex, winner = self._pixel_bins(w * h, v)
+            kern.bin_pixels(px, v, scale, w, h, head, nxt, tex)
             cand_j = np.empty((m, MAX_CANDIDATES), np.int32)
             cand_d = np.empty((m, MAX_CANDIDATES), np.float32)
             try:
-                kern.candidates(pc, nc, v, tex, imap, ws, scale, self.pixel_stride, offset,
-                                (self.pixel_stride + 1) * scale, -(scale * self.pixel_stride) // 2, cells, smp.ray,
-                                smp.vertex, smp.normal, self.depth_gate, math.cos(math.radians(self.normal_gate_deg)),
-                                GRAZING_NZ, cand_j, cand_d, ncand)
+                longest = kern.mark_winners(tex, pc, v, scale, w, head, nxt, winner)
+                room = (self.pixel_stride + 2) ** 2 * longest
+                kern.candidates(pc, nc, tex, winner, head, nxt, w, h, scale, (self.pixel_stride + 1) * scale,
+                                -(scale * self.pixel_stride) // 2, smp.u, smp.v, m, smp.ray, smp.vertex, smp.normal,
+                                self.depth_gate, math.cos(math.radians(self.normal_gate_deg)), GRAZING_NZ,
+                                np.empty(room, np.int64), np.empty(room, np.float64), cand_j, cand_d, ncand)
             finally:
-                kern.clear_index(tex, v, zbuf, imap)
+                head.fill(-1)
             kern.match(cand_j, cand_d, ncand, m, smap.array("confidence"), idx, v, taken)
         visible = idx[:v].copy()
         t1 = time.process_time()
         timings["associate"] += t1 - t0
 
         # 2. merge, recording the colour pairs before averaging
-        vert_w = np.empty((m, 3), np.float64)
-        norm_w = np.empty((m, 3), np.float64)
-        kern.to_world(smp.vertex, m, rot, trans, vert_w)
-        kern.to_world(smp.normal, m, rot, np.zeros(3), norm_w)
         pair_map = np.empty((max(v, 1), 3), np.float32)  # one pair per refined surfel at most
         pair_sample = np.empty((max(v, 1), 3), np.float32)
-        npairs = kern.merge(taken, v, idx, vert_w, norm_w, smp.radius, smp.alpha, smp.colour,
+        npairs = kern.merge(taken, v, idx, smp.vertex, smp.normal, rot, trans, smp.radius, smp.alpha, smp.colour,
                             smap.array("position"), smap.array("normal"), smap.array("radius"),
                             smap.array("confidence"), smap.array("colour"), smap.array("updated"), tick,
-                            self.radius_ratio, pair_map, pair_sample)
+                            self.radius_ratio, smap.block_lo, smap.block_hi, smap.BLOCK_SHIFT, pair_map, pair_sample)
 
         # 3. new surfels for unassociated samples
-        new = ncand == 0
-        first_new = smap.size
-        smap.append(vert_w[new], norm_w[new], smp.radius[new], smp.alpha[new], smp.colour[new], tick, tick)
+        first_new = smap.claim(int(np.count_nonzero(ncand[:m] == 0)))
+        kern.append_new(ncand, m, smp.vertex, smp.normal, rot, trans, smp.radius, smp.alpha, smp.colour, first_new,
+                        tick, smap.array("position"), smap.array("normal"), smap.array("radius"),
+                        smap.array("confidence"), smap.array("colour"), smap.array("created"), smap.array("updated"))
+        smap.note_rows(first_new, smap.size)
         n_new = smap.size - first_new
         t0 = time.process_time()
         timings["merge"] += t0 - t1
@@ -357,7 +356,7 @@ class SurfelBackend:
             "stable_surfels": stable,
             "capacity": self.map.capacity,
             "frames_integrated": self._tick,
-            "memory_bytes": self.map.nbytes + scratch,
+            "memory_bytes": self.map.nbytes + self.map.block_nbytes + scratch,
             "map_bytes": self.map.nbytes,
         }
 
@@ -434,8 +433,8 @@ class SurfelBackend:
         """The per-frame pass over the map: unstable rule, then the surfels in view into the scratch buffers."""
         smap = self.map
         removed = np.zeros(1, np.int64)
-        v = kern.cull(smap.array("position"), smap.array("normal"), smap.array("confidence"), smap.array("updated"),
-                      smap.size, rcw, tcw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], float(w), float(h), min_conf,
+        v = cull(smap.array("position"), smap.array("normal"), smap.array("confidence"), smap.array("updated"),
+                      smap.size, smap.block_lo, smap.block_hi, smap.block_oldest, smap.BLOCK_SHIFT, rcw, tcw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], float(w), float(h), min_conf,
                       max_depth, self._tick - 1, self.confidence_threshold, self.unstable_window, idx, pc, nc, px,
                       removed)
         self._expired = int(removed[0])
@@ -445,7 +444,7 @@ class SurfelBackend:
     def _expire(self) -> None:
         """Apply the unstable rule now (it otherwise runs inside the next frame's pass over the map)."""
         smap = self.map
-        self._expired = int(kern.remove_unstable(smap.array("confidence"), smap.array("updated"), smap.size,
+        self._expired = int(remove_unstable(smap.array("confidence"), smap.array("updated"), smap.size,
                                                  self._tick - 1, self.confidence_threshold, self.unstable_window))
         smap.note_dead(self._expired)
 
@@ -463,6 +462,21 @@ class SurfelBackend:
             self._scratch["vis_px"] = np.empty((cap, 2), np.float32)
         s = self._scratch
         return s["vis_idx"], s["vis_pc"], s["vis_nc"], s["vis_px"]
+
+    def _pixel_bins(self, pixels: int, v: int):
+        """Persistent per-pixel surfel lists of the association (``head`` all -1 between uses) and per-surfel
+        buffers (next in list, texel, texel winner)."""
+        head = self._scratch.get("bins_head")
+        if head is None or head.shape[0] != pixels:
+            self._scratch["bins_head"] = np.full(pixels, -1, np.int32)
+        nxt = self._scratch.get("bins_next")
+        if nxt is None or nxt.shape[0] < v:
+            grown = max(v, 1024, 2 * (0 if nxt is None else nxt.shape[0]))
+            self._scratch["bins_next"] = np.empty(grown, np.int32)
+            self._scratch["bins_tex"] = np.empty(grown, np.int64)
+            self._scratch["bins_winner"] = np.empty(grown, np.bool_)
+        s = self._scratch
+        return s["bins_head"], s["bins_next"], s["bins_tex"], s["bins_winner"]
 
     def _index_buffers(self, key: str, texels: int, v: int):
         """Persistent index map (all empty between uses: kernels reset only the texels they wrote)."""
