@@ -18,7 +18,9 @@ from radiometry.registry import Registry
 
 #: name -> the subcommand (imported on first use), in the order the help lists them
 SUBCOMMANDS = Registry("command", {name: f"mapping.cli.{name}:command" for name in
-                                   ("demo", "response", "simulate", "vignetting", "correct", "reconstruct", "compare")})
+                                   ("demo", "response", "simulate", "vignetting", "correct", "reconstruct", "compare",
+                                    "batch")}
+                       | {"self-calibrate": "mapping.cli.self_calibrate:command"})
 
 EPILOG = """\b
 Examples:

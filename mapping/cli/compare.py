@@ -88,62 +88,40 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded comparison's."""
-    from mapping.compare import compare, load_method_vignetting, make_methods
-    from mapping.datasets import open_dataset
-    from radiometry.formats import load_response
+    from mapping.batch.commands import compare_command
 
-    ctx = click.get_current_context()
-    if methods is not None and exposure_compensation and \
-            not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
-        raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
-    dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
-                           frames=frames or slice(None))
-    resp = load_response(response)
-    lut = load_method_vignetting(vignetting_lut, "lut") if vignetting_lut is not None else None
-    poly = load_method_vignetting(vignetting_poly, "poly") if vignetting_poly is not None else None
-    exposure_compensation = ctx.params["exposure_compensation"]
-    try:
-        method_list = make_methods(resp, vignetting_poly=poly, vignetting_lut=lut,
-                                   exposure_compensation=exposure_compensation, names=methods)
-    except ValueError as exc:
-        raise click.UsageError(str(exc)) from None
-    scene = _scene_of(dataset)
-    ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
-    settings = settings_line(ctx, [("poses", "poses", poses),
-                                   ("exposure compensation", "exposure_compensation", ec) if methods is None
-                                   else ("exposure compensation", None, f"{ec}, as --methods lists"),
-                                   ("glb", "glb", "on" if glb else "off")])
-
-    def summary(result) -> str:
-        lines = [result.table_text()]
-        if result.ate is not None:
-            lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
-        if scene is None:
-            lines.append("(no ground truth: colour error not measured)")
-        lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
-        return "\n".join(lines + [settings]) + "\n"
-
-    # config.json and summary.txt are written by compare() in its locked folder: they belong to the run
-    result = compare(dataset, method_list, output=output, backend=backend, poses=poses, voxel_size=voxel_size,
-                     depth_max=depth_max, brightness=brightness, scene=scene, views=views,
-                     render_width=render_width, progress=not no_progress, force=force,
-                     title=f"radiomap compare: {sequence.name}", mesh_formats=("ply", "glb") if glb else ("ply",),
-                     config=replay_manifest(ctx, files=("intrinsics",), methods_run=[m.name for m in method_list]),
-                     summary=summary)
-    click.echo(summary(result), nl=False)
+    result, summary = compare_command(**task_arguments(click.get_current_context()),
+                                      notify=lambda note: click.echo(note, err=True))
+    click.echo(summary, nl=False)
     click.echo(f"report: {result.files['report']}")
     warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
 
 
-def _scene_of(dataset):
-    """The simulated room of a simulated sequence (for the colour error), else None; a note when its light changes
-    (the colour error then also counts the change)."""
-    from mapping.datasets import SimulatedDataset
+def task_arguments(ctx: click.Context) -> dict:
+    """The options of ``ctx`` (a parsed compare command) checked, as the keyword arguments of
+    :func:`mapping.batch.commands.compare_command`: plain values (the methods by name), the replay manifest and
+    the settings line (what ``radiomap compare`` runs, and what each task of ``radiomap batch compare`` runs). The
+    models are loaded here once to check that they make the methods asked for."""
+    from mapping.batch.commands import MethodChoiceError, compare_methods
 
-    room = dataset.true_room() if isinstance(dataset, SimulatedDataset) else None
-    scales = dataset.true_light_scales() if room is not None else None
-    if scales is not None and scales.size and scales.max() - scales.min() > 1e-6:
-        click.echo(f"note: the light changes during {dataset.name} ({scales.min():.2f}..{scales.max():.2f}); the "
-                   "colour error compares with the radiance at the nominal light, so it also counts the change",
-                   err=True)
-    return room
+    p = ctx.params
+    methods = p["methods"]
+    if methods is not None and p["exposure_compensation"] and \
+            not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
+        raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
+    models = {k: p[k] for k in ("response", "vignetting_lut", "vignetting_poly")}
+    try:
+        method_list = compare_methods(**models, exposure_compensation=p["exposure_compensation"], methods=methods)
+    except MethodChoiceError as exc:
+        raise click.UsageError(str(exc)) from None
+    ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
+    settings = settings_line(ctx, [("poses", "poses", p["poses"]),
+                                   ("exposure compensation", "exposure_compensation", ec) if methods is None
+                                   else ("exposure compensation", None, f"{ec}, as --methods lists"),
+                                   ("glb", "glb", "on" if p["glb"] else "off")])
+    options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "frames", "voxel_size", "depth_max",
+                                 "brightness", "depth_scale", "intrinsics", "format", "views", "render_width", "glb",
+                                 "force")}
+    return {**options, **models, "methods": [m.name for m in method_list],
+            "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"], "manifest": replay_manifest(ctx, files=("intrinsics",)),
+            "settings": settings}

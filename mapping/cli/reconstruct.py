@@ -84,56 +84,9 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
     irradiance (or raw intensities), recording the colour disagreement of every fused sample.
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
-    from dataclasses import asdict
+    from mapping.batch.commands import reconstruct_command
 
-    from mapping.datasets import describe_dataset
-    from mapping.export import ResultsFolder, plain_value
-    from mapping.factory import ReconstructConfig, build_run
-    from mapping.pipeline import reconstruct
-    from radiometry.tables import format_table
-
-    ctx = click.get_current_context()
-    if vignetting is not None and response is None:
-        raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
-    if exposure_compensation and response is None:
-        raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
-    compensate = exposure_compensation if exposure_compensation is not None else response is not None
-    if mesh_exposure is not None and not compensate and \
-            not drop_replayed(ctx, "mesh_exposure", None, "no exposure compensation"):
-        raise click.BadParameter("applies with exposure compensation only; without it the mesh colours are at "
-                                 "--display-exposure", param_hint="--mesh-exposure")
-    if surfel_mesh and backend != "surfel" and not drop_replayed(ctx, "surfel_mesh", False, f"--backend {backend}"):
-        raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
-                                 "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
-                                 param_hint="--surfel-mesh")
-    mesh_exposure, surfel_mesh = ctx.params["mesh_exposure"], ctx.params["surfel_mesh"]
-    config = ReconstructConfig(sequence=sequence, output=output, response=response, vignetting=vignetting,
-                               poses=poses, voxel_size=voxel_size, frames=frames or slice(None),
-                               depth_scale=depth_scale, intrinsics=intrinsics, backend=backend,
-                               surfel_mesh=surfel_mesh, format=format,
-                               depth_max=depth_max, reference_exposure=display_exposure,
-                               exposure_compensation=exposure_compensation,
-                               exposure_reference=mesh_exposure or "median",
-                               force=force, progress=not no_progress)
-    kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
-    folder = ResultsFolder(output, force=force)
-    manifest = replay_manifest(
-        ctx, files=("intrinsics",),
-        dataset=describe_dataset(kwargs["dataset"]),
-        colour_model=kwargs["colour_model"].describe(),
-        pipeline={k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")})
-    folder.write_json("config.json", manifest)
-    settings = [("poses", "poses", poses),
-                ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
-                 f"reconstruct's default {'with' if response is not None else 'without'} --response")]
-    if backend == "tsdf":
-        settings.append(("glb", None, "on"))
-    try:
-        run = reconstruct(**kwargs, output=folder)
-        summary = format_table([run.summary_row()]) + "\n" + settings_line(ctx, settings)
-        folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
-    finally:
-        folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
+    run, summary = reconstruct_command(**task_arguments(click.get_current_context()))
     click.echo(summary)
     if run.skipped:
         reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
@@ -141,3 +94,38 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
                    err=True)
     warn_far_depth(run.depth_beyond_range, depth_max)
     click.echo(f"results in {output}")
+
+
+def task_arguments(ctx: click.Context) -> dict:
+    """The options of ``ctx`` (a parsed reconstruct command) checked, as the keyword arguments of
+    :func:`mapping.batch.commands.reconstruct_command`: plain values, the replay manifest and the settings line
+    (what ``radiomap reconstruct`` runs, and what each task of ``radiomap batch reconstruct`` runs)."""
+    p = ctx.params
+    response, backend = p["response"], p["backend"]
+    if p["vignetting"] is not None and response is None:
+        raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
+    if p["exposure_compensation"] and response is None:
+        raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
+    compensate = p["exposure_compensation"] if p["exposure_compensation"] is not None else response is not None
+    if p["mesh_exposure"] is not None and not compensate and \
+            not drop_replayed(ctx, "mesh_exposure", None, "no exposure compensation"):
+        raise click.BadParameter("applies with exposure compensation only; without it the mesh colours are at "
+                                 "--display-exposure", param_hint="--mesh-exposure")
+    if p["surfel_mesh"] and backend != "surfel" and \
+            not drop_replayed(ctx, "surfel_mesh", False, f"--backend {backend}"):
+        raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
+                                 "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
+                                 param_hint="--surfel-mesh")
+    options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
+                   poses=p["poses"], voxel_size=p["voxel_size"], frames=p["frames"] or slice(None),
+                   depth_scale=p["depth_scale"], intrinsics=p["intrinsics"], backend=backend,
+                   surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
+                   reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
+                   exposure_reference=p["mesh_exposure"] or "median", force=p["force"], progress=not p["no_progress"])
+    settings = [("poses", "poses", p["poses"]),
+                ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
+                 f"reconstruct's default {'with' if response is not None else 'without'} --response")]
+    if backend == "tsdf":
+        settings.append(("glb", None, "on"))
+    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics",)),
+            "settings": settings_line(ctx, settings)}

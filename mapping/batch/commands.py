@@ -1,0 +1,206 @@
+"""The work of ``radiomap reconstruct`` and ``radiomap compare`` on one sequence, as library functions of the
+command's checked options (plain values: paths, numbers, text), and :data:`COMMANDS`, the registry of the commands
+a batch runs: one entry per command.
+
+The commands parse and check their options (``mapping/cli/<name>.py``, ``task_arguments``), then call these
+functions; a batch task calls the same function in a worker process with the same arguments, so each results
+folder is the one the single command writes. Open3D is imported inside the functions (by the pipeline), never
+when this module is imported.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from radiometry.registry import Registry
+
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------ radiomap reconstruct
+def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
+    """Reconstruct one sequence into its results folder as ``radiomap reconstruct`` does; returns the run
+    (:class:`mapping.results.RunResult`) and the summary it wrote to ``summary.txt``.
+
+    options:  the fields of :class:`mapping.factory.ReconstructConfig` (``sequence``, ``output``, ``response``, ...),
+              already checked by the command.
+    manifest: config.json's record of the options (the command's replay manifest); ``started`` is set when the
+              run starts and the dataset, the colour model and the pipeline's configuration are added.
+    settings: the summary's settings line (which value came from where)."""
+    from mapping.datasets import describe_dataset
+    from mapping.export import ResultsFolder, plain_value
+    from mapping.factory import ReconstructConfig, build_run
+    from mapping.pipeline import reconstruct
+    from radiometry.tables import format_table
+
+    config = ReconstructConfig(**options)
+    kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
+    folder = ResultsFolder(config.output, force=config.force)
+    record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+              "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
+              "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
+    folder.write_json("config.json", record)
+    try:
+        run = reconstruct(**kwargs, output=folder)
+        summary = format_table([run.summary_row()]) + "\n" + settings
+        folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
+    finally:
+        folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
+    return run, summary
+
+
+def reconstruct_rows(folder: Path) -> list[dict]:
+    """The batch summary's row of a complete reconstruct folder (from its metrics.json)."""
+    metrics = json.loads((folder / "metrics.json").read_text(encoding="utf-8"))
+    return [_row(metrics["frames"]["total"], metrics["frames"]["fused"], metrics["timing"]["seconds"],
+                 metrics["histogram"], metrics.get("ate"))]
+
+
+# ------------------------------------------------------------------ radiomap compare
+class MethodChoiceError(ValueError):
+    """The methods asked for cannot be made from the models given (a usage error of ``radiomap compare``)."""
+
+
+def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_lut: Path | None,
+                    vignetting_poly: Path | None, methods: list[str] | None, exposure_compensation: bool,
+                    backend: str, poses: str, frames: slice | None, voxel_size: float, depth_max: float,
+                    brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
+                    views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
+                    settings: str, notify: Callable[[str], None] = log.warning):
+    """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
+    :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
+
+    The keywords are the command's options (``methods`` None: the default list, with ``+ec`` methods when
+    ``exposure_compensation``); :class:`MethodChoiceError` when a method's model is missing.
+    manifest: config.json's record of the options (``methods_run`` is added).
+    settings: the summary's settings line (which value came from where).
+    notify:   receives a note on the sequence before the run (a light that changes during a simulation)."""
+    from mapping.compare import compare
+    from mapping.datasets import open_dataset
+
+    dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
+                           frames=frames or slice(None))
+    method_list = compare_methods(response, vignetting_lut=vignetting_lut, vignetting_poly=vignetting_poly,
+                                  exposure_compensation=exposure_compensation, methods=methods)
+    scene = _scene_of(dataset, notify)
+
+    def summary(result) -> str:
+        lines = [result.table_text()]
+        if result.ate is not None:
+            lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
+        if scene is None:
+            lines.append("(no ground truth: colour error not measured)")
+        lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+        return "\n".join(lines + [settings]) + "\n"
+
+    # config.json and summary.txt are written by compare() in its locked folder: they belong to the run
+    result = compare(dataset, method_list, output=output, backend=backend, poses=poses, voxel_size=voxel_size,
+                     depth_max=depth_max, brightness=brightness, scene=scene, views=views,
+                     render_width=render_width, progress=progress, force=force,
+                     title=f"radiomap compare: {Path(sequence).name}",
+                     mesh_formats=("ply", "glb") if glb else ("ply",),
+                     config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary)
+    return result, summary(result)
+
+
+def compare_methods(response: Path, *, vignetting_lut: Path | None, vignetting_poly: Path | None,
+                    exposure_compensation: bool, methods: list[str] | None) -> list:
+    """The :class:`mapping.compare.Method` list of a comparison from the model files (MethodChoiceError when a
+    method's model is missing or of the wrong kind)."""
+    from mapping.compare import load_method_vignetting, make_methods
+    from radiometry.formats import load_response
+
+    resp = load_response(response)
+    lut = load_method_vignetting(vignetting_lut, "lut") if vignetting_lut is not None else None
+    poly = load_method_vignetting(vignetting_poly, "poly") if vignetting_poly is not None else None
+    try:
+        return make_methods(resp, vignetting_poly=poly, vignetting_lut=lut,
+                            exposure_compensation=exposure_compensation, names=methods)
+    except ValueError as exc:
+        raise MethodChoiceError(str(exc)) from None
+
+
+def _scene_of(dataset, notify: Callable[[str], None]):
+    """The simulated room of a simulated sequence (for the colour error), else None; a note when its light changes
+    (the colour error then also counts the change)."""
+    from mapping.datasets import SimulatedDataset
+
+    room = dataset.true_room() if isinstance(dataset, SimulatedDataset) else None
+    scales = dataset.true_light_scales() if room is not None else None
+    if scales is not None and scales.size and scales.max() - scales.min() > 1e-6:
+        notify(f"note: the light changes during {dataset.name} ({scales.min():.2f}..{scales.max():.2f}); the "
+               "colour error compares with the radiance at the nominal light, so it also counts the change")
+    return room
+
+
+def compare_rows(folder: Path) -> list[dict]:
+    """The batch summary's rows of a complete comparison: one per method (from each method's metrics.json)."""
+    doc = json.loads((folder / "compare.json").read_text(encoding="utf-8"))
+    ate = doc.get("ate")
+    rows = []
+    for method in doc["methods"]:
+        metrics = json.loads((folder / method["folder"] / "metrics.json").read_text(encoding="utf-8"))
+        rows.append({"method": method["name"], **_row(metrics["frames"]["total"], metrics["frames"]["fused"],
+                                                      metrics["timing"]["seconds"], metrics["histogram"], ate)})
+    return rows
+
+
+def compare_complete(folder: Path) -> bool:
+    """A comparison's folder is complete when compare.json is there and no RUNNING marker."""
+    from mapping.export import RUNNING_MARKER
+
+    return (folder / "compare.json").is_file() and not (folder / RUNNING_MARKER).exists()
+
+
+def _row(frames: int, fused: int, seconds: float, histogram: dict, ate: dict | None) -> dict:
+    return {"frames": frames, "fused": fused, "seconds": round(seconds, 2),
+            "frames/s": round(frames / seconds, 2) if seconds > 0 else None,
+            "L1 mean": histogram.get("mean"), "L1 median": histogram.get("median"), "L1 p90": histogram.get("p90"),
+            "ATE cm": None if ate is None else round(100 * ate["rmse"], 2)}
+
+
+def _reconstruct_complete(folder: Path) -> bool:
+    from mapping.export import is_complete
+
+    return is_complete(folder)
+
+
+# ------------------------------------------------------------------ the registry
+@dataclass(frozen=True)
+class BatchCommand:
+    """What a batch needs of a command: the library function a task runs (with the keyword arguments the
+    command's ``task_arguments`` makes), whether a results folder is complete, the summary rows of a complete
+    folder and the file the HTML index links to."""
+
+    run: Callable[..., Any]
+    complete: Callable[[Path], bool]
+    rows: Callable[[Path], list[dict]]
+    report: str
+
+
+#: the commands ``radiomap batch`` runs, by name (a command is one entry; its CLI module defines ``task_arguments``)
+COMMANDS = Registry("batch command", {
+    "reconstruct": BatchCommand(run=reconstruct_command, complete=_reconstruct_complete, rows=reconstruct_rows,
+                                report="summary.txt"),
+    "compare": BatchCommand(run=compare_command, complete=compare_complete, rows=compare_rows, report="report.html"),
+})
+
+
+def folder_state(command: str, folder: str | os.PathLike) -> str:
+    """``complete``, ``new`` (nothing there yet) or ``incomplete`` (a run that did not finish: killed, failed, or
+    still running in another process) for the results folder of ``command``."""
+    folder = Path(folder)
+    if not folder.exists():
+        return "new"
+    return "complete" if COMMANDS[command].complete(folder) else "incomplete"
+
+
+__all__ = ["BatchCommand", "COMMANDS", "MethodChoiceError", "compare_command", "compare_methods", "compare_rows",
+           "folder_state", "reconstruct_command", "reconstruct_rows"]
