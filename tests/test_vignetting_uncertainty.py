@@ -178,11 +178,16 @@ def test_centre_normalisation_is_not_biased_by_noise():
     assert np.mean(maxima) > 0.002 and np.mean(maxima) > 5 * abs(np.mean(errors))  # the maximum is biased upwards
 
 
-def test_kinked_response_sweep_stays_within_a_third_of_a_level_with_the_true_response():
-    """4x steeper above level 180; 320x240 (at 160x120 the steep corners of the asymmetric field below the knee are
-    cut from the sheet as if they were an edge's blur, and the filled corners cost 0.7 levels)."""
-    truth = vignette_field("asymmetric", 320, 240)
+def test_kinked_response_sweep_stays_within_a_quarter_level_with_the_true_response():
+    """4x steeper above level 180, at 160x120: below the knee the asymmetric field's steep corners are 4x steeper in
+    levels than the sheet's centre; sheet detection compares slopes of ln f^-1 (the response passed in by
+    collect_vignetting), so it no longer cuts them as an edge's blur (comparing slopes in levels left 1.4 % of the
+    image unobserved and cost 0.64-0.85 levels; now 0.17-0.19)."""
+    truth = vignette_field("asymmetric", W, H)
     table = kink_curve()
-    frames = render_sweep(table, truth, frames=64, seed=0)
-    model = fit_vignetting(collect_vignetting(frames, CameraResponse.from_table(table), progress=False), model="lut")
-    assert np.all(flat_rms_vs_truth(model.evaluate(), truth, table) < 0.3)  # measured 0.20-0.21
+    for seed in (4, 5):
+        frames = render_sweep(table, truth, frames=64, seed=seed)
+        acc = collect_vignetting(frames, CameraResponse.from_table(table), progress=False)
+        assert (acc.count.min(axis=2) == 0).mean() < 0.005
+        model = fit_vignetting(acc, model="lut")
+        assert np.all(flat_rms_vs_truth(model.evaluate(), truth, table) < 0.25)

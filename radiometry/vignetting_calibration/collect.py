@@ -45,6 +45,8 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     frames = open_frames(source, max_frames=max_frames)
     from radiometry.progress import progress_bar
 
+    # the grey image sheet detection works on is the mean of the channels: its f^-1, roughly, is the channels' mean
+    grey_inverse = response.inverse_table.mean(axis=1)
     acc: VignettingAccumulator | None = None
     skipped: Counter[str] = Counter()
     sizes: Counter[str] = Counter()      # frames per size ("WxH" or "WxH grey"): the first frame's must prevail
@@ -73,7 +75,7 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
             elif frame.shape[:2] != acc.shape[:2] or (frame.ndim == 2) != (acc.shape[2] == 1):
                 skipped["different size"] += 1
                 continue
-            det = detect_sheet(frame, seed, saturation=saturation, dark=dark, **detect_options)
+            det = detect_sheet(frame, seed, saturation=saturation, dark=dark, inverse=grey_inverse, **detect_options)
             if not det.ok:
                 skipped[det.status] += 1
                 log.debug("frame %d skipped: %s", n_seen - 1, det.status)

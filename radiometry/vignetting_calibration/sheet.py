@@ -85,7 +85,7 @@ def _fill(blurred: np.ndarray, sx: int, sy: int, tolerance: float) -> np.ndarray
 def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, saturation: int = 250,
                  dark: int = 20, min_area: float = 0.02, max_saturated: float = 0.2,
                  noise_factor: float = 4.0, max_noise: float = 3.0, border: int | None = None,
-                 min_contrast: float = 1.5) -> SheetDetection:
+                 min_contrast: float = 1.5, inverse: np.ndarray | None = None) -> SheetDetection:
     """Segment the white sheet in one frame (see :mod:`radiometry.vignetting_calibration`).
 
     Parameters
@@ -104,6 +104,9 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     min_contrast : when the background covers at least 10% of the image, the sheet's median grey level must be
         at least this many times the background's, else ``"low contrast"``: a white sheet on a darker background
         (simulated sweeps: 2.0-2.4) rather than a plain part of a room (a wall: 1.3).
+    inverse : the response's ``f^-1`` of the grey level (``(256,)``), when known: the clean-up then compares
+        slopes of ``ln f^-1`` (the vignetting's own ``d ln V / dx``, the same at every level) instead of slopes in
+        levels, which a response with a knee makes several times steeper below the knee than above it.
     """
     import cv2
 
@@ -179,12 +182,18 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     # erode from: drop pixels whose local slope is far steeper than the sheet's own (vignetting + noise)
     inner = m > 0
     if np.count_nonzero(inner) > 100:
-        slope = np.hypot(cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3),
-                         cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
+        if inverse is None:
+            field, floor = blurred, 1.0  # levels; the floor: one level per pixel
+        else:
+            table = np.asarray(inverse, dtype=np.float64)
+            linear = np.interp(blurred, np.arange(256.0), table / table[-1])
+            field, floor = np.log(np.maximum(linear, 1e-4)).astype(np.float32), 0.005  # 0.5 % per pixel
+        slope = np.hypot(cv2.Sobel(field, cv2.CV_32F, 1, 0, ksize=3),
+                         cv2.Sobel(field, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
         values = slope[inner][::4]
         centre = float(np.median(values))
         spread = 1.4826 * float(np.median(np.abs(values - centre)))
-        steep = (slope > centre + max(6.0 * spread, 1.0)).astype(np.uint8)
+        steep = (slope > centre + max(6.0 * spread, floor)).astype(np.uint8)
         m[cv2.dilate(steep, np.ones((3, 3), np.uint8)) > 0] = 0
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=4)
     if n <= 1:
