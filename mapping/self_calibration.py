@@ -1,0 +1,372 @@
+"""Self-calibration from an RGB-D sequence: vignetting, per-frame exposure and white balance without a white sheet.
+
+Surface points are sampled from the depth of every ``anchor_every``-th frame (a grid of pixels, in world
+coordinates through the poses) and projected into every frame (pinhole ``K``). A sighting is kept when
+
+- the projected depth agrees with that frame's depth (``depth_tolerance``: absolute + relative; occlusion),
+- it lies away from depth edges (:func:`mapping.exposure_compensation.masks.depth_edges`),
+- the surface is not seen at a grazing angle (``min_cos`` between the point's normal, from the anchor's depth,
+  and the viewing ray),
+- no channel in the pixel's window is saturated (``>= high``) or dark (``<= low``),
+
+and its colour is the irradiance ``f^-1(I)`` (the given response; gamma 2.2 by default) averaged over a small
+window (``window`` pixels, which forgives sub-pixel pose and depth error). Points on strong texture are not
+sampled (``max_texture``: the window's relative standard deviation in the anchor), for the same reason.
+The sightings go to :func:`radiometry.self_calibration.self_calibrate`.
+
+:func:`run_self_calibration` is ``radiomap self-calibrate``: sequence -> poses (ground truth or ICP through
+:func:`mapping.pipeline.reconstruct`) -> sightings -> solver -> a :class:`SelfCalibrationFolder` holding
+``vignetting.npz`` (a LUT model with its standard error, readable by ``radiomap reconstruct --vignetting``),
+``exposures.txt`` (``reconstruct``'s format), the figures and the summary.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.export import MANIFEST, RUNNING_MARKER, ResultsFolder
+from radiometry.response import CameraResponse
+from radiometry.self_calibration import Observations, SelfCalibration, SelfCalibrationError
+
+log = logging.getLogger(__name__)
+
+MARKER = "self_calibration.json"
+FIGURES = ("vignetting.png", "coverage.png", "exposures.png", "residuals.png")
+
+
+class SelfCalibrationFolder(ResultsFolder):
+    """The folder ``radiomap self-calibrate`` writes (OUT): refused without ``--force`` when it holds an earlier
+    self-calibration; ``--force`` removes that run's files only."""
+
+    what = "self-calibration"
+    markers = (MARKER, RUNNING_MARKER, MANIFEST)
+    refusal = "already holds a self-calibration; pass --force to overwrite it or choose another output folder"
+    result_names = frozenset({MARKER, RUNNING_MARKER, MANIFEST, "vignetting.npz", "exposures.txt", "summary.txt",
+                              "trajectory.txt", *FIGURES})
+    status_file = None
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """How surface points are sampled and sightings kept (see the module doc)."""
+
+    anchor_every: int = 5
+    stride: int = 12
+    window: int = 5
+    depth_tolerance: tuple[float, float] = (0.02, 0.02)    # metres + fraction of the depth
+    min_cos: float = 0.35
+    max_texture: float = 0.08
+    high: int = 250
+    low: int = 5
+    depth_min: float = 0.3
+    depth_max: float = 4.0
+
+
+@dataclass
+class SelfCalibrationRun:
+    """What :func:`run_self_calibration` returns: the solver's result, the frames' indices and timestamps in the
+    sequence, the sightings' statistics, timings (seconds per stage) and peak memory (MiB), and the files."""
+
+    result: SelfCalibration
+    indices: np.ndarray
+    timestamps: np.ndarray
+    sampling: dict[str, Any]
+    seconds: dict[str, float]
+    peak_rss_mb: float
+    files: dict[str, Path] = field(default_factory=dict)
+    summary: str = ""
+
+
+# --------------------------------------------------------------------------------------------------
+# sightings
+# --------------------------------------------------------------------------------------------------
+def _irradiance(rgb: np.ndarray, tables: np.ndarray, window: int) -> np.ndarray:
+    """``f^-1(I)`` per channel, box-averaged over ``window`` pixels, float32 ``(H, W, 3)``."""
+    import cv2
+
+    e = np.stack([tables[:, c][rgb[:, :, c]] for c in range(3)], axis=2).astype(np.float32)
+    return cv2.blur(e, (window, window)) if window > 1 else e
+
+
+def _usable(frame, opts: SamplingOptions) -> np.ndarray:
+    """Pixels whose window is neither clipped nor dark, with depth in range and away from depth edges."""
+    import cv2
+
+    from mapping.exposure_compensation.masks import depth_edges
+
+    kernel = np.ones((opts.window, opts.window), np.uint8)
+    hi = cv2.dilate(frame.rgb.max(axis=2), kernel) >= opts.high
+    lo = cv2.erode(frame.rgb.min(axis=2), kernel) <= opts.low
+    d = frame.depth
+    ok = (d > opts.depth_min) & (d < opts.depth_max) & np.isfinite(d)
+    return ok & ~hi & ~lo & ~depth_edges(d, dilation=max(2, opts.window // 2 + 1))
+
+
+def _anchor_points(frame, pose: np.ndarray, tables: np.ndarray, opts: SamplingOptions
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """World points and normals ``(M, 3)`` sampled on a pixel grid of one frame's depth."""
+    import cv2
+
+    K = frame.K
+    h, w = frame.depth.shape
+    d = frame.depth.astype(np.float64)
+    ys, xs = np.mgrid[0:h, 0:w]
+    cam = np.stack([(xs - K[0, 2]) / K[0, 0] * d, (ys - K[1, 2]) / K[1, 1] * d, d], axis=2)
+    s = 2
+    gx = np.zeros_like(cam)
+    gy = np.zeros_like(cam)
+    gx[:, s:-s] = cam[:, 2 * s:] - cam[:, :-2 * s]
+    gy[s:-s] = cam[2 * s:] - cam[:-2 * s]
+    n = np.cross(gx, gy)
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    ray = cam / np.maximum(np.linalg.norm(cam, axis=2, keepdims=True), 1e-12)
+    cos = np.abs(np.sum(n * ray, axis=2))
+    grey = _irradiance(frame.rgb, tables, 1).mean(axis=2)
+    mean = cv2.blur(grey, (opts.window, opts.window))
+    sq = cv2.blur(grey * grey, (opts.window, opts.window))
+    texture = np.sqrt(np.maximum(sq - mean * mean, 0)) / np.maximum(mean, 1e-6)
+    ok = _usable(frame, opts) & (cos > opts.min_cos) & (texture < opts.max_texture)
+    ok[:s + 1], ok[-s - 1:], ok[:, :s + 1], ok[:, -s - 1:] = False, False, False, False
+    grid = np.zeros_like(ok)
+    off = opts.stride // 2
+    grid[off::opts.stride, off::opts.stride] = True
+    sel = ok & grid
+    pts, nrm = cam[sel], n[sel]
+    R, t = pose[:3, :3], pose[:3, 3]
+    return pts @ R.T + t, nrm @ R.T
+
+
+def collect_observations(frames: list, poses: list[np.ndarray], response: CameraResponse, *,
+                         options: SamplingOptions = SamplingOptions(), progress: bool = True
+                         ) -> tuple[Observations, dict[str, Any]]:
+    """Sightings of surface points in ``frames`` (RGB-D frames of one size and ``K``) at ``poses`` (camera to
+    world), as the module doc describes; returns them and counts (points, sightings, per frame)."""
+    from radiometry.progress import progress_bar
+
+    opts = options
+    tables = response.channel_tables(3).astype(np.float32)
+    first = frames[0]
+    h, w = first.depth.shape
+    K = first.K
+    anchors = list(range(0, len(frames), opts.anchor_every))
+    world, normals = [], []
+    for a in anchors:
+        p, n = _anchor_points(frames[a], poses[a], tables, opts)
+        world.append(p)
+        normals.append(n)
+    world = np.concatenate(world) if world else np.zeros((0, 3))
+    normals = np.concatenate(normals) if normals else np.zeros((0, 3))
+    point_ids, frame_ids, us, vs, irr = [], [], [], [], []
+    abs_tol, rel_tol = opts.depth_tolerance
+    bar = progress_bar(total=len(frames), desc="sightings", unit="frame", enabled=progress)
+    for j, frame in enumerate(frames):
+        R, t = poses[j][:3, :3], poses[j][:3, 3]
+        cam = (world - t) @ R
+        z = cam[:, 2]
+        front = z > opts.depth_min
+        u = np.full(len(z), -1.0)
+        v = np.full(len(z), -1.0)
+        u[front] = K[0, 0] * cam[front, 0] / z[front] + K[0, 2]
+        v[front] = K[1, 1] * cam[front, 1] / z[front] + K[1, 2]
+        ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+        inside = front & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        idx = np.flatnonzero(inside)
+        ui, vi = ui[idx], vi[idx]
+        usable = _usable(frame, opts)[vi, ui]
+        dz = frame.depth[vi, ui].astype(np.float64)
+        agree = np.abs(dz - z[idx]) < abs_tol + rel_tol * z[idx]
+        ray = cam[idx] / np.linalg.norm(cam[idx], axis=1, keepdims=True)
+        cos = np.abs(np.sum((normals[idx] @ R) * ray, axis=1))
+        keep = usable & agree & (cos > opts.min_cos)
+        idx, ui, vi = idx[keep], ui[keep], vi[keep]
+        e = _irradiance(frame.rgb, tables, opts.window)[vi, ui]
+        good = np.all(e > 0, axis=1)
+        point_ids.append(idx[good])
+        frame_ids.append(np.full(int(good.sum()), j, np.int64))
+        us.append(u[idx[good]])
+        vs.append(v[idx[good]])
+        irr.append(e[good].astype(np.float64))
+        bar.update(1)
+    bar.close()
+    point = np.concatenate(point_ids) if point_ids else np.zeros(0, np.int64)
+    # points seen once say nothing; renumber the rest densely
+    counts = np.bincount(point, minlength=len(world))
+    keep = counts[point] >= 2
+    used, dense = np.unique(point[keep], return_inverse=True)
+    obs = Observations(point=dense.astype(np.int64), frame=np.concatenate(frame_ids)[keep],
+                       x=np.concatenate(us)[keep], y=np.concatenate(vs)[keep],
+                       irradiance=np.concatenate(irr)[keep] if irr else np.zeros((0, 3)), resolution=(w, h),
+                       n_frames=len(frames))
+    stats = {"anchors": len(anchors), "points_sampled": int(len(world)), "points_used": int(len(used)),
+             "sightings": int(len(obs.point)),
+             "sightings_per_point": round(float(len(obs.point)) / max(len(used), 1), 2)}
+    return obs, stats
+
+
+# --------------------------------------------------------------------------------------------------
+# the run
+# --------------------------------------------------------------------------------------------------
+def _poses(dataset, frames: list, source: str, *, depth_max: float, progress: bool) -> tuple[list, np.ndarray]:
+    """Camera-to-world pose per frame (ground truth or ICP) and a bool array of the frames that have one."""
+    if source == "gt":
+        poses = [f.pose for f in frames]
+        have = np.array([p is not None for p in poses])
+        if not have.any():
+            raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses; use --poses icp")
+        return [p if p is not None else np.eye(4) for p in poses], have
+    if source != "icp":
+        raise ValueError(f"poses must be 'gt' or 'icp', got {source!r}")
+    from mapping.factory import make_backend, make_tracker
+    from mapping.pipeline import reconstruct
+
+    backend = make_backend("tsdf", voxel_size=0.01, depth_max=depth_max)
+    run = reconstruct(dataset, backend=backend, tracker=make_tracker(depth_max=depth_max), poses="icp",
+                      output=None, progress=progress, write_mesh=False)
+    poses = [np.eye(4)] * len(frames)
+    have = np.zeros(len(frames), bool)
+    fused = [r for r in run.records if r.fused]
+    for rec, pose in zip(fused, run.poses):
+        poses[rec.index] = pose
+        have[rec.index] = True
+    return poses, have
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_self_calibration(sequence: str | Path, output: str | Path, *, response: CameraResponse | str | Path | None
+                         = None, poses: str = "gt", frames: slice | None = None, format: str | None = None,
+                         depth_scale: float | None = None, intrinsics=None, options: SamplingOptions =
+                         SamplingOptions(), solver: dict[str, Any] | None = None, plots: bool = True,
+                         force: bool = False, progress: bool = True, manifest: dict | None = None
+                         ) -> SelfCalibrationRun:
+    """``radiomap self-calibrate``: self-calibrate ``sequence`` into the folder ``output`` (module doc).
+
+    response: a model or file (default ``CameraResponse.gamma(2.2)``, recorded in the summary as an assumption);
+    poses: ``"gt"`` or ``"icp"``; frames: a slice of the sequence; solver: keyword arguments of
+    :func:`radiometry.self_calibration.self_calibrate`; manifest: the command's options, saved in the summary.
+    """
+    from radiometry.api import as_response
+    from radiometry.fileio import atomic_write_json, atomic_write_text
+    from radiometry.self_calibration import coverage_text, self_calibrate
+
+    from mapping.datasets import describe_dataset, open_dataset
+    from mapping.metrics import format_tum_trajectory
+
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    response_given = response is not None
+    response = as_response(response) if response_given else CameraResponse.gamma(2.2)
+    dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
+                           frames=frames if frames is not None else slice(None))
+    with SelfCalibrationFolder(output, force=force) as folder:
+        loaded = [dataset[i] for i in range(len(dataset))]
+        seconds["read"] = time.perf_counter() - t0
+        t = time.perf_counter()
+        pose_list, have = _poses(dataset, loaded, poses, depth_max=options.depth_max, progress=progress)
+        seconds["poses"] = time.perf_counter() - t
+        use = np.flatnonzero(have)
+        if len(use) < 3:
+            raise SelfCalibrationError(f"{dataset.name}: only {len(use)} frame(s) have a pose (need 3); use more "
+                                       "frames (--frames) or --poses icp")
+        t = time.perf_counter()
+        obs, stats = collect_observations([loaded[i] for i in use], [pose_list[i] for i in use], response,
+                                          options=options, progress=progress)
+        seconds["sightings"] = time.perf_counter() - t
+        t = time.perf_counter()
+        K = loaded[use[0]].K
+        result = self_calibrate(obs, **{"centre": (float(K[0, 2]), float(K[1, 2])), **(solver or {})})
+        seconds["solve"] = time.perf_counter() - t
+        indices = np.array([loaded[i].index for i in use])
+        stamps = np.array([loaded[i].timestamp for i in use])
+        cov_line, thin = coverage_text(result.coverage)
+        files = {"vignetting": result.vignetting.save(folder.file("vignetting.npz")),
+                 "exposures": atomic_write_text(folder.file("exposures.txt"),
+                                                exposures_text(result, indices, stamps)),
+                 "trajectory": atomic_write_text(folder.file("trajectory.txt"), format_tum_trajectory(
+                     stamps, np.stack([pose_list[i] for i in use])))}
+        if plots:
+            from mapping.self_calibration_plots import save_figures
+
+            files.update(save_figures(folder.path, result, indices))
+        seconds["total"] = time.perf_counter() - t0
+        run = SelfCalibrationRun(result=result, indices=indices, timestamps=stamps, sampling=stats,
+                                 seconds={k: round(v, 2) for k, v in seconds.items()}, peak_rss_mb=_peak_rss_mb(),
+                                 files=files)
+        run.summary = summary_text(run, dataset.name, response_given, poses, cov_line)
+        files["summary"] = atomic_write_text(folder.file("summary.txt"), run.summary + "\n")
+        atomic_write_json(folder.file(MARKER), {
+            "sequence": describe_dataset(dataset), "poses": poses,
+            "response": "given" if response_given else "assumed gamma 2.2 (CameraResponse.gamma(2.2))",
+            "frames_used": int(len(use)), "sampling": stats, "options": options.__dict__,
+            "solver": result.info, "coverage": cov_line, "thin_regions": thin,
+            "residual_log_scale_before": [_mad(r) for r in result.residuals_before],
+            "residual_log_scale_after": [_mad(r) for r in result.residuals_after],
+            "seconds": run.seconds, "peak_rss_mb": round(run.peak_rss_mb, 1),
+            "files": {k: str(v) for k, v in files.items()}, "run": manifest or {}})
+        folder.complete()
+    return run
+
+
+def _mad(res: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(res - np.median(res))))
+
+
+def exposures_text(result: SelfCalibration, indices: np.ndarray, stamps: np.ndarray) -> str:
+    """``exposures.txt`` as ``radiomap reconstruct`` writes it (:mod:`mapping.exposure_compensation.records`):
+    ``index timestamp k_r k_g k_b correspondences source``; the first frame is the ``reference`` (k = 1), the
+    others were estimated against the surface points (``map``); frames without sightings are left out."""
+    lines = ["# radiomap per-frame exposure estimates, relative to the first fused frame (k = 1)\n",
+             "# self-calibrated (radiomap self-calibrate): correspondences = sightings of surface points\n",
+             "# index timestamp k_r k_g k_b correspondences source\n"]
+    for j, (idx, ts) in enumerate(zip(indices, stamps)):
+        k = result.exposures[j]
+        if not np.all(np.isfinite(k)):
+            continue
+        source = "reference" if j == 0 else "map"
+        lines.append(f"{int(idx)} {float(ts):.6f} {k[0]:.6f} {k[1]:.6f} {k[2]:.6f} {int(result.sightings[j])} "
+                     f"{source}\n")
+    return "".join(lines)
+
+
+def summary_text(run: SelfCalibrationRun, name: str, response_given: bool, poses: str, coverage_line: str) -> str:
+    """What ``radiomap self-calibrate`` prints and saves as ``summary.txt``."""
+    from radiometry.tables import format_table
+
+    res = run.result
+    v = res.vignetting.evaluate()
+    se = res.vignetting.stderr
+    rows = []
+    for c, ch in enumerate("RGB"[:v.shape[2]]):
+        corners = float(np.mean([v[0, 0, c], v[0, -1, c], v[-1, 0, c], v[-1, -1, c]]))
+        k = res.exposures[:, c]
+        rows.append({"channel": ch, "centre_x": res.info["centre"][c][0], "centre_y": res.info["centre"][c][1],
+                     "corner/centre": round(corners, 4), "V_min": round(float(v[:, :, c].min()), 4),
+                     "stderr_median_%": round(100 * float(np.median(se[:, :, c])), 3),
+                     "k_min": round(float(np.nanmin(k)), 4), "k_max": round(float(np.nanmax(k)), 4),
+                     "resid_before_%": round(100 * _mad(res.residuals_before[c]), 2),
+                     "resid_after_%": round(100 * _mad(res.residuals_after[c]), 2)})
+    s = run.sampling
+    return "\n".join([
+        f"self-calibration of {name}: {len(run.indices)} frames, poses {poses}, response "
+        f"{'given' if response_given else 'assumed gamma 2.2 (pass --response for a calibrated one)'}",
+        f"surface points: {s['points_used']} of {s['points_sampled']} sampled in {s['anchors']} anchor frames, "
+        f"{s['sightings']} sightings ({s['sightings_per_point']} per point)",
+        coverage_line,
+        format_table(rows),
+        "resid: robust (MAD) scale of log-irradiance residuals with V = 1 (before) and with the fitted V (after)",
+        f"time: {', '.join(f'{k} {v:.1f} s' for k, v in run.seconds.items())}; peak memory {run.peak_rss_mb:.0f} MiB",
+    ])
+
+
+__all__ = ["FIGURES", "MARKER", "SamplingOptions", "SelfCalibrationFolder", "SelfCalibrationRun",
+           "collect_observations", "exposures_text", "run_self_calibration", "summary_text"]

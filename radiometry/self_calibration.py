@@ -1,0 +1,444 @@
+"""Self-calibration of vignetting, per-frame exposure and white balance from surface points seen many times.
+
+A surface point ``i`` of radiance ``L_i`` seen in frame ``j`` at pixel ``x_ij`` images, per channel, at the
+irradiance ``E_ij = f^-1(I_ij) = k_j V(x_ij) L_i`` (the response ``f`` is given), so that
+
+    log E_ij = log k_j + log V(x_ij) + log L_i
+
+is linear in ``log k`` and ``log L`` and smooth in the few parameters of ``V``. ``V`` is a free-centre even
+polynomial ``1 + b1 r^2 + b2 r^4 + b3 r^6`` (``r`` normalised by the half-diagonal, as
+:class:`radiometry.vignetting.PolynomialVignetting`) times ``exp(g(x))``, ``g`` a smooth non-radial residual,
+bilinear on the nodes of a coarse grid (8 x 6 cells by default) and regularised by its second differences.
+The gauge: ``k_0 = 1`` (the first frame) and ``V = 1`` at the polynomial's centre (``g`` is shifted to 0 there;
+the constant goes into ``L``).
+
+The solver (:func:`self_calibrate`) works per channel by alternating closed-form updates in log space, with
+iteratively reweighted least squares (IRLS) for a Huber loss on the log residuals:
+
+1. exposures and radiances for fixed ``V``: one weighted linear least-squares problem, solved exactly by
+   eliminating the radiances (each ``log L_i`` is a weighted mean given ``log k``), which leaves a dense
+   frames x frames system (the Schur complement; frames are few, points many);
+2. ``V`` for fixed exposures and radiances: a Gauss-Newton step on the polynomial's centre and coefficients
+   and the grid residual (5 + nodes parameters) over observations binned by image position;
+3. Huber weights from the new residuals (threshold ``huber`` times a robust scale, the MAD).
+
+Why not ``scipy.optimize.least_squares(loss="huber")`` on the whole sparse Jacobian: its unknowns are every
+point's radiance (tens of thousands) and each trust-region step runs LSMR over all observations; the exact
+elimination above solves the linear part in one small dense solve per iteration, so a 100-frame sequence
+calibrates in seconds, and the only nonlinear part (the polynomial's centre) has 5 parameters.
+
+A sequence constrains ``V`` only when each image region sees points that are also seen elsewhere in the image
+(:func:`check_constrained`); otherwise :class:`SelfCalibrationError` says what to record.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import CalibrationError
+from radiometry.vignetting import LUTVignetting, half_diagonal
+from radiometry.vignetting_calibration.accumulate import REGIONS
+
+log = logging.getLogger(__name__)
+
+#: grid cells (columns, rows) of the non-radial residual
+DEFAULT_GRID = (8, 6)
+#: image-position bins across the width used by the V update (observations within a bin share its centre)
+POSITION_BINS = 80
+#: weight of the rows that keep the grid residual free of a tilt (relative to its second differences)
+TILT_WEIGHT = 30.0
+
+
+class SelfCalibrationError(CalibrationError):
+    """The observations cannot constrain the vignetting (too few frames, too little motion)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """Surface points seen in frames: one row per sighting.
+
+    point, frame: int ``(N,)`` indices (points ``0..P-1``, frames ``0..F-1``); x, y: float ``(N,)`` pixel
+    coordinates (OpenCV convention); irradiance: float ``(N, C)`` ``f^-1(I)`` per channel (> 0);
+    resolution: (width, height) of the images; n_frames: F (frames without sightings are allowed but get no
+    exposure).
+    """
+
+    point: np.ndarray
+    frame: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    irradiance: np.ndarray
+    resolution: tuple[int, int]
+    n_frames: int
+
+    def __post_init__(self) -> None:
+        n = np.shape(self.point)[0] if np.ndim(self.point) == 1 else -1
+        shapes = [np.shape(a) for a in (self.point, self.frame, self.x, self.y)]
+        if n < 0 or any(s != (n,) for s in shapes):
+            raise ValueError(f"point, frame, x and y must be 1-D of one length, got shapes {shapes}")
+        irr = np.asarray(self.irradiance)
+        if irr.ndim != 2 or irr.shape[0] != n:
+            raise ValueError(f"irradiance must be (N, C) with N = {n}, got shape {irr.shape}")
+        if n and not (np.all(np.isfinite(irr)) and np.all(irr > 0)):
+            raise ValueError("irradiance must be finite and > 0 (leave out dark and saturated pixels)")
+        if n and (np.min(self.frame) < 0 or np.max(self.frame) >= self.n_frames or np.min(self.point) < 0):
+            raise ValueError(f"frame must lie in [0, {self.n_frames}) and point be >= 0")
+
+    @property
+    def channels(self) -> int:
+        return int(np.shape(self.irradiance)[1])
+
+    @property
+    def n_points(self) -> int:
+        return int(np.max(self.point)) + 1 if len(self.point) else 0
+
+
+@dataclass
+class SelfCalibration:
+    """The result of :func:`self_calibrate`.
+
+    vignetting: the LUT model (``stderr``: relative standard error of ``V`` from the last ``V`` update, with
+    exposures and radiances held fixed); exposures: ``(F, C)`` ``k_j`` (``k_0 = 1``; NaN for frames without
+    sightings); radiance: ``(P, C)``; sightings: ``(F,)`` observations per frame used; residual_rms_before /
+    after: robust (MAD) scale of the log residuals per channel with ``V = 1`` and with the fitted ``V``;
+    coverage: ``(gh, gw)`` sightings per position bin; info: parameters and diagnostics.
+    """
+
+    vignetting: LUTVignetting
+    exposures: np.ndarray
+    radiance: np.ndarray
+    sightings: np.ndarray
+    residuals_before: list[np.ndarray]
+    residuals_after: list[np.ndarray]
+    coverage: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------------
+# the model of log V
+# --------------------------------------------------------------------------------------------------
+class _LogV:
+    """``log V(x) = log(1 + b1 r^2 + b2 r^4 + b3 r^6) + g(x)`` at fixed positions, with its Jacobian."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, resolution: tuple[int, int], grid: tuple[int, int]) -> None:
+        w, h = resolution
+        self.x, self.y, self.radius = x, y, half_diagonal(resolution)
+        gw, gh = grid
+        self.nodes = (gh + 1, gw + 1)
+        # bilinear weights of the grid nodes: node (r, c) sits at ((c / gw) * W - 0.5, (r / gh) * H - 0.5)
+        wx, wy = _hat_weights(x, w, gw), _hat_weights(y, h, gh)
+        self.bilinear = (wy[:, :, None] * wx[:, None, :]).reshape(len(x), -1)
+
+    def poly(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cx, cy, b1, b2, b3 = p[:5]
+        r2 = ((self.x - cx) ** 2 + (self.y - cy) ** 2) / self.radius ** 2
+        return r2, 1 + b1 * r2 + b2 * r2 ** 2 + b3 * r2 ** 3
+
+    def value(self, p: np.ndarray) -> np.ndarray:
+        _, q = self.poly(p)
+        return np.log(np.maximum(q, 1e-6)) + self.bilinear @ p[5:]
+
+    def jacobian(self, p: np.ndarray) -> np.ndarray:
+        cx, cy, b1, b2, b3 = p[:5]
+        r2, q = self.poly(p)
+        q = np.maximum(q, 1e-6)
+        dq_dr2 = b1 + 2 * b2 * r2 + 3 * b3 * r2 ** 2
+        jac = np.empty((len(self.x), 5 + self.bilinear.shape[1]))
+        jac[:, 0] = dq_dr2 * (-2 * (self.x - cx) / self.radius ** 2) / q
+        jac[:, 1] = dq_dr2 * (-2 * (self.y - cy) / self.radius ** 2) / q
+        jac[:, 2], jac[:, 3], jac[:, 4] = r2 / q, r2 ** 2 / q, r2 ** 3 / q
+        jac[:, 5:] = self.bilinear
+        return jac
+
+
+def _hat_weights(x: np.ndarray, size: int, cells: int) -> np.ndarray:
+    """Linear-interpolation weights ``(N, cells + 1)`` of grid nodes at ``(k / cells) * size - 0.5``."""
+    u = np.clip((np.asarray(x, dtype=np.float64) + 0.5) / size * cells, 0, cells)
+    return np.maximum(0.0, 1.0 - np.abs(u[:, None] - np.arange(cells + 1)[None, :]))
+
+
+def log_v_image(p: np.ndarray, resolution: tuple[int, int], grid: tuple[int, int]) -> np.ndarray:
+    """``log V`` of parameters ``p`` (centre, b1..b3, grid nodes) on every pixel, float64 ``(H, W)``."""
+    w, h = resolution
+    xs, ys = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)
+    r2 = ((xs[None, :] - p[0]) ** 2 + (ys[:, None] - p[1]) ** 2) / half_diagonal(resolution) ** 2
+    q = 1 + p[2] * r2 + p[3] * r2 ** 2 + p[4] * r2 ** 3
+    nodes = p[5:].reshape(grid[1] + 1, grid[0] + 1)
+    g = _hat_weights(ys, h, grid[1]) @ nodes @ _hat_weights(xs, w, grid[0]).T
+    return np.log(np.maximum(q, 1e-6)) + g
+
+
+def _grid_penalty(nodes: tuple[int, int]) -> np.ndarray:
+    """Rows of second differences along both grid axes, plus first differences at the borders' ends (so that a
+    plane, which trades against the polynomial's centre, is not free either)."""
+    nr, nc = nodes
+    idx = np.arange(nr * nc).reshape(nr, nc)
+    rows = []
+    for line in list(idx) + list(idx.T):
+        for a, b, c in zip(line[:-2], line[1:-1], line[2:]):
+            r = np.zeros(nr * nc)
+            r[[a, b, c]] = (1.0, -2.0, 1.0)
+            rows.append(r)
+    ridge = np.eye(nr * nc) * 0.05
+    # the plane (tilt) of the residual: a camera that mostly pans sees a tilt of log V only as a drift of its
+    # exposures, so the tilt is left to the polynomial's centre (held near the principal point by its prior)
+    yy, xx = np.mgrid[0:nr, 0:nc]
+    plane = np.stack([np.ones(nr * nc), (xx.ravel() - (nc - 1) / 2) / (nc - 1), (yy.ravel() - (nr - 1) / 2) / (nr - 1)],
+                     axis=1)
+    tilt = np.linalg.pinv(plane)[1:] * TILT_WEIGHT
+    return np.vstack([np.array(rows), ridge, tilt])
+
+
+# --------------------------------------------------------------------------------------------------
+# the solver
+# --------------------------------------------------------------------------------------------------
+def _exposures_and_radiance(y: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,
+                            n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares of ``y = kappa_frame + l_point`` with ``kappa_0 = 0``, exactly (Schur complement)."""
+    from scipy import sparse
+
+    b = sparse.coo_matrix((w, (point, frame)), shape=(n_points, n_frames)).tocsr()
+    dp = np.asarray(b.sum(axis=1)).ravel()
+    df = np.asarray(b.sum(axis=0)).ravel()
+    sy_p = np.bincount(point, w * y, minlength=n_points)
+    sy_f = np.bincount(frame, w * y, minlength=n_frames)
+    inv_dp = np.where(dp > 0, 1.0 / np.maximum(dp, 1e-300), 0.0)
+    bs = sparse.diags(np.sqrt(inv_dp)) @ b
+    schur = np.diag(df) - (bs.T @ bs).toarray()
+    rhs = sy_f - b.T @ (inv_dp * sy_p)
+    seen = df > 0
+    seen[0] = False      # kappa_0 = 0
+    kappa = np.zeros(n_frames)
+    sub = np.ix_(seen, seen)
+    ridge = 1e-9 * max(float(np.max(df)), 1.0)
+    kappa[seen] = np.linalg.solve(schur[sub] + ridge * np.eye(int(seen.sum())), rhs[seen])
+    kappa[~seen & (df == 0)] = np.nan
+    kf = np.nan_to_num(kappa)
+    lp = inv_dp * np.bincount(point, w * (y - kf[frame]), minlength=n_points)
+    return kappa, lp
+
+
+def _huber_weights(res: np.ndarray, huber: float) -> tuple[np.ndarray, float]:
+    scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-4)
+    a = np.abs(res) / (huber * scale)
+    return np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-12)), scale
+
+
+def _bins(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    """Each observation's position bin, and the bins' centres: ``(bin (N,), bx, by, (bins_y, bins_x))``."""
+    w, h = obs.resolution
+    size = max(w / POSITION_BINS, 1.0)
+    nx, ny = int(np.ceil(w / size)), int(np.ceil(h / size))
+    ix = np.clip(((np.asarray(obs.x) + 0.5) / size).astype(np.int64), 0, nx - 1)
+    iy = np.clip(((np.asarray(obs.y) + 0.5) / size).astype(np.int64), 0, ny - 1)
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * size - 0.5, (np.arange(ny) + 0.5) * size - 0.5)
+    return iy * nx + ix, gx.ravel(), gy.ravel(), (ny, nx)
+
+
+def _occupied(bin_of: np.ndarray, bx: np.ndarray, by: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Renumber the bins to the occupied ones: ``(bin (N,) into them, their bx, their by)``."""
+    used, inverse = np.unique(bin_of, return_inverse=True)
+    return inverse, bx[used], by[used]
+
+
+def check_constrained(obs: Observations, *, min_frames: int = 3, min_points: int = 20) -> dict[str, int]:
+    """Raise :class:`SelfCalibrationError` unless the sightings can constrain ``V``: at least ``min_frames``
+    frames with sightings, and in every region of a 3 x 3 split of the image at least ``min_points`` points that
+    are also seen outside that region (a point seen only at one image position says nothing about ``V``).
+    Returns those counts per region."""
+    frames = int(np.count_nonzero(np.bincount(np.asarray(obs.frame), minlength=obs.n_frames)))
+    if frames < min_frames:
+        raise SelfCalibrationError(
+            f"only {frames} frame(s) have usable surface points (need {min_frames}); use more frames (--frames) "
+            "with valid depth and poses, not over- or under-exposed")
+    w, h = obs.resolution
+    col = np.clip((np.asarray(obs.x) + 0.5) * 3 / w, 0, 2).astype(np.int64)
+    row = np.clip((np.asarray(obs.y) + 0.5) * 3 / h, 0, 2).astype(np.int64)
+    region = row * 3 + col
+    point = np.asarray(obs.point)
+    n_points = obs.n_points
+    counts = {}
+    for r, name in enumerate(REGIONS):
+        inside = np.zeros(n_points, bool)
+        outside = np.zeros(n_points, bool)
+        inside[point[region == r]] = True
+        outside[point[region != r]] = True
+        counts[name] = int(np.count_nonzero(inside & outside))
+    thin = [name for name, n in counts.items() if n < min_points]
+    if thin:
+        raise SelfCalibrationError(
+            f"the sequence cannot constrain vignetting: too few surface points are seen both in "
+            f"{', '.join(thin)} and elsewhere in the image ({', '.join(str(counts[t]) for t in thin)} < {min_points}); "
+            "use a sequence (or a longer --frames range) in which the camera pans and turns so that surfaces "
+            "cross the whole image")
+    return counts
+
+
+def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, iterations: int = 15,
+                   huber: float = 2.0, smoothness: float = 0.1, min_frames: int = 3, min_points: int = 20,
+                   centre: tuple[float, float] | None = None, centre_sigma: float = 0.05, stderr_bins: int = 40) -> SelfCalibration:
+    """Estimate ``V``, ``k_j`` and ``L_i`` per channel from ``obs`` (see the module doc).
+
+    grid: (columns, rows) of the non-radial residual; iterations: IRLS rounds; huber: the Huber threshold in
+    robust standard deviations of the log residuals; smoothness: weight of the residual's second differences
+    (relative to the number of sightings per grid cell); min_frames, min_points: :func:`check_constrained`.
+    """
+    regions = check_constrained(obs, min_frames=min_frames, min_points=min_points)
+    width, height = obs.resolution
+    point = np.asarray(obs.point, dtype=np.int64)
+    frame = np.asarray(obs.frame, dtype=np.int64)
+    n_points, n_frames = obs.n_points, obs.n_frames
+    logs = np.log(np.asarray(obs.irradiance, dtype=np.float64))
+    all_bins, bx, by, bin_shape = _bins(obs)
+    coverage = np.bincount(all_bins, minlength=bx.size).reshape(bin_shape)
+    bin_of, bx, by = _occupied(all_bins, bx, by)
+    n_bins = bx.size
+    model = _LogV(bx, by, obs.resolution, grid)
+    penalty = _grid_penalty(model.nodes)
+    per_cell = len(point) / float(grid[0] * grid[1])
+    lam = smoothness * per_cell
+    centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0]) if centre is None else np.asarray(centre, float)
+    centre_weight = 1.0 / centre_sigma ** 2
+    luts, ses, kappas, radiances = [], [], [], []
+    before, after, params_out, scales = [], [], [], []
+    for c in range(obs.channels):
+        y = logs[:, c]
+        p = np.concatenate([centre0, np.zeros(3 + model.bilinear.shape[1])])
+        w = np.ones(len(y))
+        scale = 0.01
+        for it in range(iterations):
+            v_obs = model.value(p)[bin_of]
+            kappa, lp = _exposures_and_radiance(y - v_obs, w, point, frame, n_points, n_frames)
+            if it == 0:
+                res0 = y - v_obs - np.nan_to_num(kappa)[frame] - lp[point]
+                before.append(res0)
+            target = y - np.nan_to_num(kappa)[frame] - lp[point]
+            # the V update on position bins: weighted mean target and total weight per bin
+            wb = np.bincount(bin_of, w, minlength=n_bins)
+            tb = np.bincount(bin_of, w * target, minlength=n_bins) / np.maximum(wb, 1e-300)
+            prior = (centre0, centre_weight * float(wb.sum()) * scale ** 2 / model.radius ** 2)
+            p = _gauss_newton(model, p, tb, wb, penalty, lam, obs.resolution, prior)
+            res = y - model.value(p)[bin_of] - np.nan_to_num(kappa)[frame] - lp[point]
+            w, scale = _huber_weights(res, huber)
+        # gauge: V = 1 at the polynomial's centre (g shifted to 0 there), k_0 = 1 (kappa_0 = 0 already)
+        centre_model = _LogV(np.array([p[0]]), np.array([p[1]]), obs.resolution, grid)
+        g_centre = float(centre_model.bilinear[0] @ p[5:])
+        p[5:] -= g_centre
+        lp += g_centre
+        after.append(res)
+        scales.append(scale)
+        luts.append(np.exp(log_v_image(p, obs.resolution, grid)))
+        ses.append(_stderr(model, p, tb, wb, penalty, lam, prior, scale, stderr_bins, (height, width)))
+        kappas.append(kappa)
+        radiances.append(np.exp(lp))
+        params_out.append(p)
+    lut = np.stack(luts, axis=2)
+    info = {"method": "self-calibration (IRLS, Huber, alternating exact exposure/radiance and Gauss-Newton V)",
+            "grid": list(grid), "iterations": iterations, "huber": huber, "smoothness": smoothness,
+            "observations": int(len(point)), "points": n_points, "frames": n_frames,
+            "centre": [[round(float(q[0]), 2), round(float(q[1]), 2)] for q in params_out],
+            "polynomial": [[float(v) for v in q[2:5]] for q in params_out],
+            "residual_scale_log": [float(s) for s in scales], "points_per_region": regions}
+    vign = LUTVignetting(np.clip(lut, 1e-3, 10.0).astype(np.float32), info=info,
+                         stderr=np.stack(ses, axis=2).astype(np.float32))
+    sightings = np.bincount(frame, minlength=n_frames)
+    return SelfCalibration(vignetting=vign, exposures=np.exp(np.stack(kappas, axis=1)),
+                           radiance=np.stack(radiances, axis=1), sightings=sightings, residuals_before=before,
+                           residuals_after=after, coverage=coverage, info=info)
+
+
+def _normal_equations(model: _LogV, p: np.ndarray, tb: np.ndarray, wb: np.ndarray, penalty: np.ndarray,
+                      lam: float, prior: tuple[np.ndarray, float] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    jac = model.jacobian(p)
+    r = tb - model.value(p)
+    jw = jac * wb[:, None]
+    a = jac.T @ jw
+    g = jw.T @ r
+    reg = lam * (penalty.T @ penalty)
+    a[5:, 5:] += reg
+    g[5:] -= reg @ p[5:]
+    a[:5, :5] += np.diag(np.maximum(np.diag(a[:5, :5]), 1e-12)) * 1e-6
+    if prior is not None:
+        centre0, weight = prior
+        a[0, 0] += weight
+        a[1, 1] += weight
+        g[:2] -= weight * (p[:2] - centre0)
+    return a, g, jac
+
+
+def _gauss_newton(model: _LogV, p: np.ndarray, tb: np.ndarray, wb: np.ndarray, penalty: np.ndarray, lam: float,
+                  resolution: tuple[int, int], prior: tuple[np.ndarray, float], steps: int = 3) -> np.ndarray:
+    """A few damped Gauss-Newton steps of the weighted bin residual ``tb - log V`` (+ the grid's penalty)."""
+    w, h = resolution
+
+    def cost(q):
+        return float(np.sum(wb * (tb - model.value(q)) ** 2) + lam * np.sum((penalty @ q[5:]) ** 2)
+                     + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
+
+    current = cost(p)
+    for _ in range(steps):
+        a, g, _ = _normal_equations(model, p, tb, wb, penalty, lam, prior)
+        try:
+            step = np.linalg.solve(a, g)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(a, g, rcond=None)[0]
+        t = 1.0
+        while t > 1e-3:
+            q = p + t * step
+            q[0] = np.clip(q[0], -0.25 * w, 1.25 * w)
+            q[1] = np.clip(q[1], -0.25 * h, 1.25 * h)
+            if np.all(model.poly(q)[1] > 0.02) and cost(q) <= current:
+                p, current = q, cost(q)
+                break
+            t *= 0.5
+        else:
+            break
+    return p
+
+
+def _stderr(model: _LogV, p: np.ndarray, tb: np.ndarray, wb: np.ndarray, penalty: np.ndarray,
+            lam: float, prior: tuple[np.ndarray, float], scale: float, bins: int, shape: tuple[int, int]) -> np.ndarray:
+    """Relative standard error of ``V`` per pixel: ``sqrt(j(x)^T cov j(x))`` with ``cov = s^2 A^-1`` (``A`` the
+    normal matrix of the last ``V`` update, ``s`` the robust residual scale), exposures and radiances fixed."""
+    import cv2
+
+    a, _, _ = _normal_equations(model, p, tb, wb, penalty, lam, prior)
+    cov = scale ** 2 * np.linalg.pinv(a)
+    height, width = shape
+    gx = np.linspace(0, width - 1, bins)
+    gy = np.linspace(0, height - 1, max(2, int(round(bins * height / width))))
+    xx, yy = np.meshgrid(gx, gy)
+    coarse = _LogV(xx.ravel(), yy.ravel(), (width, height), (model.nodes[1] - 1, model.nodes[0] - 1))
+    jac = coarse.jacobian(p)
+    se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, cov, jac), 0.0)).reshape(xx.shape)
+    return cv2.resize(se.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+def coverage_text(coverage: np.ndarray, min_samples: int = 3) -> tuple[str, list[str]]:
+    """The coverage of image positions as the white-paper calibration reports it: the share of position bins
+    with at least ``min_samples`` sightings, and the 3 x 3 regions with more than 5 % of their bins below."""
+    below = coverage < min_samples
+    h, w = below.shape
+    ys, xs = [0, h // 3, h - h // 3, h], [0, w // 3, w - w // 3, w]
+    thin = []
+    parts = []
+    for i in range(3):
+        for j in range(3):
+            frac = float(below[ys[i]:ys[i + 1], xs[j]:xs[j + 1]].mean())
+            if frac > 0.05:
+                thin.append(REGIONS[3 * i + j])
+                parts.append(f"{REGIONS[3 * i + j]} {100 * frac:.0f}% below")
+    head = (f"coverage: {100 * (1 - below.mean()):.1f}% of image positions ({h}x{w} bins) have >= {min_samples} "
+            f"sightings (median {np.median(coverage):.0f})")
+    if parts:
+        head += f"; thin: {', '.join(parts)}; move the camera so that surfaces pass through these regions"
+    return head, thin
+
+
+__all__ = ["DEFAULT_GRID", "Observations", "SelfCalibration", "SelfCalibrationError", "check_constrained",
+           "coverage_text", "self_calibrate"]
