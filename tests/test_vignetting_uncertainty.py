@@ -191,3 +191,22 @@ def test_kinked_response_sweep_stays_within_a_quarter_level_with_the_true_respon
         assert (acc.count.min(axis=2) == 0).mean() < 0.005
         model = fit_vignetting(acc, model="lut")
         assert np.all(flat_rms_vs_truth(model.evaluate(), truth, table) < 0.25)
+
+
+def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumulation(sweep, tmp_path):
+    """se(f^-1) = 0.5 % at every level: dlnV = sqrt(2) 0.5 % at every pixel, so the response part is
+    sqrt(2) 0.005 times the RMS of dI/dlnV = z / 2.2 (gamma 2.2) of the flat field at 200."""
+    table, truth = sweep["table"], sweep["truth"]
+    response = CameraResponse(table, {"inverse_stderr": np.full(256, 0.005)})
+    frames = render_sweep(table, truth, frames=48, seed=2, full_well=3000.0)
+    acc = collect_vignetting(frames, response, progress=False)
+    np.testing.assert_array_equal(acc.response_stderr, np.full((256, 3), 0.005))
+    from radiometry.vignetting_calibration import VignettingAccumulation
+
+    back = VignettingAccumulation.load(acc.save(tmp_path / "acc.npz"))
+    np.testing.assert_array_equal(back.response_stderr, acc.response_stderr)
+    model = fit_vignetting(back, model="lut")
+    v = model.evaluate().astype(np.float64)
+    z = 255.0 * ((200 / 255.0) ** 2.2 * v) ** (1 / 2.2)
+    expected = np.sqrt(2) * 0.005 * np.sqrt(np.mean((z / 2.2) ** 2, axis=(0, 1)))
+    np.testing.assert_allclose(model.info["error_budget"]["response"], expected, rtol=0.05)

@@ -15,6 +15,7 @@ from radiometry.fileio import save_model_file
 from radiometry.response import CameraResponse, validate_inverse_table
 from radiometry.vignetting import read_model_file
 from radiometry.vignetting_calibration.scales import estimate_frame_scales, fill_nan_cells
+from radiometry.vignetting_calibration.uncertainty import response_log_stderr
 
 ACCUMULATION_KIND = "vignetting_accumulation"
 REGIONS = ("top-left", "top", "top-right", "left", "centre", "right", "bottom-left", "bottom", "bottom-right")
@@ -143,7 +144,8 @@ class VignettingAccumulator:
                                       cell_sums=sums, cell_counts=counts, block=self.block,
                                       frame_indices=np.array(self._indices, dtype=np.int64),
                                       skipped=dict(skipped or {}), source=source,
-                                      response_table=self.response.inverse_table.copy())
+                                      response_table=self.response.inverse_table.copy(),
+                                      response_stderr=response_log_stderr(self.response, ch))
 
 
 @dataclass(frozen=True)
@@ -181,7 +183,8 @@ class VignettingAccumulation:
     ``count``, ``sum``, ``sumsq``: ``(H, W, C)`` per pixel and channel, irradiance ``f^-1(I)``;
     ``cell_sums``/``cell_counts``: ``(T, gh, gw, C)`` per used frame on ``block``-pixel cells;
     ``frame_indices``: ``(T,)`` position of each used frame in the source; ``skipped``: reason -> number
-    of skipped frames.
+    of skipped frames; ``response_table``: the response's ``f^-1`` used; ``response_stderr``: its own relative
+    standard error per level and channel (``(256, C)``), when it carried one (``meta["inverse_stderr"]``).
     """
 
     count: np.ndarray
@@ -194,6 +197,7 @@ class VignettingAccumulation:
     skipped: dict[str, int] = field(default_factory=dict)
     source: str = ""
     response_table: np.ndarray | None = None
+    response_stderr: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---------------------------------------------------------------- basic properties
@@ -225,7 +229,10 @@ class VignettingAccumulation:
 
     @property
     def response(self) -> CameraResponse | None:
-        return None if self.response_table is None else CameraResponse(self.response_table)
+        if self.response_table is None:
+            return None
+        meta = {} if self.response_stderr is None else {"inverse_stderr": np.asarray(self.response_stderr).tolist()}
+        return CameraResponse(self.response_table, meta)
 
     def coverage(self) -> np.ndarray:
         """Samples per pixel (the minimum over channels), int32 ``(H, W)``."""
@@ -300,6 +307,8 @@ class VignettingAccumulation:
                   "cell_counts": self.cell_counts, "frame_indices": self.indices()}
         if self.response_table is not None:
             arrays["response_table"] = self.response_table
+        if self.response_stderr is not None:
+            arrays["response_stderr"] = np.asarray(self.response_stderr, dtype=np.float64)
         return save_model_file(path, ACCUMULATION_KIND, arrays,
                                {"block": self.block, "skipped": self.skipped, "source": self.source})
 
@@ -312,7 +321,8 @@ class VignettingAccumulation:
                       cell_counts=arrays["cell_counts"].astype(np.uint16), block=int(meta["block"]),
                       frame_indices=arrays.get("frame_indices"),
                       skipped={str(k): int(v) for k, v in dict(meta.get("skipped", {})).items()},
-                      source=str(meta.get("source", "")), response_table=arrays.get("response_table"))
+                      source=str(meta.get("source", "")), response_table=arrays.get("response_table"),
+                      response_stderr=arrays.get("response_stderr"))
         except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:

@@ -19,9 +19,10 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
 - ``coverage``: what pixels with fewer samples (thin) or none (filled) add to it: sweeping longer removes it;
 - ``normalisation``: the uniform error of ``V = 1`` at the centre;
 - ``response``: the response's error propagated, ``dlnV(x) = d ln f^-1(z_x) - d ln f^-1(z_centre)`` at the mean
-  level ``z`` each pixel saw. ``d ln f^-1`` is the response's own standard error when its ``meta`` carries one
-  (``"inverse_stderr"``, relative, per level and channel), else its roughness: the departure of ``ln f^-1`` from a
-  local quadratic over 9 levels, averaged over the levels a pixel's noise spreads its samples. Roughness is what a
+  level ``z`` each pixel saw, averaged over the levels a pixel's noise spreads its samples. When the response's
+  ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel) that is
+  propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``); else its roughness, the departure of ``ln f^-1`` from a
+  local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape
   (a rounded knee) is invisible to it, so this part is a lower bound.
 """
@@ -93,14 +94,24 @@ def lut_stderr(count: np.ndarray, total: np.ndarray, total_sq: np.ndarray, weigh
     return se.astype(np.float32)
 
 
-def response_log_roughness(response: CameraResponse, channels: int, *, window: int = 9) -> np.ndarray:
-    """``d ln f^-1`` per level and channel, float64 ``(256, C)``: the response's ``meta["inverse_stderr"]`` when
-    it has one, else the departure of ``ln f^-1`` from a quadratic fitted over ``window`` levels around each
-    level (0 at levels 0 and 255 and where ``f^-1 = 0``)."""
+def response_log_stderr(response: CameraResponse, channels: int) -> np.ndarray | None:
+    """The response's own relative standard error of ``f^-1`` per level and channel (``meta["inverse_stderr"]``,
+    ``(256,)`` or ``(256, C)``), float64 ``(256, C)``; None when it carries none (or an unusable one)."""
     given = response.meta.get("inverse_stderr")
-    if given is not None:
+    if given is None:
+        return None
+    try:
         arr = np.asarray(given, dtype=np.float64).reshape(256, -1)
-        return np.repeat(arr, channels, axis=1) if arr.shape[1] == 1 and channels > 1 else arr[:, :channels]
+    except (TypeError, ValueError):
+        return None
+    if arr.shape[1] not in (1, channels) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        return None
+    return np.repeat(arr, channels, axis=1) if arr.shape[1] == 1 else arr
+
+
+def response_log_roughness(response: CameraResponse, channels: int, *, window: int = 9) -> np.ndarray:
+    """``d ln f^-1`` per level and channel, float64 ``(256, C)``: the departure of ``ln f^-1`` from a quadratic
+    fitted over ``window`` levels around each level (0 at levels 0 and 255 and where ``f^-1 = 0``)."""
     tables = response.channel_tables(channels).astype(np.float64)
     half = window // 2
     out = np.zeros((256, channels))
@@ -168,7 +179,8 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     normalisation = np.sqrt(np.mean((gain * norm_se[None, None, :]) ** 2, axis=(0, 1)))
     resp = np.full(ch, np.nan)
     if with_response:
-        rough = response_log_roughness(response, ch)
+        given = response_log_stderr(response, ch)
+        rough = response_log_roughness(response, ch) if given is None else given
         tables = response.channel_tables(ch).astype(np.float64)
         levels = np.arange(256.0)
         for c in range(ch):
@@ -185,7 +197,10 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
             taps = np.arange(-int(np.ceil(3 * sigma)), int(np.ceil(3 * sigma)) + 1)
             kernel = np.exp(-0.5 * (taps / sigma) ** 2)
             smooth = np.convolve(rough[:, c], kernel / kernel.sum(), mode="same")
-            dlnv = np.interp(z, levels, smooth) - float(np.interp(zc, levels, smooth))
+            if given is None:  # one signed pattern: the centre's part cancels where the levels are alike
+                dlnv = np.interp(z, levels, smooth) - float(np.interp(zc, levels, smooth))
+            else:  # standard errors: independent at the pixel's level and the centre's
+                dlnv = np.hypot(np.interp(z, levels, smooth), float(np.interp(zc, levels, smooth)))
             resp[c] = float(np.sqrt(np.sum((gain[:, :, c][obs] * dlnv) ** 2) / n_pixels))
     parts = {"noise": noise, "coverage": coverage, "normalisation": normalisation, "response": resp}
     total = np.sqrt(sum(np.nan_to_num(p) ** 2 for p in parts.values()))
