@@ -10,13 +10,14 @@ Each kernel is a loop NumPy cannot express without materialising far larger arra
   per-texel minimum with write conflicts that also keeps the winner's id, and resets only the texels
   written (``np.minimum.at`` plus a winner pass and a fresh map per frame: 8.5x slower, measured at 100k
   surfels).
-- :func:`bin_pixels` / :func:`mark_winners` / :func:`candidates` / :func:`match`: the association's index map ``scale`` times finer
-  than the image, kept as per-pixel lists of the surfels that project into each pixel (the texel's winner
-  is the nearest surfel of the list with that texel): 1.2 MB that stay in the CPU cache instead of a dense
-  4x z-buffer and id map (39 MB at 640x480, each surfel a cache miss); then the search for the surfels near
-  each pixel's ray in its index-map window (depth and normal gates), sample by sample in image order
-  through the lists of the window's pixels, then the pixel -> surfel choice (nearest ray, conflicts to the
-  closest ray) and the surfels' own nearest pixel: scatter-minima with write conflicts.
+- :func:`bin_pixels` / :func:`mark_winners` / :func:`candidates` / :func:`match`: the association's index
+  map ``scale`` times finer than the image, kept as per-pixel lists of the surfels that project into each
+  pixel (the texel's winner is the nearest surfel of the list with that texel): 1.2 MB that stay in the CPU
+  cache instead of a dense 4x z-buffer and id map (39 MB at 640x480, each surfel a cache miss); then the
+  search for the surfels near each pixel's ray in its index-map window (depth and normal gates), sample by
+  sample in image order through the lists of the window's pixels, then the pixel -> surfel choice (nearest
+  ray, conflicts to the closest ray) and the surfels' own nearest pixel: scatter-minima with write
+  conflicts.
 - :func:`merge` / :func:`append_new`: the confidence-weighted update, a scatter into the map by surfel id that
   also records the colour pairs before averaging, and the new surfels written straight into the map (the
   samples taken to the world frame on the way: no per-frame world-frame copies, masks or gathers).
@@ -307,10 +308,11 @@ def merge(taken, v, vis_idx, svert, snorm, rot, trans, prad, palpha, pcol, pos, 
     For each visible surfel ``j`` refined by sample ``k = taken[j]`` (map row ``s = vis_idx[j]``; the sample's
     camera-frame vertex ``svert[k]`` and normal ``snorm[k]`` go to the world frame with ``rot``/``trans``):
     when the sample's radius is below ``radius_ratio`` times the surfel's, position, normal (renormalised),
-    radius and colour become ``(c * old + a * new) / (c + a)`` and the pair (surfel colour before, sample
-    colour) is recorded; otherwise only the confidence and the time are updated (the sample is too coarse to
-    refine a surfel seen from closer before). In both cases ``conf += a`` and ``t_upd = tick``. A moved
-    surfel widens its block's bounding box (rows ``1 << shift`` per block).
+    radius and colour become ``(c * old + a * new) / (c + a)`` (computed as ``c / (c + a) * old + a / (c + a)
+    * new``: one division) and the pair (surfel colour before, sample colour) is recorded; otherwise only
+    the confidence and the time are updated (the sample is too coarse to refine a surfel seen from closer
+    before). In both cases ``conf += a`` and ``t_upd = tick``. A moved surfel widens its block's bounding
+    box (rows ``1 << shift`` per block).
     """
     npairs = 0
     pw = np.empty(3)
@@ -328,22 +330,25 @@ def merge(taken, v, vis_idx, svert, snorm, rot, trans, prad, palpha, pcol, pos, 
                 pair_sample[npairs, ch] = pcol[k, ch]
             npairs += 1
             _to_world(svert, snorm, k, rot, trans, pw, nw)
-            wsum = c + a
+            inv = 1.0 / (c + a)  # one division: the weights are shared by every field
+            wc = c * inv
+            wa = a * inv
             blk = s >> shift
             for ch in range(3):
-                pos[s, ch] = (c * pos[s, ch] + a * pw[ch]) / wsum
-                col[s, ch] = (c * col[s, ch] + a * pcol[k, ch]) / wsum
+                pos[s, ch] = wc * pos[s, ch] + wa * pw[ch]
+                col[s, ch] = wc * col[s, ch] + wa * pcol[k, ch]
                 block_lo[blk, ch] = min(block_lo[blk, ch], pos[s, ch])
                 block_hi[blk, ch] = max(block_hi[blk, ch], pos[s, ch])
-            nx = (c * nrm[s, 0] + a * nw[0]) / wsum
-            ny = (c * nrm[s, 1] + a * nw[1]) / wsum
-            nz = (c * nrm[s, 2] + a * nw[2]) / wsum
+            nx = wc * nrm[s, 0] + wa * nw[0]
+            ny = wc * nrm[s, 1] + wa * nw[1]
+            nz = wc * nrm[s, 2] + wa * nw[2]
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             if nn > 1e-12:
-                nrm[s, 0] = nx / nn
-                nrm[s, 1] = ny / nn
-                nrm[s, 2] = nz / nn
-            rad[s] = (c * rad[s] + a * prad[k]) / wsum
+                inv_n = 1.0 / nn
+                nrm[s, 0] = nx * inv_n
+                nrm[s, 1] = ny * inv_n
+                nrm[s, 2] = nz * inv_n
+            rad[s] = wc * rad[s] + wa * prad[k]
         conf[s] = c + a
         t_upd[s] = tick
     return npairs

@@ -434,9 +434,9 @@ class SurfelBackend:
         smap = self.map
         removed = np.zeros(1, np.int64)
         v = cull(smap.array("position"), smap.array("normal"), smap.array("confidence"), smap.array("updated"),
-                      smap.size, smap.block_lo, smap.block_hi, smap.block_oldest, smap.BLOCK_SHIFT, rcw, tcw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], float(w), float(h), min_conf,
-                      max_depth, self._tick - 1, self.confidence_threshold, self.unstable_window, idx, pc, nc, px,
-                      removed)
+                 smap.size, smap.block_lo, smap.block_hi, smap.block_oldest, smap.BLOCK_SHIFT, rcw, tcw, K[0, 0],
+                 K[1, 1], K[0, 2], K[1, 2], float(w), float(h), min_conf, max_depth, self._tick - 1,
+                 self.confidence_threshold, self.unstable_window, idx, pc, nc, px, removed)
         self._expired = int(removed[0])
         smap.note_dead(self._expired)
         return v
