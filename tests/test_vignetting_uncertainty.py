@@ -210,3 +210,5 @@ def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumula
     z = 255.0 * ((200 / 255.0) ** 2.2 * v) ** (1 / 2.2)
     expected = np.sqrt(2) * 0.005 * np.sqrt(np.mean((z / 2.2) ** 2, axis=(0, 1)))
     np.testing.assert_allclose(model.info["error_budget"]["response"], expected, rtol=0.05)
+    assert model.info["error_budget"]["response_source"] == "the response's own standard error"
+    assert sweep["model"].info["error_budget"]["response_source"] == "roughness"

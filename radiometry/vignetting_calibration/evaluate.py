@@ -138,7 +138,9 @@ def budget_text(budget: dict, channels: int) -> str:
     parts = [("noise", f"noise (were there >= {wanted} samples everywhere)"),
              ("coverage", f"coverage (pixels with < {wanted} samples or none)"),
              ("normalisation", "normalisation (V = 1 at the centre)"),
-             ("response", "response (propagated; its roughness only: a lower bound)"), ("total", "total")]
+             ("response", "response (propagated; its roughness only: a lower bound)"
+              if budget.get("response_source", "roughness") == "roughness"
+              else f"response (propagated: {budget['response_source']})"), ("total", "total")]
     lines = [f"expected error, levels of a flat field at {budget.get('level', 200):g} ({names}):"]
     for key, label in parts:
         values = budget.get(key)

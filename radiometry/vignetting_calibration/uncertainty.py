@@ -151,7 +151,7 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     ``normalisation``, ``response`` and ``total`` (their root sum of squares), each a list of ``C`` floats, plus
     the ``level`` and ``min_samples`` they refer to. ``flat`` is the unnormalised mean irradiance (NaN where
     unobserved), ``normaliser`` its value at the centre, ``sample_rel_var`` :func:`relative_sample_variance`;
-    ``response`` None leaves the response part out (NaN)."""
+    ``response`` None leaves the response part out (NaN); ``response_source`` says what was propagated."""
     ch = lut.shape[2]
     v = lut.astype(np.float64)
     if response is None:
@@ -178,6 +178,7 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     coverage = np.sqrt(np.maximum(np.mean(d_pixel ** 2, axis=(0, 1)) - noise ** 2, 0.0))
     normalisation = np.sqrt(np.mean((gain * norm_se[None, None, :]) ** 2, axis=(0, 1)))
     resp = np.full(ch, np.nan)
+    given = None
     if with_response:
         given = response_log_stderr(response, ch)
         rough = response_log_roughness(response, ch) if given is None else given
@@ -206,6 +207,8 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     total = np.sqrt(sum(np.nan_to_num(p) ** 2 for p in parts.values()))
     out: dict[str, Any] = {name: [round(float(x), 4) for x in p] for name, p in parts.items()}
     out["total"] = [round(float(x), 4) for x in total]
+    out["response_source"] = ("none" if not with_response else "roughness" if given is None
+                              else "the response's own standard error")
     out["level"] = float(level)
     out["min_samples"] = int(min_samples)
     return out
