@@ -17,7 +17,7 @@ and the LUT with the true one (what the response's error costs).
 
 Usage::
 
-    python scripts/bench_vignetting.py [--design varied] [--methods debevec engel] [--frames 64] [--out FILE]
+    python scripts/bench_vignetting.py [--design varied] [--methods debevec engel] [-n 64] [--out FILE]
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ CURVES = ("euroc", "kink-4x", "gamma-2.2")
 
 def run(vignettes: list[str], curve_names: list[str], methods: list[str], design: str, frames: int,
         bracket_size: tuple[int, int], seed: int = 0) -> list[dict]:
+    """One row per vignette x curve x response (``"truth"`` and each of ``methods``), as printed."""
     from radiometry.response import CameraResponse
     from radiometry.response_fit import fit_response
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", default=["debevec", "engel"])
     parser.add_argument("--vignettes", nargs="+", choices=VIGNETTES, default=list(VIGNETTES))
     parser.add_argument("--curves", nargs="+", choices=CURVES, default=list(CURVES))
-    parser.add_argument("--frames", type=int, default=64, help="sweep frames")
+    parser.add_argument("-n", "--num-frames", type=int, default=64, help="frames of each sweep")
     parser.add_argument("--bracket-size", default="320x240", help="WxH of the bracket images")
     parser.add_argument("--out", type=Path, default=None, help="also write the table (text) here")
     args = parser.parse_args(argv)
@@ -103,10 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     from radiometry.tables import format_table
 
     bw, bh = (int(v) for v in args.bracket_size.lower().split("x"))
-    rows = run(args.vignettes, args.curves, args.methods, args.design, args.frames, (bw, bh))
+    rows = run(args.vignettes, args.curves, args.methods, args.design, args.num_frames, (bw, bh))
     shown = [{k: (f"{v:.1f}" if k == "time [s]" else v) for k, v in row.items() if k != "worst"} for row in rows]
     text = format_table(shown)
-    print(f"\nvignetting LUT end to end ({args.design} brackets {bw}x{bh}, {args.frames}-frame sweeps): flat field at "
+    print(f"\nvignetting LUT end to end ({args.design} brackets {bw}x{bh}, {args.num_frames}-frame sweeps): flat field at "
           "level 200, RMS vs truth")
     print(text)
     if args.out:
