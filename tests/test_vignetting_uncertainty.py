@@ -63,7 +63,8 @@ def test_filled_pixels_get_an_inflated_standard_error():
     total_sq = np.where(count > 0, 20 * (1 + 0.01 ** 2), 0.0)
     observed = count > 0
     ratio = np.where(observed, 1.0 + rng.normal(0, 0.002, flat.shape), 0.0)
-    se = lut_stderr(count, total, total_sq, count.astype(float), ratio, np.ones_like(flat), observed,
+    se = lut_stderr(relative_sample_variance(count, total, total_sq), count.astype(float), ratio, np.ones_like(flat),
+                    observed,
                     np.where(observed, ratio, 1.0), smooth_sigma=1.0, shrink=3.0, normaliser_stderr=np.zeros(1))
     assert np.median(se[:, :10]) > np.median(se[:, 20:])
     # a pixel with 20 samples of 1 % noise, averaged with its neighbours: below 1 %/sqrt(20)

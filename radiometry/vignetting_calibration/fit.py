@@ -250,10 +250,10 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
     lut = base * q / norm
     lut = np.maximum(lut, 1e-3)
     norm_se = np.asarray(centre_info["stderr"], dtype=np.float64)
-    stderr = lut_stderr(acc.count, acc.sum, acc.sumsq, weights, ratio, fine, observed, q_coarse,
-                        smooth_sigma=smooth_sigma, shrink=shrink, normaliser_stderr=norm_se)
-    budget = error_budget(lut, stderr, acc.count, flat, norm, norm_se,
-                          relative_sample_variance(acc.count, acc.sum, acc.sumsq), acc.response,
+    rel_var = relative_sample_variance(acc.count, acc.sum, acc.sumsq)
+    stderr = lut_stderr(rel_var, weights, ratio, fine, observed, q_coarse, smooth_sigma=smooth_sigma, shrink=shrink,
+                        normaliser_stderr=norm_se)
+    budget = error_budget(lut, stderr, acc.count, flat, norm, norm_se, rel_var, acc.response,
                           min_samples=max(min_samples, thin_samples))
     info = {"method": "lut", "joint_scale": bool(joint_scale), "smooth_sigma": float(smooth_sigma),
             "filled_fraction": float(1.0 - observed.all(axis=2).mean()), "frames_used": acc.frames_used,

@@ -69,14 +69,14 @@ def relative_sample_variance(count: np.ndarray, total: np.ndarray, total_sq: np.
     return out
 
 
-def lut_stderr(count: np.ndarray, total: np.ndarray, total_sq: np.ndarray, weights: np.ndarray, ratio: np.ndarray,
-               fine: np.ndarray, observed: np.ndarray, q_coarse: np.ndarray, *, smooth_sigma: float, shrink: float,
+def lut_stderr(rel_var: np.ndarray, weights: np.ndarray, ratio: np.ndarray, fine: np.ndarray, observed: np.ndarray,
+               q_coarse: np.ndarray, *, smooth_sigma: float, shrink: float,
                normaliser_stderr: np.ndarray) -> np.ndarray:
-    """Relative standard error of the LUT, float32 ``(H, W, C)`` (see the module doc). Arguments are the LUT fit's
-    intermediates: ``weights`` the counts used, ``ratio`` the flat over the radial fit, ``fine`` the denoised
-    ratio, ``observed`` the pixels with data, ``q_coarse`` the ratio smoothed coarsely; ``normaliser_stderr``
-    ``(C,)`` the relative standard error of each channel's normaliser (NaN: unknown, taken as 0)."""
-    rel_var = relative_sample_variance(count, total, total_sq)
+    """Relative standard error of the LUT, float32 ``(H, W, C)`` (see the module doc). ``rel_var``: each pixel's
+    :func:`relative_sample_variance`; the others are the LUT fit's intermediates: ``weights`` the counts used,
+    ``ratio`` the flat over the radial fit, ``fine`` the denoised ratio, ``observed`` the pixels with data,
+    ``q_coarse`` the ratio smoothed coarsely; ``normaliser_stderr`` ``(C,)`` the relative standard error of each
+    channel's normaliser (NaN: unknown, taken as 0)."""
     w = np.where(observed, weights, 0.0)
     numerator = _blur(w * rel_var * np.where(observed, ratio, 0.0) ** 2, smooth_sigma, squared=True)
     denominator = _blur(w, smooth_sigma) + shrink
