@@ -13,12 +13,12 @@ One job per module:
 - :mod:`~mapping.batch.report`: ``OUT/summary.csv`` and ``OUT/index.html``.
 """
 
-from mapping.batch.commands import COMMANDS, BatchCommand, MethodChoiceError, folder_state
+from mapping.batch.commands import COMMANDS, BatchCommand, MethodChoiceError
 from mapping.batch.report import summary_rows, write_summary
 from mapping.batch.runner import ENGINES, BatchError, Outcome, Task, cpu_count, ray_available, run_batch
 from mapping.batch.sequences import read_sequence_list, task_names
 from mapping.batch.worker import THREAD_VARIABLES, thread_environment
 
 __all__ = ["BatchCommand", "BatchError", "COMMANDS", "ENGINES", "MethodChoiceError", "Outcome", "THREAD_VARIABLES",
-           "Task", "cpu_count", "folder_state", "ray_available", "read_sequence_list", "run_batch", "summary_rows",
+           "Task", "cpu_count", "ray_available", "read_sequence_list", "run_batch", "summary_rows",
            "task_names", "thread_environment", "write_summary"]

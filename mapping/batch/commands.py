@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -193,14 +192,5 @@ COMMANDS = Registry("batch command", {
 })
 
 
-def folder_state(command: str, folder: str | os.PathLike) -> str:
-    """``complete``, ``new`` (nothing there yet) or ``incomplete`` (a run that did not finish: killed, failed, or
-    still running in another process) for the results folder of ``command``."""
-    folder = Path(folder)
-    if not folder.exists():
-        return "new"
-    return "complete" if COMMANDS[command].complete(folder) else "incomplete"
-
-
 __all__ = ["BatchCommand", "COMMANDS", "MethodChoiceError", "compare_command", "compare_methods", "compare_rows",
-           "folder_state", "reconstruct_command", "reconstruct_rows"]
+           "reconstruct_command", "reconstruct_rows"]

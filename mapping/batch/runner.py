@@ -18,7 +18,6 @@ does) and ``processes`` (``workers`` child processes of this one, a new process 
 from __future__ import annotations
 
 import json
-import logging
 import os
 import pickle
 import subprocess
@@ -29,11 +28,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from mapping.batch.commands import COMMANDS, folder_state
+from mapping.batch.commands import COMMANDS
 from mapping.batch.worker import thread_environment
 from radiometry.errors import RadiomapError
-
-log = logging.getLogger(__name__)
 
 ENGINES = ("auto", "ray", "processes")
 LOGS = "logs"          # OUT/logs/<name>.log: each task's output
@@ -111,7 +108,7 @@ def run_batch(tasks: Iterable[Task], out: str | os.PathLike, *, workers: int | N
     outcomes: dict[Task, Outcome] = {}
     todo = []
     for task in tasks:
-        if not force and folder_state(task.command, task.output) == "complete":
+        if not force and COMMANDS[task.command].complete(task.output):
             outcomes[task] = _finish(Outcome(task, "skipped"), notify)
         else:
             todo.append(replace(task, arguments={**task.arguments, "force": True, "progress": False}))

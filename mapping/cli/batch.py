@@ -1,5 +1,6 @@
 """``radiomap batch {reconstruct|compare} LIST -o OUT -- [options]``: one command on many sequences, on Ray or on
-local processes, resumable, with a summary across sequences."""
+local processes, resumable, with a summary across sequences (``mapping.batch``; a command joins with an entry in
+``mapping.batch.COMMANDS`` and a ``task_arguments`` function in its own CLI module)."""
 
 from __future__ import annotations
 
@@ -20,8 +21,7 @@ Examples:
 \b
 Run it again to resume: complete results folders are skipped, folders of runs that did not finish (killed,
 failed) are run again. Each task's output is in OUT/logs/<name>.log. Options after -- are those of
-'radiomap COMMAND' (all but SEQUENCE, -o and --force). self-calibrate runs in a batch once radiomap has
-that command.
+'radiomap COMMAND' (all but SEQUENCE, -o and --force). Batches do not run self-calibrate yet.
 """
 
 #: options of the command that the batch sets itself
