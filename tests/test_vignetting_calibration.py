@@ -644,3 +644,21 @@ def test_levels_the_response_extrapolated_are_not_accumulated():
     # a response without the record (Debevec's, a file) keeps every level in (dark, saturation)
     plain = VignettingAccumulator(4, 4, 3, CameraResponse(table))
     assert plain.add(image, np.ones((4, 4), bool)) == 48
+
+
+def test_a_seed_on_a_bright_patch_of_the_desk_does_not_fill_the_desk():
+    """The sheet moved into a corner and the previous frame's centre lies on the textured desk, on a patch bright
+    enough to pass for the sheet (gamma 2.2, 1500 e- full well): the desk was filled as 'sheet' (17 514 desk pixels
+    in one frame); a region 1.5x brighter elsewhere now re-seeds the fill on the sheet."""
+    from response_curves import gamma_curve
+    from vignetting_sweeps import render_sweep, sheet_masks, vignette_field
+
+    truth = vignette_field("asymmetric", 160, 120)
+    masks = sheet_masks(120, 160, 48, seed=2)
+    frame = render_sweep(gamma_curve(), truth, masks=[masks[3]], seed=2, full_well=3000.0)[0]
+    det = detect_sheet(frame, seed=(127, 119))
+    assert det.ok
+    assert np.count_nonzero(det.mask & ~masks[3]) == 0
+    assert np.count_nonzero(det.mask) > 0.5 * np.count_nonzero(masks[3])
+    with pytest.raises(ValueError, match="inverse must be the 256 values"):
+        detect_sheet(frame, inverse=np.ones(10))

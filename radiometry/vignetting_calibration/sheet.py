@@ -115,6 +115,8 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
         raise ValueError(f"image must be uint8 (H, W) or (H, W, 3), got {img.dtype} {img.shape}")
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
+    if inverse is not None and np.shape(inverse) != (256,):
+        raise ValueError(f"inverse must be the 256 values of f^-1 of the grey level, got shape {np.shape(inverse)}")
     h, w = img.shape[:2]
     n_pixels = h * w
     if border is None:
@@ -138,7 +140,7 @@ def detect_sheet(image: np.ndarray, seed: tuple[int, int] | None = None, *, satu
     # corner: if a region of at least min_area is min_contrast times brighter than the one filled, that is the
     # sheet: fill from its most interior point instead
     level = float(np.median(blurred[region]))
-    brighter = ((~region) & (blurred >= max(dark, min_contrast * level))).astype(np.uint8)
+    brighter = ((~region) & ~saturated & (blurred >= max(dark, min_contrast * level))).astype(np.uint8)
     if np.count_nonzero(brighter) >= max(16, min_area * n_pixels):
         n, labels, stats, _ = cv2.connectedComponentsWithStats(brighter, connectivity=4)
         largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
