@@ -21,7 +21,8 @@ Each kernel is a loop NumPy cannot express without materialising far larger arra
 - :func:`merge` / :func:`append_new`: the confidence-weighted update, a scatter into the map by surfel id that
   also records the colour pairs before averaging, and the new surfels written straight into the map (the
   samples taken to the world frame on the way: no per-frame world-frame copies, masks or gathers).
-- :func:`clean`: ElasticFusion's free-space / duplicate test, a window search per surfel.
+- :func:`occupants` / :func:`clean`: ElasticFusion's free-space / duplicate test, a window search per
+  surfel among the stable surfels in view (gathered in one pass).
 - :func:`splat`: surfel-disc rendering with a per-pixel z-buffer (ray / disc intersection per pixel of each
   surfel's footprint).
 
@@ -391,6 +392,26 @@ def _to_world(svert, snorm, k, rot, trans, pw, nw):
     for i in range(3):
         pw[i] = rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z + trans[i]
         nw[i] = rot[i, 0] * a + rot[i, 1] * b + rot[i, 2] * c + 0.0
+
+
+@njit(cache=True, nogil=True)
+def occupants(keep, pc, px, n_old, conf, created, updated, c_stable, occ_ids, occ_pc, occ_px, occ_created,
+              occ_updated):
+    """The clean-up's occupants: of the first ``n_old`` transformed surfels (``keep``/``pc``/``px``), those
+    with confidence above ``c_stable``, gathered with their creation and update times; returns how many."""
+    n = 0
+    for k in range(n_old):
+        i = keep[k]
+        if conf[i] > c_stable:
+            occ_ids[n] = i
+            for a in range(3):
+                occ_pc[n, a] = pc[k, a]
+            occ_px[n, 0] = px[k, 0]
+            occ_px[n, 1] = px[k, 1]
+            occ_created[n] = created[i]
+            occ_updated[n] = updated[i]
+            n += 1
+    return n
 
 
 @njit(cache=True, nogil=True)

@@ -412,21 +412,25 @@ class SurfelBackend:
         vt = kern.transform_subset(ids, nt, smap.array("position"), smap.array("normal"), rcw, tcw, fx, fy, cx, cy,
                                    float(w), float(h), np.inf, keep, pc, nc, px)
         n_old = int(np.count_nonzero(keep[:vt] < first_new))  # old ones come first, in order
-        occ = np.flatnonzero(smap.array("confidence")[keep[:n_old]] > self.confidence_threshold)
-        if occ.size == 0:
+        occ_ids = np.empty(n_old, np.int64)
+        occ_pc = np.empty((n_old, 3), np.float32)
+        occ_px = np.empty((n_old, 2), np.float32)
+        occ_created = np.empty(n_old, np.int32)
+        occ_updated = np.empty(n_old, np.int32)
+        n_occ = kern.occupants(keep, pc, px, n_old, smap.array("confidence"), smap.array("created"),
+                               smap.array("updated"), self.confidence_threshold, occ_ids, occ_pc, occ_px, occ_created,
+                               occ_updated)
+        if n_occ == 0:
             return 0
-        occ_ids = keep[occ]
-        occ_pc = pc[occ]
-        zbuf, imap, tex = self._index_buffers("coarse", w * h, occ.size)
-        kern.build_index(px[occ], occ_pc, occ.size, 1, w, h, zbuf, imap, tex)
+        zbuf, imap, tex = self._index_buffers("coarse", w * h, n_occ)
+        kern.build_index(occ_px, occ_pc, n_occ, 1, w, h, zbuf, imap, tex)
         remove = np.zeros(vt, np.bool_)
         try:
             kern.clean(keep, pc, nc, px, vt, smap.array("radius"), smap.array("created"), imap, occ_ids, occ_pc,
-                       smap.array("created")[occ_ids], smap.array("updated")[occ_ids], w, h, self.pixel_stride, tick,
-                       DUPLICATE_GAP, DUPLICATE_LATERAL, DUPLICATE_MIN, self.free_space_gap, FACING_NZ,
-                       FREE_SPACE_MIN, remove)
+                       occ_created, occ_updated, w, h, self.pixel_stride, tick, DUPLICATE_GAP, DUPLICATE_LATERAL,
+                       DUPLICATE_MIN, self.free_space_gap, FACING_NZ, FREE_SPACE_MIN, remove)
         finally:
-            kern.clear_index(tex, occ.size, zbuf, imap)
+            kern.clear_index(tex, n_occ, zbuf, imap)
         return smap.kill(keep[:vt][remove]) if remove.any() else 0
 
     def _cull(self, rcw, tcw, K, w: int, h: int, min_conf: float, max_depth: float, idx, pc, nc, px) -> int:
