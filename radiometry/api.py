@@ -145,6 +145,8 @@ def calibrate_vignetting(frames: Any, response: CameraResponse | PathLike, *, mo
     options: dict[str, Any] = {"joint_scale": bool(drift_correction)}
     if smooth_sigma is not None:
         options["smooth_sigma"] = smooth_sigma
+    if model == "lut":
+        options["thin_samples"] = min_samples  # the error budget's "coverage": as the command counts it
     fitted = fit_vignetting(acc, model=model, **options)
     report = acc.coverage_report(min_samples)
     if not report.complete:

@@ -19,14 +19,13 @@ from radiometry.response_fit import (
     find_times_file,
     fit_response,
     fit_response_debevec,
-    fit_response_opencv_debevec,
-    fit_response_robertson,
     load_brackets,
     merge_radiance,
     prediction_rms,
     read_times_file,
     select_samples,
 )
+from radiometry.response_opencv import fit_response_opencv_debevec, fit_response_robertson
 
 # --------------------------------------------------------------------------------------------------
 # synthetic brackets: known irradiance, known CRF, photon + read noise, 8-bit quantisation

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import struct
 import warnings
 from pathlib import Path
@@ -235,7 +237,8 @@ INCREASING = 255 * U ** 2.2
     ("1_0 " + _line(INCREASING[1:]), "found 0 numbers"),
 ])
 def test_malformed_pcalib(tmp_path, text, match):
-    assert_refused(read_pcalib, tmp_path / "pcalib.txt", text, match)
+    """strict: a dip is refused as DSO refuses it (the default repairs a small one: test_pcalib_repair.py)."""
+    assert_refused(functools.partial(read_pcalib, strict=True), tmp_path / "pcalib.txt", text, match)
 
 
 def test_pcalib_binary_and_trailing_text(tmp_path):
