@@ -57,7 +57,7 @@ class SamplingOptions:
     """How surface points are sampled and sightings kept (see the module doc)."""
 
     anchor_every: int = 5
-    stride: int = 12
+    points_per_row: int = 53      # sampling grid: one point every width // points_per_row pixels
     window: int = 5
     depth_tolerance: tuple[float, float] = (0.02, 0.02)    # metres + fraction of the depth
     min_cos: float = 0.35
@@ -134,8 +134,9 @@ def _anchor_points(frame, pose: np.ndarray, tables: np.ndarray, opts: SamplingOp
     ok = _usable(frame, opts) & (cos > opts.min_cos) & (texture < opts.max_texture)
     ok[:s + 1], ok[-s - 1:], ok[:, :s + 1], ok[:, -s - 1:] = False, False, False, False
     grid = np.zeros_like(ok)
-    off = opts.stride // 2
-    grid[off::opts.stride, off::opts.stride] = True
+    stride = max(2, w // opts.points_per_row)
+    off = stride // 2
+    grid[off::stride, off::stride] = True
     sel = ok & grid
     pts, nrm = cam[sel], n[sel]
     R, t = pose[:3, :3], pose[:3, 3]
