@@ -113,8 +113,8 @@ class SelfCalibration:
 
     vignetting: the LUT model (``stderr``: relative standard error of ``V`` from the last ``V`` update, with
     exposures and radiances held fixed); exposures: ``(F, C)`` ``k_j`` (``k_0 = 1``; NaN for frames without
-    sightings); radiance: ``(P, C)``; sightings: ``(F,)`` observations per frame used; residual_rms_before /
-    after: robust (MAD) scale of the log residuals per channel with ``V = 1`` and with the fitted ``V``;
+    sightings); radiance: ``(P, C)``; sightings: ``(F,)`` observations per frame used; residuals_before /
+    residuals_after: the log residuals per channel with ``V = 1`` and with the fitted ``V`` (``(N,)`` each);
     coverage: ``(gh, gw)`` sightings per position bin; info: parameters and diagnostics.
     """
 
@@ -290,12 +290,16 @@ def check_constrained(obs: Observations, *, min_frames: int = 3, min_points: int
 
 def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, iterations: int = 15,
                    huber: float = 2.0, smoothness: float = 0.01, min_frames: int = 3, min_points: int = 20,
-                   centre: tuple[float, float] | None = None, centre_sigma: float = 1.0, stderr_bins: int = 40) -> SelfCalibration:
+                   centre: tuple[float, float] | None = None, centre_sigma: float = 1.0,
+                   stderr_bins: int = 40) -> SelfCalibration:
     """Estimate ``V``, ``k_j`` and ``L_i`` per channel from ``obs`` (see the module doc).
 
     grid: (columns, rows) of the non-radial residual; iterations: IRLS rounds; huber: the Huber threshold in
     robust standard deviations of the log residuals; smoothness: weight of the residual's second differences
-    (relative to the number of sightings per grid cell); min_frames, min_points: :func:`check_constrained`.
+    (relative to the number of sightings per grid cell); min_frames, min_points: :func:`check_constrained`;
+    centre: the principal point (default: the image centre), the prior of the polynomial's centre, with
+    ``centre_sigma`` half-diagonals of spread; stderr_bins: grid across the width on which the standard error of
+    ``V`` is evaluated (then resized).
     """
     regions = check_constrained(obs, min_frames=min_frames, min_points=min_points)
     width, height = obs.resolution
@@ -374,7 +378,8 @@ def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, 
 
     def cost(q, k, l):
         r = y - model.value(q)[bin_of] - k[frame] - l[point]
-        return float(np.sum(w * r * r) + lam * np.sum((penalty @ q[5:]) ** 2) + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
+        return float(np.sum(w * r * r) + lam * np.sum((penalty @ q[5:]) ** 2)
+                     + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
 
     jv = model.jacobian(p)                                      # (bins, nv)
     nv = jv.shape[1]
