@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True)
@@ -200,3 +200,108 @@ def range_fragments(blocks, R, t, fx, fy, cx, cy, down, res, voxel_size, h_down,
         out[k] = n
         total += n
     return total
+
+
+# --------------------------------------------------------------------------------------------------
+# surface colour: the trilinear colour at each ray-cast surface point, read straight from the grid's buffers
+# --------------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True)
+def hit_bounds(depth, Rc, o, fx, fy, cx, cy, block_size):  # pragma: no cover
+    """The block coordinates (lowest, highest) of a box holding the surface point of every pixel with depth
+    (``o + depth * Rc (u - cx) / fx, (v - cy) / fy, 1)``, camera-to-world ``Rc``, origin ``o``) and the blocks
+    of its eight neighbouring voxels (one block wider on each side)."""
+    lo = np.full(3, 2 ** 30, np.int64)
+    hi = np.full(3, -2 ** 30, np.int64)
+    rows, cols = depth.shape
+    for y in range(rows):
+        dy = (np.float32(y) - cy) / fy
+        for x in range(cols):
+            t = depth[y, x]
+            if not t > 0:
+                continue
+            dx = (np.float32(x) - cx) / fx
+            for a in range(3):
+                g = o[a] + t * (Rc[a, 0] * dx + Rc[a, 1] * dy + Rc[a, 2])
+                b = int(np.floor(g / block_size))
+                if b - 1 < lo[a]:
+                    lo[a] = b - 1
+                if b + 1 > hi[a]:
+                    hi[a] = b + 1
+    return lo, hi
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res, voxel_size, out):  # pragma: no cover
+    """Colour of each pixel's ray-cast surface point (``depth`` along the ray, as :func:`hit_bounds`), as
+    Open3D's ``VoxelBlockGrid.ray_cast`` colours it: the trilinear interpolation of the eight voxels around the
+    point, over those observed (weight > 0), 0 where the point's block is absent or no corner is observed.
+    ``index``/``lo`` is a dense table of the blocks' buffer slots (-1 = absent); ``colour`` holds Open3D's float
+    colours, stored x 255 (it takes float images as 0..1), divided by 255 here as its ray cast does. Voxel
+    ``(i, j, k)`` of a block sits at its corner ``+ (i, j, k) * voxel_size`` (z-major buffers)."""
+    rows, cols = depth.shape
+    f32 = np.float32
+    vs = f32(voxel_size)
+    block_size = vs * f32(res)
+    res2 = res * res
+    res3 = res2 * res
+    for y in prange(rows):
+        dyc = (f32(y) - cy) / fy
+        for x in range(cols):
+            out[y, x, 0] = 0.0
+            out[y, x, 1] = 0.0
+            out[y, x, 2] = 0.0
+            t = depth[y, x]
+            if not t > 0:
+                continue
+            dxc = (f32(x) - cx) / fx
+            xg = o[0] + t * (Rc[0, 0] * dxc + Rc[0, 1] * dyc + Rc[0, 2])
+            yg = o[1] + t * (Rc[1, 0] * dxc + Rc[1, 1] * dyc + Rc[1, 2])
+            zg = o[2] + t * (Rc[2, 0] * dxc + Rc[2, 1] * dyc + Rc[2, 2])
+            bx = int(np.floor(xg / block_size))
+            by = int(np.floor(yg / block_size))
+            bz = int(np.floor(zg / block_size))
+            slot = _block_slot(bx, by, bz, index, lo)
+            if slot < 0:
+                continue
+            gx = (xg - f32(bx) * block_size) / vs
+            gy = (yg - f32(by) * block_size) / vs
+            gz = (zg - f32(bz) * block_size) / vs
+            fx0, fy0, fz0 = np.floor(gx), np.floor(gy), np.floor(gz)
+            ix, iy, iz = int(fx0), int(fy0), int(fz0)
+            rx, ry, rz = gx - fx0, gy - fy0, gz - fz0
+            r_sum = f32(0.0)
+            c0 = f32(0.0)
+            c1 = f32(0.0)
+            c2 = f32(0.0)
+            for k in range(8):
+                dx, dy, dz = k & 1, (k >> 1) & 1, (k >> 2) & 1
+                nx, ny, nz = ix + dx, iy + dy, iz + dz
+                if 0 <= nx < res and 0 <= ny < res and 0 <= nz < res:
+                    li = slot * res3 + nz * res2 + ny * res + nx
+                else:
+                    nslot = _block_slot(bx + (nx >= res) - (nx < 0), by + (ny >= res) - (ny < 0),
+                                        bz + (nz >= res) - (nz < 0), index, lo)
+                    if nslot < 0:
+                        continue
+                    li = nslot * res3 + (nz % res) * res2 + (ny % res) * res + (nx % res)
+                if not weight[li] > 0:
+                    continue
+                r = (rx if dx else f32(1.0) - rx) * (ry if dy else f32(1.0) - ry) * (rz if dz else f32(1.0) - rz)
+                c0 += r * colour[3 * li]
+                c1 += r * colour[3 * li + 1]
+                c2 += r * colour[3 * li + 2]
+                r_sum += r
+            if r_sum > 0:
+                r_sum *= f32(255.0)
+                out[y, x, 0] = c0 / r_sum
+                out[y, x, 1] = c1 / r_sum
+                out[y, x, 2] = c2 / r_sum
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _block_slot(bx, by, bz, index, lo):  # pragma: no cover
+    """Buffer slot of block (bx, by, bz) in a dense table over blocks ``lo ..`` (-1: absent or outside)."""
+    jx, jy, jz = bx - lo[0], by - lo[1], bz - lo[2]
+    if jx < 0 or jy < 0 or jz < 0 or jx >= index.shape[0] or jy >= index.shape[1] or jz >= index.shape[2]:
+        return -1
+    return index[jx, jy, jz]
