@@ -27,7 +27,7 @@ Examples:
   radiomap demo -o demo_out
       simulate a camera and a room, calibrate, reconstruct and compare (no data needed)
   radiomap response data_samples/brackets --times data_samples/brackets/times.txt -o crf.npz
-      recover the camera response from bracketed exposures (Debevec & Malik)
+      recover the camera response from bracketed exposures (auto: Engel, or Debevec & Malik at equal ratios)
   radiomap simulate paper -o paper_seq --seed 1
       render a white-paper vignetting calibration sweep with known ground truth
   radiomap vignetting paper_seq/rgb --response crf.npz -o vignetting.npz --model lut
@@ -38,6 +38,10 @@ Examples:
       fuse irradiance into a TSDF map, export a mesh and the colour-disagreement histogram
   radiomap reconstruct --config run1/config.json -o run2 --voxel-size 0.02
       replay run1 with its recorded options, one of them changed (compare --config likewise)
+  radiomap self-calibrate room_seq --response crf.npz --poses gt -o selfcal
+      vignetting, exposure and white balance from the sequence itself (no white sheet)
+  radiomap batch reconstruct scans.txt -o runs -- --response crf.npz --poses gt
+      every listed sequence, one task each, on Ray or local processes (resumable)
 \b
 Option names mean one thing everywhere: -o output, -r response, --vignetting a model file, --frames a
 range A:B:S, -n/--num-frames a count, --format a sequence layout; -v is only 'radiomap -v COMMAND'
