@@ -53,12 +53,49 @@ def _options(data) -> list[str]:
     return ["--poses", "gt", "-r", str(data["crf"]), "--depth-max", "6"]
 
 
-def _batch(data, out: Path, *extra: str, command: str = "reconstruct", options=None, background: bool = False):
+#: imported by every Python process of a batch started with :func:`_stopping_batch` (``sitecustomize``): the first
+#: run to finish frame 3 writes its pid and stops itself (SIGSTOP), so the test kills a run that is certainly
+#: mid-way, on any machine, without racing it
+_STOP_HOOK = """
+import logging, os, signal
+
+class _StopAtFrame(logging.Handler):
+    def emit(self, record):
+        if not record.getMessage().startswith("frame 3 of "):
+            return
+        token = os.environ["RADIOMAP_TEST_STOP_TOKEN"]
+        try:
+            os.mkdir(token)          # the first run only
+        except FileExistsError:
+            return
+        with open(os.path.join(token, "pid.tmp"), "w") as fh:
+            fh.write(str(os.getpid()))
+        os.replace(os.path.join(token, "pid.tmp"), os.path.join(token, "pid"))
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+_log = logging.getLogger("mapping.pipeline")
+_log.setLevel(logging.DEBUG)
+_log.addHandler(_StopAtFrame())
+"""
+
+
+def _batch(data, out: Path, *extra: str, command: str = "reconstruct", options=None, background: bool = False,
+           env=None):
     args = [*RADIOMAP, "batch", command, str(data["list"]), "-o", str(out), "--no-progress", *extra, "--",
             *(_options(data) if options is None else options)]
     if background:
-        return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     return subprocess.run(args, capture_output=True, text=True, timeout=900)
+
+
+def _stopping_batch(data, out: Path, tmp_path: Path, *extra: str):
+    """A batch in the background whose first run to finish frame 3 stops itself (:data:`_STOP_HOOK`)."""
+    hook = tmp_path / "stop_hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_STOP_HOOK)
+    path = os.pathsep.join(p for p in (str(hook), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "PYTHONPATH": path, "RADIOMAP_TEST_STOP_TOKEN": str(tmp_path / "stopped")}
+    return _batch(data, out, *extra, background=True, env=env)
 
 
 def _single(data, sequence: Path, out: Path) -> None:
@@ -91,25 +128,20 @@ def _nothing_half_written(out: Path) -> None:
             json.loads(path.read_text())
 
 
-def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 600) -> None:
-    """Until ``path`` exists (the event), or fail if the batch ended first or nothing happened in ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while not path.exists():
-        assert proc.poll() is None, f"the batch ended before {path} appeared: {proc.communicate()}"
-        assert time.monotonic() < deadline, f"{path} did not appear in {timeout} s"
+def _kill_stopped_worker(out: Path, tmp_path: Path, proc: subprocess.Popen, timeout: float = 600) -> str:
+    """SIGKILL the run that stopped itself at frame 3 (:func:`_stopping_batch`): wait for its pid (the event), find
+    the results folder whose LOCK it holds, check the folder is marked RUNNING, kill. Returns the folder's name."""
+    pid_file = tmp_path / "stopped" / "pid"
+    deadline = time.monotonic() + timeout   # only ends a hung test: the stop comes after 3 frames of a tiny run
+    while not pid_file.exists():
+        assert proc.poll() is None, f"the batch ended before any run reached frame 3: {proc.communicate()}"
+        assert time.monotonic() < deadline, f"no run reached frame 3 in {timeout} s"
         time.sleep(0.02)
-
-
-def _kill_worker_mid_run(folder: Path, proc: subprocess.Popen) -> int:
-    """SIGKILL the worker that writes ``folder``: found by the pid in its LOCK once its RUNNING marker appears;
-    stopped first (SIGSTOP) and checked to be still running, so the kill lands mid-run however loaded the
-    machine is."""
-    _wait_for(folder / "RUNNING", proc)
-    pid = json.loads((folder / "LOCK").read_text())["pid"]
-    os.kill(pid, signal.SIGSTOP)
-    assert (folder / "RUNNING").exists(), "the run finished before it could be stopped"
+    pid = int(pid_file.read_text())
+    folders = [lock.parent for lock in out.glob("*/LOCK") if json.loads(lock.read_text())["pid"] == pid]
+    assert len(folders) == 1 and (folders[0] / "RUNNING").exists(), folders
     os.kill(pid, signal.SIGKILL)
-    return pid
+    return folders[0].name
 
 
 # ------------------------------------------------------------------ the sequence list and names
@@ -210,8 +242,8 @@ def test_a_failing_sequence_does_not_stop_the_others(data, tmp_path):
 
 def test_a_killed_worker_leaves_running_and_the_rerun_completes_it(data, tmp_path):
     out = tmp_path / "out"
-    proc = _batch(data, out, "--engine", "processes", "--workers", "1", background=True)
-    _kill_worker_mid_run(out / "alpha", proc)
+    proc = _stopping_batch(data, out, tmp_path, "--engine", "processes", "--workers", "1")
+    assert _kill_stopped_worker(out, tmp_path, proc) == "alpha"                  # one worker: the first listed
     stdout, stderr = proc.communicate(timeout=900)
     assert proc.returncode == 1
     assert "alpha: failed: the worker" in stderr and "killed by SIGKILL" in stderr
@@ -248,19 +280,11 @@ def test_batch_compare_and_usage_errors(data, tmp_path):
 
 
 def test_a_command_batch_does_not_run_is_named_in_one_line(data, tmp_path):
-    from mapping.cli import SUBCOMMANDS
-
-    if "self-calibrate" in COMMANDS:
-        pytest.skip("batch runs self-calibrate now")
-    res = _batch(data, tmp_path / "x", command="self-calibrate", options=[])
-    assert res.returncode == 1 and not (tmp_path / "x").exists()
-    if "self-calibrate" in SUBCOMMANDS:   # the command exists, its batch entry not yet
-        assert res.stderr.strip() == "radiomap: error: radiomap batch runs reconstruct, compare, not 'self-calibrate'"
-    else:
-        assert res.stderr.strip() == ("radiomap: error: radiomap has no command 'self-calibrate' yet: 'radiomap batch "
-                                      "self-calibrate' runs it once it exists; batch runs reconstruct, compare")
-    res = _batch(data, tmp_path / "x", command="demo", options=[])
-    assert res.returncode == 1 and "batch runs reconstruct, compare, not 'demo'" in res.stderr
+    names = ", ".join(COMMANDS)
+    for wrong in ("demo", "reconstuct"):   # a command batch does not run; a typo
+        res = _batch(data, tmp_path / "x", command=wrong, options=[])
+        assert res.returncode == 1 and not (tmp_path / "x").exists()
+        assert res.stderr.strip() == f"radiomap: error: radiomap batch runs {names}, not {wrong!r}"
 
 
 def test_run_batch_checks_its_arguments(tmp_path):
@@ -276,8 +300,8 @@ def test_run_batch_checks_its_arguments(tmp_path):
 @requires_ray
 def test_ray_engine_same_results_and_a_killed_worker_rerun(data, tmp_path):
     out = tmp_path / "ray"
-    proc = _batch(data, out, "--engine", "ray", "--workers", "1", background=True)
-    _kill_worker_mid_run(out / "alpha", proc)
+    proc = _stopping_batch(data, out, tmp_path, "--engine", "ray", "--workers", "1")
+    assert _kill_stopped_worker(out, tmp_path, proc) == "alpha"
     stdout, stderr = proc.communicate(timeout=900)
     assert proc.returncode == 1 and "alpha: failed: the Ray worker died" in stderr
     assert (out / "alpha" / "RUNNING").exists()

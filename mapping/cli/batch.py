@@ -57,10 +57,7 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
     from radiometry.tables import format_table
 
     if command_name not in COMMANDS:
-        if command_name in SUBCOMMANDS:
-            raise BatchError(f"radiomap batch runs {', '.join(COMMANDS)}, not {command_name!r}")
-        raise BatchError(f"radiomap has no command {command_name!r} yet: 'radiomap batch {command_name}' runs it once "
-                         f"it exists; batch runs {', '.join(COMMANDS)}")
+        raise BatchError(f"radiomap batch runs {', '.join(COMMANDS)}, not {command_name!r}")
     for token in options:
         key = token.split("=", 1)[0]
         if key in _OWN or (token.startswith("-o") and not token.startswith("--")):
