@@ -109,8 +109,13 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
         from mapping.export import ResultsFolder
 
         folder = ResultsFolder(output, force=force)
-        folder.write_json("config.json", _config_record(config, kwargs))
-    run = reconstruct(**kwargs, output=folder)
+    try:
+        if folder is not None:
+            folder.write_json("config.json", _config_record(config, kwargs))
+        run = reconstruct(**kwargs, output=folder)
+    finally:
+        if folder is not None:
+            folder.release()  # the lock goes with the call: a later run into OUT (a shell, a notebook) may start
     return Reconstruction(run, config=config, colour_model=kwargs["colour_model"],
                           backend=kwargs["backend"] if folder is None else None,
                           output=None if folder is None else folder.path, exposure_compensation=compensate)

@@ -231,10 +231,11 @@ def _poses(dataset, frames: list, source: str, *, depth_max: float, progress: bo
                       output=None, progress=progress, write_mesh=False)
     poses = [np.eye(4)] * len(frames)
     have = np.zeros(len(frames), bool)
+    position = {f.index: k for k, f in enumerate(frames)}   # frame numbers of the sequence -> places in `frames`
     fused = [r for r in run.records if r.fused]
     for rec, pose in zip(fused, run.poses):
-        poses[rec.index] = pose
-        have[rec.index] = True
+        poses[position[rec.index]] = pose
+        have[position[rec.index]] = True
     return poses, have
 
 

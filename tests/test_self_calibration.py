@@ -143,3 +143,16 @@ def test_cli_on_a_small_simulated_room(room, tmp_path):
     # a second run into the same folder is refused without --force
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 1 and "already holds a self-calibration" in again.output
+
+
+def test_icp_poses_on_a_frame_range_that_does_not_start_at_zero(room):
+    """ICP poses are placed by the frame's place in the selection, not its number in the sequence (a range
+    starting at frame 6 raised IndexError): one pose per selected frame, the first the anchor's ground truth."""
+    from mapping.datasets import open_dataset
+    from mapping.self_calibration import _poses
+
+    dataset = open_dataset(room, frames=slice(6, 18))
+    frames = [dataset[i] for i in range(len(dataset))]
+    poses, have = _poses(dataset, frames, "icp", depth_max=4.0, progress=False)
+    assert len(poses) == len(have) == 12 and have.sum() >= 6
+    np.testing.assert_allclose(poses[0], frames[0].pose, atol=1e-9)   # frame 6 founds the map at its own pose

@@ -38,8 +38,8 @@ def execute(command: str, arguments: dict, *, threads: int, log: str | None = No
     one line or None, "seconds", "pid", "threads"}``. Only a KeyboardInterrupt or SystemExit propagates."""
     start = time.perf_counter()
     with _output_to(log), _working_folder(cwd):
-        _limit_threads(threads)
         try:
+            _limit_threads(threads)  # imports Open3D: its failure is this sequence's one-line error too
             from mapping.batch.commands import COMMANDS
 
             COMMANDS[command].run(**arguments)
