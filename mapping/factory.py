@@ -52,9 +52,14 @@ def _tsdf(*, voxel_size: float, depth_max: float, block_resolution: int, trunc_v
 
 
 def _surfel(*, voxel_size: float, depth_max: float, block_resolution: int, trunc_voxel_multiplier: float,
-            surfel_mesh: bool = False, depth_min: float = 0.0, **options):
-    """The grid options do not apply to surfels, nor ``depth_min`` (a surfel sample needs a depth above 0)."""
+            surfel_mesh: bool = False, depth_min: float | None = None, **options):
+    """The grid options do not apply to surfels; ``depth_min`` may only say what surfels do (fuse every depth
+    above 0)."""
     from mapping.fusion.surfel import SurfelBackend
+
+    if depth_min not in (None, 0, 0.0):
+        raise ValueError(f"depth_min applies to the TSDF backend, got depth_min={depth_min} for surfels (they fuse "
+                         "every depth above 0); drop depth_min or use backend='tsdf'")
 
     return SurfelBackend(depth_max=depth_max, mesh=surfel_mesh, **options)
 
