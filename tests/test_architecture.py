@@ -43,7 +43,7 @@ def test_listed_modules_exist():
     assert [n for n in named if not (ROOT / n).exists()] == []
 
 
-@pytest.mark.parametrize("folder", [*PACKAGES, "scripts"])
+@pytest.mark.parametrize("folder", [*PACKAGES, "scripts", "tests"])
 def test_no_source_file_is_over_700_lines(folder):
     long = {str(p.relative_to(ROOT)): n for p in _sources(folder)
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}

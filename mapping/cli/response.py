@@ -88,8 +88,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from radiometry.tables import format_table
     from radiometry.errors import CalibrationError, DatasetError, OutputError
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set
-    from radiometry.response_fit import (blue_fill_mask, find_times_file, fit_response, load_brackets,
-                                         prediction_rms)
+    from radiometry.api import calibrate_response
+    from radiometry.response_fit import blue_fill_mask, find_times_file, load_brackets
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
               "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,
@@ -138,20 +138,16 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     import scipy.sparse.linalg  # noqa: F401  (imported before the clock starts: the time is the fit's)
 
     start = time.perf_counter()
-    try:
-        response = fit_response(images, times, method=method, **kwargs)
+    try:  # the fit and its prediction error, as radiometry.calibrate_response does them
+        response = calibrate_response(images, times, method=method, **kwargs)
     except ValueError as exc:  # the images or times of this folder are unusable
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
     except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
         raise CalibrationError(f"{folder}: {exc}") from None
     fit_seconds = time.perf_counter() - start
-    try:
-        rms = prediction_rms(images, times, response, mask=kwargs.get("mask"))
-    except CalibrationError as exc:
-        raise CalibrationError(f"{folder}: {exc}") from None
     meta = response.meta
-    meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names,
-                 "prediction_rms_levels": rms})
+    rms = meta["prediction_rms_levels"]
+    meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names})
 
     method = meta.get("method", method)  # what "auto" chose
     if "chosen_by" in meta:
