@@ -164,6 +164,9 @@ def test_frame_contract_view_carries_the_block_list_and_masked_pixels_are_not_fu
     moved[0, 3] = 0.05
     backend.integrate(depth, colour, K, moved, view=backend.render_for_frame(depth, K, pose))
     assert len(searches) == 5                                        # a view of another pose is not reused
+    other = depth - 0.2                                              # nor a view rendered for other depth
+    backend.integrate(other, colour, K, pose, view=backend.render_for_frame(depth, K, pose))
+    assert len(searches) == 7
 
 
 def test_export_and_stats(tmp_path):

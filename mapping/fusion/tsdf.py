@@ -130,7 +130,7 @@ class _Prepared:
     depth_image: object         # o3d.t.geometry.Image of the depth the blocks were found for
     extrinsic: np.ndarray       # world-to-camera (4, 4)
     extrinsic_t: object         # the same as an o3d.core.Tensor
-    shape: tuple[int, int]
+    depth: np.ndarray           # the depth array they were found for (integrate fuses that array only)
 
 
 class TSDFBackend:
@@ -337,7 +337,7 @@ class TSDFBackend:
         Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
         blocks = self.grid.compute_unique_block_coordinates(depth_image, Kt, extrinsic_t, 1.0, self.depth_max,
                                                             self.trunc_voxel_multiplier)
-        return _Prepared(blocks, depth_image, extrinsic, extrinsic_t, depth.shape)
+        return _Prepared(blocks, depth_image, extrinsic, extrinsic_t, depth)
 
     def render_for_frame(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> ModelView:
         """The map seen from ``pose`` within the blocks ``depth`` touches there; the view carries the block list
@@ -378,7 +378,7 @@ class TSDFBackend:
         if colour.shape != depth.shape + (3,):
             raise ValueError(f"colour must be (H, W, 3) matching depth {depth.shape}, got {colour.shape}")
         prepared = view.prepared if view is not None and valid is None else None
-        if not (isinstance(prepared, _Prepared) and prepared.shape == depth.shape
+        if not (isinstance(prepared, _Prepared) and prepared.depth is depth
                 and np.array_equal(view.pose, pose)):  # not render_for_frame's view of this frame: search again
             depth = masked_depth(depth, valid)
             prepared = self._prepare(depth, K, pose)
