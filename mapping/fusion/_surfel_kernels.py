@@ -76,6 +76,23 @@ def transform_subset(ids, m, pos, nrm, rot, trans, fx, fy, cx, cy, width, height
     return v
 
 
+@njit(cache=True, inline="always")
+def _texel(x, y, scale, ws, hs):  # pragma: no cover
+    """The (row, col) texel of continuous pixel coordinates ``(x, y)`` in a map ``scale`` times finer than the
+    image (``floor((u + 0.5) * scale)``), clamped to the ``hs`` x ``ws`` map."""
+    col = int(math.floor((x + 0.5) * scale))
+    row = int(math.floor((y + 0.5) * scale))
+    if col < 0:
+        col = 0
+    elif col >= ws:
+        col = ws - 1
+    if row < 0:
+        row = 0
+    elif row >= hs:
+        row = hs - 1
+    return row, col
+
+
 @njit(cache=True, nogil=True)
 def build_index(px, pc, v, scale, ws, hs, zbuf, idxmap, tex):
     """Point-render visible surfels ``0..v-1`` into an index map ``scale`` times finer than the image.
@@ -85,16 +102,7 @@ def build_index(px, pc, v, scale, ws, hs, zbuf, idxmap, tex):
     the lower id. ``tex[j]`` receives surfel j's texel so that :func:`clear_index` can reset only those.
     """
     for j in range(v):
-        col = int(math.floor((px[j, 0] + 0.5) * scale))
-        row = int(math.floor((px[j, 1] + 0.5) * scale))
-        if col < 0:
-            col = 0
-        elif col >= ws:
-            col = ws - 1
-        if row < 0:
-            row = 0
-        elif row >= hs:
-            row = hs - 1
+        row, col = _texel(px[j, 0], px[j, 1], scale, ws, hs)
         t = row * ws + col
         tex[j] = t
         z = pc[j, 2]
@@ -125,16 +133,7 @@ def bin_pixels(px, v, scale, width, height, head, nxt, tex):
     ws = width * scale
     hs = height * scale
     for j in range(v):
-        col = int(math.floor((px[j, 0] + 0.5) * scale))
-        row = int(math.floor((px[j, 1] + 0.5) * scale))
-        if col < 0:
-            col = 0
-        elif col >= ws:
-            col = ws - 1
-        if row < 0:
-            row = 0
-        elif row >= hs:
-            row = hs - 1
+        row, col = _texel(px[j, 0], px[j, 1], scale, ws, hs)
         tex[j] = row * ws + col
         p = (row // scale) * width + col // scale
         nxt[j] = head[p]
