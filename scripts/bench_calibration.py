@@ -106,9 +106,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from radiometry.tables import format_table
 
-    logging.getLogger("radiometry").setLevel(logging.ERROR)  # repaired / equal-ratio warnings: in the table
-
-    rows = run((width, height), args.design, args.methods, seed=args.seed)
+    quiet = logging.getLogger("radiometry")  # repaired / equal-ratio warnings: the table shows them
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        rows = run((width, height), args.design, args.methods, seed=args.seed)
+    finally:
+        quiet.setLevel(level)  # main() may run inside another program (the tests): leave its logging as it was
     print(f"response calibration vs truth ({width}x{height}, 12 exposures, OpenCV {cv2.__version__})")
     print(format_table(rows))
     return 0

@@ -100,6 +100,10 @@ def test_bench_calibration_script_runs_on_a_tiny_scene(capsys):
     assert [(r["curve"], r["method"]) for r in rows][:2] == [("gamma-2.2", "debevec"), ("gamma-2.2", "engel")]
     assert len(rows) == 2 * len(curves()) and all(np.isfinite(r["worst 5..250 [%]"]) for r in rows)
     assert all(0 < r["worst 5..250 [%]"] < 10 for r in rows)
+    import logging
+
+    level = logging.getLogger("radiometry").level
     assert script.main(["--size", "96x72", "--design", "2x", "--methods", "debevec"]) == 0
+    assert logging.getLogger("radiometry").level == level     # the script leaves the caller's logging alone
     out = capsys.readouterr().out
     assert "response calibration vs truth (96x72, 12 exposures" in out and "max err 5..240 [%] R/G/B" in out
