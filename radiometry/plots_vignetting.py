@@ -27,6 +27,16 @@ CHANNEL_NAMES = ("R", "G", "B")
 CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
+def _image_panel(ax, im, title: str, colorbar: bool):
+    """Finish an image panel: its title, no ticks, a colour bar if asked; returns the image artist."""
+    ax.set_title(title)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if colorbar:
+        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    return im
+
+
 def _channel_label(c: int, channels: int) -> str:
     return "grey" if channels == 1 else CHANNEL_NAMES[c]
 
@@ -58,12 +68,8 @@ def plot_vignetting_map(ax, model: VignettingModel | np.ndarray, channel: int = 
     if isinstance(model, PolynomialVignetting):
         cx, cy = model.centres[min(channel, model.channels - 1)]
         ax.plot([cx], [cy], marker="+", color="red", markersize=10)
-    ax.set_title(f"V, channel {_channel_label(channel, 3 if v.ndim == 2 else v.shape[2])}")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    if colorbar:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-    return im
+    channels = 3 if v.ndim == 2 else v.shape[2]
+    return _image_panel(ax, im, f"V, channel {_channel_label(channel, channels)}", colorbar)
 
 
 def plot_stderr_map(ax, stderr: np.ndarray, channel: int = 0, *, vmax: float | None = None,
@@ -78,12 +84,7 @@ def plot_stderr_map(ax, stderr: np.ndarray, channel: int = 0, *, vmax: float | N
     pct = 100.0 * se
     top = float(np.percentile(pct, 99)) if vmax is None else float(vmax)
     im = ax.imshow(pct, cmap="magma", vmin=0.0, vmax=max(top, 1e-6), interpolation="nearest")
-    ax.set_title(f"stderr of V [%], channel {_channel_label(channel, channels)}")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    if colorbar:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-    return im
+    return _image_panel(ax, im, f"stderr of V [%], channel {_channel_label(channel, channels)}", colorbar)
 
 
 def plot_radial_profiles(ax, accumulation: "VignettingAccumulation", model: VignettingModel, *,
@@ -140,12 +141,7 @@ def plot_residuals(ax, accumulation: "VignettingAccumulation", model: Vignetting
         limit = float(np.percentile(np.abs(finite), 99)) if finite.size else 1.0
         limit = max(limit, 0.1)
     im = ax.imshow(res, cmap="RdBu_r", vmin=-limit, vmax=limit, interpolation="nearest")
-    ax.set_title(f"residual flat/V - 1 (%), channel {_channel_label(c, ch)}")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    if colorbar:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-    return im
+    return _image_panel(ax, im, f"residual flat/V - 1 (%), channel {_channel_label(c, ch)}", colorbar)
 
 
 def plot_coverage(ax, count: np.ndarray, min_samples: int, *, colorbar: bool = True):
@@ -159,12 +155,8 @@ def plot_coverage(ax, count: np.ndarray, min_samples: int, *, colorbar: bool = T
         overlay = np.zeros((*count.shape, 4))
         overlay[below] = (1.0, 0.0, 0.0, 0.45)
         ax.imshow(overlay, interpolation="nearest")
-    ax.set_title(f"coverage: samples per pixel ({100 * below.mean():.1f}% below {min_samples}, red)")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    if colorbar:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-    return im
+    title = f"coverage: samples per pixel ({100 * below.mean():.1f}% below {min_samples}, red)"
+    return _image_panel(ax, im, title, colorbar)
 
 
 def plot_repeatability(ax, errors: dict[str, np.ndarray], *, channel_names: Sequence[str] = CHANNEL_NAMES):
