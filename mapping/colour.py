@@ -81,6 +81,13 @@ class ColourModel(Protocol):
         """What metrics.json and config.json record about the model."""
         ...
 
+    def predict_observed(self, map_colour: np.ndarray, rgb: np.ndarray,
+                         valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The 8-bit image a camera records of a render ``map_colour`` (H, W, 3) map units, at the exposure of the
+        frame ``rgb`` (uint8 (H, W, 3)) fitted over its ``valid`` pixels (bool (H, W)):
+        ``(predicted float32 levels (H, W, 3), gain float64 (3,))`` (:mod:`mapping.holdout`)."""
+        ...
+
 
 class RawIntensity:
     """No correction: the map averages intensity levels (0..255 as float32); display is the identity."""
@@ -104,6 +111,15 @@ class RawIntensity:
 
     def describe(self) -> dict:
         return {"name": self.name, "map_units": "intensity levels 0..255", "display": "identity"}
+
+    def predict_observed(self, map_colour: np.ndarray, rgb: np.ndarray,
+                         valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``clip(k_c * level)``: a per-channel gain in level space (the raw map's only exposure model), fitted as
+        the median of observed / rendered levels."""
+        from mapping.holdout import fit_gain
+
+        gain = fit_gain(rgb, map_colour, valid)
+        return np.clip(np.asarray(map_colour, dtype=np.float32) * gain.astype(np.float32), 0.0, 255.0), gain
 
 
 # --------------------------------------------------------------------------------------------------
@@ -235,6 +251,19 @@ class IrradianceColour:
 
     def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
         return {}
+
+    def predict_observed(self, map_colour: np.ndarray, rgb: np.ndarray,
+                         valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``f(k_c V(x) E_map)``: the exposure ``k_c`` fitted as the median of ``(f^-1(I) / V) / E_map``, the
+        render pushed back through the vignetting and the response."""
+        from mapping.holdout import fit_gain
+
+        E = np.asarray(map_colour, dtype=np.float32)
+        gain = fit_gain(self.irradiance(rgb), E, valid)
+        h, w = E.shape[:2]
+        v = self.corrector.gain_map(h, w)  # 1 / V, (H, W, 1 or 3)
+        scale = (gain / self.reference_exposure).astype(np.float32)
+        return self._forward(E * scale / v), gain
 
     def describe(self) -> dict:
         vig = None if self.vignetting is None else repr(self.vignetting)

@@ -107,6 +107,11 @@ class CompensatedColour:
         """Display-unit L1 distances of (N, 3) map-unit pairs (the base model's, at the fixed reference)."""
         return self.base.display_l1(map_colour, sample_colour)
 
+    def predict_observed(self, map_colour: np.ndarray, rgb: np.ndarray, valid: np.ndarray):
+        """The base model's prediction: the held-out frame's exposure is fitted afresh against the render (the
+        estimator never saw the frame)."""
+        return self.base.predict_observed(map_colour, rgb, valid)
+
     def export_reference_k(self) -> np.ndarray:
         """The export reference exposure (3,) relative to the first frame (resolved from the estimates)."""
         if self.estimator is None:
