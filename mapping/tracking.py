@@ -208,6 +208,9 @@ class FrameToModelTracker:
     >>> if result.ok: fuse at result.pose
     """
 
+    name = "icp"
+    needs_colour = False   # whether track() needs the frame's colour (the pipeline passes it then)
+
     def __init__(self, *, iterations: Sequence[int] = (6, 3, 1), depth_diff: float = 0.07,
                  huber_delta: float = 0.05, depth_min: float = 0.1, depth_max: float = 3.0,
                  motion_model: str = "constant_velocity", min_fitness: float = 0.25, max_rmse: float = 0.03,
@@ -270,30 +273,50 @@ class FrameToModelTracker:
         self._elapsed += 1
 
     # ---------------------------------------------------------------- tracking
-    def track(self, depth: np.ndarray, K: np.ndarray, view: ModelView | None, view_pose: np.ndarray
-              ) -> TrackingResult:
-        """Align ``depth`` to ``view`` (the map rendered at ``view_pose``); update the state when accepted."""
+    def track(self, depth: np.ndarray, K: np.ndarray, view: ModelView | None, view_pose: np.ndarray,
+              colour=None) -> TrackingResult:
+        """Align ``depth`` to ``view`` (the map rendered at ``view_pose``); update the state when accepted.
+        ``colour``: the frame's colour in map units (a :class:`mapping.tracking_photometric.TrackingColour`) for
+        the trackers whose :attr:`needs_colour` is True; point-to-plane ICP uses depth only."""
         init = self.predict()
-        result = self._track(depth, K, view, view_pose, init)
-        result.initial_pose = init
+        result = self.align(depth, K, view, view_pose, init, colour=colour)
         if result.ok:
             self._accept(result.pose)
         else:
             self._elapsed += 1
         return result
 
-    def _track(self, depth, K, view, view_pose, init) -> TrackingResult:
+    def align(self, depth: np.ndarray, K: np.ndarray, view: ModelView | None, view_pose: np.ndarray,
+              init: np.ndarray, *, colour=None) -> TrackingResult:
+        """One alignment from the initial pose ``init`` (camera-to-world) under the failure rules, without
+        changing the tracker's state (:meth:`start` must have been called: the motion limits count from the
+        last accepted pose). :meth:`track` is this from :meth:`predict`; the tracking study calls it from
+        perturbed poses."""
+        init = np.asarray(init, dtype=np.float64)
+        result = self._track(depth, K, view, view_pose, init, colour)
+        result.initial_pose = init
+        return result
+
+    def _target(self, depth, view, init) -> tuple[TrackingResult | None, np.ndarray | None, int]:
+        """The checks before any alignment: a failed result (or None), the target's invalid pixels and the
+        frame's valid depth pixels."""
         if view is None or view.vertex is None or view.normal is None:
-            return TrackingResult(init, False, "no model view (the map is empty here)")
+            return TrackingResult(init, False, "no model view (the map is empty here)"), None, 0
         n = view.normal
         invalid_t = (view.depth <= 0) | ((n[..., 0] == 0) & (n[..., 1] == 0) & (n[..., 2] == 0))
         n_target = invalid_t.size - int(np.count_nonzero(invalid_t))
         if n_target < self.min_view_pixels:
-            return TrackingResult(init, False, f"the map shows only {n_target} pixels from here")
+            return TrackingResult(init, False, f"the map shows only {n_target} pixels from here"), None, 0
         valid_s = (depth > self.depth_min) & (depth < self.depth_max)
         n_source = int(np.count_nonzero(valid_s))
         if n_source < self.min_view_pixels:
-            return TrackingResult(init, False, f"the frame has only {n_source} valid depth pixels")
+            return TrackingResult(init, False, f"the frame has only {n_source} valid depth pixels"), None, 0
+        return None, invalid_t, n_source
+
+    def _track(self, depth, K, view, view_pose, init, colour) -> TrackingResult:
+        failed, invalid_t, n_source = self._target(depth, view, init)
+        if failed is not None:
+            return failed
         view_pose = np.asarray(view_pose, dtype=np.float64)
         T0 = np.linalg.inv(view_pose) @ init
         try:
@@ -304,8 +327,10 @@ class FrameToModelTracker:
                 target_depth=view.depth)
         except RuntimeError as exc:  # Open3D raises when a step has no inlier
             return TrackingResult(init, False, f"ICP found no correspondences ({open3d_message(exc)[:80]})")
-        pose = view_pose @ T
-        fitness = inliers / n_source
+        return self._judge(view_pose @ T, init, inliers / n_source, rmse, iters)
+
+    def _judge(self, pose: np.ndarray, init: np.ndarray, fitness: float, rmse: float, iters: int) -> TrackingResult:
+        """The failure rules on an alignment's pose, point-to-plane fitness and inlier RMSE (module doc)."""
         motion = np.linalg.inv(self._last) @ pose
         trans = float(np.linalg.norm(motion[:3, 3]))
         rot = float(np.degrees(rotation_angle(motion[:3, :3])))
