@@ -14,17 +14,23 @@ alternating order, ``--repeats`` times; the table reports medians.
             costs Open3D's ray cast ~30 ms of ~125 ms per 640x480 frame here).
 - radiomap: :func:`mapping.pipeline.reconstruct`: loading through the dataset loader, radiometric
             correction to float irradiance (a gamma-2.2 response and a polynomial vignetting model),
-            frame-to-model ICP, TSDF fusion of float colour, the colour-disagreement histogram.
+            frame-to-model ICP, TSDF fusion of irradiance in the default 16-bit grid, the colour-disagreement
+            histogram.
+- radiomap-float32: the same with the float32 grid (``colour_storage="float32"``; not run unless listed in
+            ``--methods``): the 16-bit grid's memory saving and its effect on the histogram mean, ATE and time,
+            measured in the same run.
 
 Reported: ms per frame, frames/s, the time ratios (ours / each Open3D loop; issue 17's target: <= 1.0 against
 open3d-colour), ATE RMSE after Horn alignment against the dataset's ground truth (target: no worse than Open3D's),
-peak RSS (target <= 1.2x Open3D's).
+peak RSS (target <= 1.2x Open3D's). Each run records the load average (``/proc/loadavg``, 1 minute) at its start
+and end: the machine's load is printed beside every figure.
 
     python scripts/bench_pipeline.py                       # 7-Scenes sample, every frame, 1 cm voxels
     python scripts/bench_pipeline.py --frames 0:100:2 --voxel-size 0.02 --repeats 3 --json bench.json
     radiomap simulate room -o /tmp/room -n 500
     python scripts/bench_pipeline.py --sequence /tmp/room --frames 0:500 --scaling 100,250,500 \
         --methods open3d-colour,radiomap              # a 500-frame simulated room, time per frame as the map grows
+    python scripts/bench_pipeline.py --methods open3d-colour,radiomap,radiomap-float32   # 16-bit vs float grid
 
 The time ratio is the median over back-to-back pairs (the machine's load drifts between runs). ``--scaling``
 adds the time per frame over the ``--window`` frames before each listed frame number (every method times each
@@ -46,8 +52,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "open3d-colour", "radiomap")
+METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32")
 PEERS = ("open3d", "open3d-colour")
+OURS = ("radiomap", "radiomap-float32")
 
 
 def parse_frames(text: str) -> slice:
@@ -157,13 +164,14 @@ def worker_radiomap(args) -> dict:
     gc.collect()
     backend = make_backend("tsdf", voxel_size=args.voxel_size, depth_max=args.depth_max,
                            block_resolution=args.block_resolution, trunc_voxel_multiplier=args.trunc,
-                           block_count=args.block_count, device=args.device)
+                           block_count=args.block_count, device=args.device,
+                           colour_storage="float32" if args.worker == "radiomap-float32" else "uint16")
     tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
     timed = _TimedFrames(ds)
     run = reconstruct(timed, colour_model=colour, backend=backend, tracker=tracker, progress=False)
     timed.marks.append(time.perf_counter())
     stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
-    return {"method": "radiomap", "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
+    return {"method": args.worker, "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
             "ate_m": None if run.ate is None else run.ate.rmse, "peak_rss_mb": _peak_mb(),
             "blocks": run.map_stats.get("blocks"), "stage_ms": stages,
             "histogram_mean": run.histogram.mean(), "frame_ms": (1000 * np.diff(timed.marks)).tolist()}
@@ -174,11 +182,20 @@ def run_worker(method: str, args) -> dict:
            "--voxel-size", str(args.voxel_size), "--block-resolution", str(args.block_resolution),
            "--block-count", str(args.block_count), "--trunc", str(args.trunc), "--depth-max", str(args.depth_max),
            "--depth-diff", str(args.depth_diff), "--device", args.device, "--motion-model", args.motion_model]
+    load = _load()
     out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
     if out.returncode != 0:
         how = f"signal {-out.returncode}" if out.returncode < 0 else f"exit code {out.returncode}"
         raise SystemExit(f"{method} worker failed ({how}):\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return {**json.loads(out.stdout.strip().splitlines()[-1]), "load": [load, _load()]}
+
+
+def _load() -> float:
+    """The 1-minute load average (/proc/loadavg; NaN where there is none)."""
+    try:
+        return float(Path("/proc/loadavg").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return float("nan")
 
 
 def main(argv=None) -> int:
@@ -202,7 +219,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     if args.worker:
-        result = (worker_radiomap if args.worker == "radiomap" else worker_open3d)(args)
+        result = (worker_radiomap if args.worker in OURS else worker_open3d)(args)
         print(json.dumps(result))
         return 0
 
@@ -221,9 +238,9 @@ def main(argv=None) -> int:
         for method in order:
             r = run_worker(method, args)
             runs[method].append(r)
-            print(f"  run {rep + 1} {method:9s} {1000 * r['seconds'] / r['frames']:7.1f} ms/frame  "
+            print(f"  run {rep + 1} {method:16s} {1000 * r['seconds'] / r['frames']:7.1f} ms/frame  "
                   f"ATE {100 * r['ate_m'] if r['ate_m'] is not None else float('nan'):5.2f} cm  "
-                  f"peak {r['peak_rss_mb']:6.0f} MB", file=sys.stderr)
+                  f"peak {r['peak_rss_mb']:6.0f} MB  load {r['load'][0]:.1f}-{r['load'][1]:.1f}", file=sys.stderr)
 
     def med(method, key):
         vals = [r[key] for r in runs[method] if r.get(key) is not None]
@@ -233,46 +250,59 @@ def main(argv=None) -> int:
     for m in methods:
         ms = statistics.median(1000 * r["seconds"] / r["frames"] for r in runs[m])
         summary[m] = {"ms_per_frame": ms, "fps": 1000.0 / ms, "ate_cm": None if med(m, "ate_m") is None
-                      else 100 * med(m, "ate_m"), "peak_rss_mb": med(m, "peak_rss_mb"), "blocks": med(m, "blocks")}
-    stages = {}
-    for r in runs["radiomap"]:
-        for k, v in r.get("stage_ms", {}).items():
-            stages.setdefault(k, []).append(v)
+                      else 100 * med(m, "ate_m"), "peak_rss_mb": med(m, "peak_rss_mb"), "blocks": med(m, "blocks"),
+                      "histogram_mean": med(m, "histogram_mean"),
+                      "load": [min(r["load"][0] for r in runs[m]), max(r["load"][1] for r in runs[m])]}
+    ours = tuple(m for m in OURS if m in methods)
+    stages = {m: {} for m in ours}
+    for m in ours:
+        for r in runs[m]:
+            for k, v in r.get("stage_ms", {}).items():
+                stages[m].setdefault(k, []).append(v)
     # the machine's load drifts between runs: the ratio of each back-to-back pair, then their median
-    pairs = {peer: [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
-                    for r, o in zip(runs["radiomap"], runs[peer])] for peer in peers}
-    ratios = {peer: statistics.median(v) for peer, v in pairs.items()}
+    pairs = {f"{m}/{peer}": [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
+                             for r, o in zip(runs[m], runs[peer])] for m in ours for peer in peers}
+    ratios = {key: statistics.median(v) for key, v in pairs.items()}
     a, b = summary["radiomap"]["ate_cm"], summary[peers[0]]["ate_cm"]
     ate_ratio = a / b if (a is not None and b) else None
     from radiometry.tables import format_table
 
     rows = [{"method": m, "ms/frame": s["ms_per_frame"], "frames/s": s["fps"],
              "ATE cm": "-" if s["ate_cm"] is None else round(s["ate_cm"], 2), "peak MB": round(s["peak_rss_mb"]),
-             "blocks": s["blocks"]} for m, s in summary.items()]
+             "blocks": s["blocks"], "histogram mean": "-" if s["histogram_mean"] is None
+             else round(s["histogram_mean"], 4), "load": f"{s['load'][0]:.1f}-{s['load'][1]:.1f}"}
+            for m, s in summary.items()]
     print(f"sequence {args.sequence.name}, frames {args.frames}, voxel {args.voxel_size} m, block resolution "
           f"{args.block_resolution}, trunc {args.trunc} voxels, depth max {args.depth_max} m, {args.device}, "
           f"{args.repeats} repeats (medians)")
     print(format_table(rows))
-    if "open3d" in peers:
-        print(f"time ratio radiomap / open3d: {ratios['open3d']:.3f} (median of back-to-back pairs "
-              f"{', '.join(f'{x:.3f}' for x in pairs['open3d'])})")
-    if "open3d-colour" in peers:
-        print(f"time ratio radiomap / open3d-colour (the same loop casting colour too, as radiomap must; target "
-              f"<= 1.0): {ratios['open3d-colour']:.3f} (pairs "
-              f"{', '.join(f'{x:.3f}' for x in pairs['open3d-colour'])})")
-    peak_ratio = summary["radiomap"]["peak_rss_mb"] / summary[peers[-1]]["peak_rss_mb"]
-    print(f"peak memory ratio radiomap / {peers[-1]}: {peak_ratio:.2f} (target <= 1.2)")
+    for key, value in ratios.items():
+        note = " (the same loop casting colour too, as radiomap must; target <= 1.0)" \
+            if key == "radiomap/open3d-colour" else ""
+        print(f"time ratio {key}{note}: {value:.3f} (median of back-to-back pairs "
+              f"{', '.join(f'{x:.3f}' for x in pairs[key])})")
+    peak_ratios = {m: summary[m]["peak_rss_mb"] / summary[peers[-1]]["peak_rss_mb"] for m in ours}
+    for m, value in peak_ratios.items():
+        print(f"peak memory ratio {m} / {peers[-1]}: {value:.2f} (target <= 1.2)")
+    peak_ratio = peak_ratios["radiomap"]
+    if "radiomap-float32" in ours and summary["radiomap-float32"]["histogram_mean"]:
+        print(f"histogram mean radiomap / radiomap-float32: "
+              f"{summary['radiomap']['histogram_mean'] / summary['radiomap-float32']['histogram_mean']:.5f} "
+              f"(16-bit grid against float; target within 1 %)")
     if ate_ratio is not None:
         print(f"ATE ratio radiomap / {peers[0]}: {ate_ratio:.3f} (target <= 1.0; radiomap ATE {a:.2f} cm)")
     scaling = _scaling(runs, args) if args.scaling else []
     if scaling:
-        print(f"time per frame (ms, median over repeats) over the {args.window} frames before frame n:")
+        print(f"time per frame (ms, median over repeats) over the {args.window} frames before frame n (load: the "
+              "range of the 1-minute load average over the runs):")
         print(format_table(scaling))
-    print("radiomap stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages.items()))
+    for m in ours:
+        print(f"{m} stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages[m].items()))
     if args.json:
         args.json.write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
                                          "time_ratios": ratios, "pair_ratios": pairs, "ate_ratio": ate_ratio,
-                                         "peak_ratio": peak_ratio, "scaling": scaling, "runs": runs}, indent=2))
+                                         "peak_ratio": peak_ratio, "peak_ratios": peak_ratios, "scaling": scaling,
+                                         "runs": runs}, indent=2))
     return 0
 
 
@@ -286,9 +316,12 @@ def _scaling(runs: dict[str, list[dict]], args) -> list[dict]:
             means = [statistics.fmean(r["frame_ms"][max(0, n - args.window):n]) for r in rs
                      if len(r["frame_ms"]) >= n]
             row[m] = round(statistics.median(means), 1) if means else "-"
-        for peer in PEERS:
-            if isinstance(row.get(peer), float) and isinstance(row.get("radiomap"), float):
-                row[f"ratio to {peer}"] = round(row["radiomap"] / row[peer], 3)
+        for ours in OURS:
+            for peer in PEERS:
+                if isinstance(row.get(peer), float) and isinstance(row.get(ours), float):
+                    row[f"{ours}/{peer}"] = round(row[ours] / row[peer], 3)
+        row["load"] = f"{min(r['load'][0] for rs in runs.values() for r in rs):.1f}-" \
+                      f"{max(r['load'][1] for rs in runs.values() for r in rs):.1f}"
         rows.append(row)
     return rows
 

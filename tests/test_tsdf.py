@@ -1,4 +1,5 @@
-"""TSDF backend: float colour, ray-cast accuracy (and the two fixes of Open3D's kernels), colour pairs, export."""
+"""TSDF backend: float and 16-bit colour, ray-cast accuracy (and the two fixes of Open3D's kernels), colour pairs,
+export."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ def _plane(z=1.5, tilt=(0.0, 0.0)):
 
 
 def test_float_colour_survives_fusion():
-    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0)
+    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0, colour_storage="float32")
     assert all(callable(getattr(backend, name)) for name in ("render", "integrate", "export", "stats"))
     depth = _plane()
     colour = np.empty((H, W, 3), np.float32)
@@ -47,14 +48,15 @@ def test_float_colour_survives_fusion():
     assert not empty.valid.any() and not empty.colour.any() and not empty.normal.any()
 
 
-def test_rendered_colour_is_the_trilinear_interpolation_of_the_observed_voxels():
+@pytest.mark.parametrize("storage", ["float32", "uint16"])
+def test_rendered_colour_is_the_trilinear_interpolation_of_the_observed_voxels(storage):
     """The view's colour at a surface point is the trilinear interpolation of the eight voxels around it, over
     those observed (voxel i at i * voxel_size, where integration puts it): checked against a float64 reference
     read from the grid through Open3D's own hash map, on a room whose texture varies from pixel to pixel."""
     from mapping._open3d import o3d
 
     ds, _ = box_room_sequence(n_frames=2, width=160, height=120)
-    backend = TSDFBackend(voxel_size=0.02, depth_max=5.0, surface="open3d")   # depth = the cast's crossing
+    backend = TSDFBackend(voxel_size=0.02, depth_max=5.0, surface="open3d", colour_storage=storage)
     rng = np.random.default_rng(3)
     for f in ds:
         backend.integrate(f.depth, rng.uniform(0.01, 300.0, f.depth.shape + (3,)).astype(np.float32), f.K, f.pose)
@@ -62,6 +64,8 @@ def test_rendered_colour_is_the_trilinear_interpolation_of_the_observed_voxels()
     view = backend.render(f.pose, f.K, f.height, f.width)
     colour = backend.grid.attribute("color").numpy()
     weight = backend.grid.attribute("weight").numpy()[..., 0]
+    assert colour.dtype == weight.dtype == np.dtype(storage)
+    colour = colour.astype(np.float64)
     res, vs = backend.block_resolution, backend.voxel_size
     vv, uu = np.nonzero(view.depth > 0)
     pick = rng.choice(len(vv), 300, replace=False)
@@ -81,10 +85,103 @@ def test_rendered_colour_is_the_trilinear_interpolation_of_the_observed_voxels()
             r = np.prod(np.where(d == 1, frac, 1 - frac))
             acc += r * colour[int(slot.numpy()[0]), z, y, x]
             total += r
-        if total > 0:   # Open3D stores float colours x 255
-            np.testing.assert_allclose(view.colour[v, u], acc / total / 255.0, rtol=1e-4, atol=1e-3)
+        if total > 0:   # stored x colour_scale (Open3D stores float colours x 255)
+            np.testing.assert_allclose(view.colour[v, u], acc / total / backend.colour_scale, rtol=1e-4, atol=1e-3)
             checked += 1
     assert checked > 250
+
+
+def _by_key(backend, name):
+    """A grid attribute (blocks, voxels, channels) in the order of the block coordinates (the hash map's slot order
+    depends on its threads)."""
+    hashmap = backend.grid.hashmap()
+    slots = hashmap.active_buf_indices().numpy()
+    keys = hashmap.key_tensor().numpy()[slots]
+    order = np.lexsort(keys.T)
+    value = backend.grid.attribute(name).numpy()
+    return keys[order], value[slots[order]].reshape(len(slots), -1, value.shape[-1])
+
+
+def test_uint16_colour_round_trip_at_the_extremes(caplog):
+    """The 16-bit grid stores round(colour x colour_scale): zero, one step, half a step (rounded up, where Open3D's
+    kernel truncates) and the top of the range come back exactly; colour above the range or negative is clamped,
+    counted and reported once; NaN stores 0; the running average of the top value stays at the top; weights stop
+    at 65535 instead of wrapping."""
+    scale = 64.0
+    top = 65535 / scale
+    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0, colour_scale=scale)
+    depth = _plane()
+    colour = np.empty((H, W, 3), np.float32)
+    colour[:, : W // 2] = [0.0, 1 / scale, 2.5 / scale]
+    colour[:, W // 2:] = [top, 2 * top, -1.0]
+    colour[: H // 2, W // 2:, 1] = np.nan
+    with caplog.at_level("WARNING", logger="mapping.fusion.tsdf"):
+        for _ in range(3):
+            backend.integrate(depth, colour, K, np.eye(4))
+    view = backend.render(np.eye(4), K, H, W)
+    np.testing.assert_allclose(view.colour[20:40, 10:30], np.broadcast_to([0.0, 1 / scale, 3 / scale], (20, 20, 3)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(view.colour[H // 2 + 5:-10, 50:70], np.broadcast_to([top, top, 0.0], (15, 20, 3)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(view.colour[10:H // 2 - 5, 50:70, 1], 0.0)
+    _, stored = _by_key(backend, "color")
+    assert stored.dtype == np.uint16 and stored.max() == 65535
+    assert backend.colour_clipped > 0 and backend.stats()["colour_clipped"] == backend.colour_clipped
+    assert len([r for r in caplog.records if "clamped" in r.message]) == 1
+    assert "colour_storage='float32'" in caplog.records[0].message
+    weight = backend.grid.attribute("weight").numpy()
+    weight[weight > 0] = 65534
+    for _ in range(2):
+        backend.integrate(depth, colour, K, np.eye(4))
+    assert weight.max() == 65535 and set(np.unique(weight)) <= {0, 65535}
+
+
+def test_first_colour_scale():
+    from mapping.fusion.tsdf import first_colour_scale
+
+    assert first_colour_scale(np.array([0.2, 1.5], np.float32)) == 8192.0     # holds 8.0 >= 4 x 1.5
+    assert first_colour_scale(np.array([255.0])) == 64.0                        # intensities: up to 1024
+    for nothing in (np.zeros(3), np.array([np.nan, -np.inf, 0.0]), np.zeros(0)):
+        assert first_colour_scale(nothing) == 8192.0                            # as if the largest were 1
+    assert first_colour_scale(np.array([np.inf, 3.0])) == 4096.0                # inf is not a colour
+
+
+def test_uint16_grid_agrees_with_the_float_grid():
+    """On a fused room with a pixel-to-pixel texture, the 16-bit grid (our integration kernel) and the float grid
+    (Open3D's) hold the same blocks, bit-identical TSDF values and weights (the same voxels fused with the same
+    arithmetic), and colours within the rounding bound: each update rounds to the nearest step (1 / colour_scale)
+    around the exact running average, so after w updates the error is at most (w + 1) / 4 steps (and unbiased).
+    Renders and meshes follow."""
+    ds, _ = box_room_sequence(n_frames=8, width=160, height=120)
+    backends = {k: TSDFBackend(voxel_size=0.02, depth_max=5.0, colour_storage=k) for k in ("float32", "uint16")}
+    rng = np.random.default_rng(5)
+    for f in ds:
+        colour = rng.uniform(0.0, 1.5, f.depth.shape + (3,)).astype(np.float32)
+        for backend in backends.values():
+            backend.integrate(f.depth, colour, f.K, f.pose, view=backend.render_for_frame(f.depth, f.K, f.pose))
+    b32, b16 = backends["float32"], backends["uint16"]
+    step = 1.0 / b16.colour_scale
+    assert b16.colour_scale == 8192.0 and b16.colour_clipped == 0
+    (k32, t32), (k16, t16) = _by_key(b32, "tsdf"), _by_key(b16, "tsdf")
+    (_, w32), (_, w16) = _by_key(b32, "weight"), _by_key(b16, "weight")
+    assert np.array_equal(k32, k16) and len(k32) > 50
+    np.testing.assert_array_equal(w32, w16.astype(np.float32))
+    np.testing.assert_array_equal(t32[w32 > 0], t16[w16 > 0])
+    (_, c32), (_, c16) = _by_key(b32, "color"), _by_key(b16, "color")
+    seen = w32[..., 0] > 0
+    error = c16[seen] * step - c32[seen] / 255.0                       # map units
+    bound = ((w32[seen] + 1) / 4 + 1e-3) * step
+    assert np.all(np.abs(error) <= bound) and seen.sum() > 100_000
+    assert abs(error.mean()) < 0.01 * step and np.abs(error).max() > 0.5 * step   # unbiased; and not float32
+    f = ds[4]
+    v32, v16 = (b.render(f.pose, f.K, f.height, f.width) for b in (b32, b16))
+    np.testing.assert_array_equal(v32.depth, v16.depth)
+    assert np.abs(v16.colour - v32.colour).max() <= (len(ds) + 1) / 4 * step
+    m32, m16 = b32.extract_mesh(), b16.extract_mesh()
+    o32, o16 = np.lexsort(m32.vertices.T), np.lexsort(m16.vertices.T)
+    np.testing.assert_array_equal(m32.vertices[o32], m16.vertices[o16])
+    assert np.abs(m16.colours[o16] - m32.colours[o32]).max() <= (len(ds) + 1) / 4 * step * 1.001
+    assert b16.stats()["used_mb"] == pytest.approx(b32.stats()["used_mb"] * 12 / 20)
 
 
 @pytest.mark.parametrize("surface, max_bias_mm", [("open3d", None), ("debias", 1.5), ("refine", 1.0)])
@@ -199,6 +296,11 @@ def test_arguments():
         TSDFBackend(depth_min=5, depth_max=3)
     with pytest.raises(ValueError, match="surface must be one of"):
         TSDFBackend(surface="marching")
+    with pytest.raises(ValueError, match="colour_storage must be one of uint16, float32, got 'half'"):
+        TSDFBackend(colour_storage="half")
+    for bad in (0, -1.0, float("nan"), "8"):
+        with pytest.raises(ValueError, match="colour_scale must be a positive number"):
+            TSDFBackend(colour_scale=bad)
     backend = TSDFBackend()
     with pytest.raises(ValueError, match="float32"):
         backend.integrate(np.ones((4, 4)), np.zeros((4, 4, 3), np.float32), K, np.eye(4))

@@ -246,12 +246,13 @@ def hit_bounds(depth, Rc, o, fx, fy, cx, cy, block_size):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res, voxel_size, out):  # pragma: no cover
+def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res, voxel_size, scale, out):  # pragma: no cover
     """Colour of each pixel's ray-cast surface point (``depth`` along the ray, as :func:`hit_bounds`), as
     Open3D's ``VoxelBlockGrid.ray_cast`` colours it: the trilinear interpolation of the eight voxels around the
     point, over those observed (weight > 0), 0 where the point's block is absent or no corner is observed.
-    ``index``/``lo`` is a dense table of the blocks' buffer slots (-1 = absent); ``colour`` holds Open3D's float
-    colours, stored x 255 (it takes float images as 0..1), divided by 255 here as its ray cast does. Voxel
+    ``index``/``lo`` is a dense table of the blocks' buffer slots (-1 = absent); ``colour`` holds the stored
+    colours (float32 x 255 as Open3D stores float images, or uint16 x the backend's ``colour_scale``), divided
+    by ``scale`` here. Voxel
     ``(i, j, k)`` of a block sits at its corner ``+ (i, j, k) * voxel_size`` (z-major buffers)."""
     rows, cols = depth.shape
     f32 = np.float32
@@ -307,7 +308,7 @@ def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res,
                 c2 += r * colour[3 * li + 2]
                 r_sum += r
             if r_sum > 0:
-                r_sum *= f32(255.0)
+                r_sum *= scale
                 out[y, x, 0] = c0 / r_sum
                 out[y, x, 1] = c1 / r_sum
                 out[y, x, 2] = c2 / r_sum
@@ -320,3 +321,69 @@ def _block_slot(bx, by, bz, index, lo):  # pragma: no cover
     if jx < 0 or jy < 0 or jz < 0 or jx >= index.shape[0] or jy >= index.shape[1] or jz >= index.shape[2]:
         return -1
     return index[jx, jy, jz]
+
+
+# --------------------------------------------------------------------------------------------------
+# integration into a grid of 16-bit weight and colour (Open3D's kernel truncates 16-bit colour: see tsdf.py)
+# --------------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True, parallel=True)
+def integrate_u16(depth, colour, fx, fy, cx, cy, E, keys, slots, res, voxel_size, sdf_trunc, depth_max, scale,
+                  tsdf, weight, colour_buf, clipped):  # pragma: no cover
+    """Fuse one frame into the voxels of the blocks ``keys`` (block coordinates) held at buffer ``slots``,
+    voxel for voxel as Open3D's ``VoxelBlockGrid.integrate`` does (its float32 arithmetic: voxel centre
+    ``(block * res + i) * voxel_size``, world-to-camera ``E`` (3 x 4), pixel ``int(u)`` of ``u = fx x / z + cx``
+    inside ``[0, W - 1]``, the same depth and truncation tests, the running average of the TSDF), except the
+    colour: ``colour * scale`` averaged with the voxel's colour and rounded to the nearest integer (Open3D
+    truncates, a bias that grows with the weight), clamped to ``[0, 65535]``; NaN stores 0. Weights stop at
+    65535. ``clipped[b]`` counts the colour values of block ``b`` that were clamped."""
+    rows, cols = depth.shape
+    res2 = res * res
+    res3 = res2 * res
+    f32 = np.float32
+    for b in prange(slots.shape[0]):
+        base = slots[b] * res3
+        xb, yb, zb = keys[b, 0] * res, keys[b, 1] * res, keys[b, 2] * res
+        n_clipped = 0
+        for iz in range(res):
+            zs = f32(zb + iz) * voxel_size
+            z0, z1, z2 = zs * E[0, 2], zs * E[1, 2], zs * E[2, 2]
+            for iy in range(res):
+                ys = f32(yb + iy) * voxel_size
+                y0, y1, y2 = ys * E[0, 1], ys * E[1, 1], ys * E[2, 1]
+                li = base + iz * res2 + iy * res - 1
+                for ix in range(res):
+                    li += 1
+                    xs = f32(xb + ix) * voxel_size
+                    # Open3D's order of operations (the same float32 rounding: the same voxels fused)
+                    xc = xs * E[0, 0] + y0 + z0 + E[0, 3]
+                    yc = xs * E[1, 0] + y1 + z1 + E[1, 3]
+                    zc = xs * E[2, 0] + y2 + z2 + E[2, 3]
+                    inv_z = f32(1.0) / zc
+                    u = fx * xc * inv_z + cx
+                    v = fy * yc * inv_z + cy
+                    if not (v >= 0 and u >= 0 and v <= f32(rows - 1) and u <= f32(cols - 1)):
+                        continue
+                    ui, vi = int(u), int(v)
+                    d = depth[vi, ui]
+                    sdf = d - zc
+                    if d <= 0 or d > depth_max or zc <= 0 or sdf < -sdf_trunc:
+                        continue
+                    if not sdf < sdf_trunc:
+                        sdf = sdf_trunc
+                    sdf /= sdf_trunc
+                    w = f32(weight[li])
+                    inv_wsum = f32(1.0) / (w + f32(1.0))
+                    tsdf[li] = (w * tsdf[li] + sdf) * inv_wsum
+                    w64 = np.float64(w)
+                    inv64 = 1.0 / (w64 + 1.0)
+                    for c in range(3):
+                        x = np.float64(colour[vi, ui, c]) * scale
+                        if x != x:
+                            x = 0.0
+                        elif x < 0.0 or x > 65535.0:
+                            x = 0.0 if x < 0.0 else 65535.0
+                            n_clipped += 1
+                        colour_buf[3 * li + c] = np.uint16((w64 * colour_buf[3 * li + c] + x) * inv64 + 0.5)
+                    if w < f32(65535.0):
+                        weight[li] = np.uint16(w + f32(1.0))
+        clipped[b] = n_clipped

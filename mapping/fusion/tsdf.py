@@ -1,9 +1,27 @@
 """TSDF fusion of irradiance in Open3D's sparse voxel block grid (``o3d.t.geometry.VoxelBlockGrid``).
 
-Voxels hold ``tsdf`` (float32), ``weight`` (float32, +1 per observation) and ``color`` (3 x float32 in map
-units: irradiance above 1 and below 1/255 survive, unlike Open3D's 8/16-bit SLAM model). Integration is
-KinectFusion's running average; the map is rendered by ray casting the zero crossing, colours by trilinear
-interpolation of the eight voxels around the surface point.
+Voxels hold ``tsdf`` (float32), ``weight`` (+1 per observation) and ``color`` (3 values in map units, irradiance
+above 1 included), in one of two storages (``colour_storage``):
+
+- ``"uint16"`` (default): 16-bit weight and colour, 12 bytes per voxel as in Open3D's own SLAM model (against 20
+  for float). Colour is stored as ``round(colour x colour_scale)``: a linear scale, so the map's colours are
+  averaged, interpolated and meshed as with float; it holds ``[0, 65535 / colour_scale]`` in steps of
+  ``1 / colour_scale``. By default ``colour_scale`` is fixed at the first fused frame: the largest power of two
+  that holds 4x that frame's largest value (irradiance up to 1.5: steps of 1/8192 up to 8.0; intensities 0..255:
+  steps of 1/64 up to 1024), recorded in :meth:`TSDFBackend.stats`. Colour above the range (or negative) is
+  clamped to it, counted (``stats()['colour_clipped']``) and reported once as a warning; NaN stores 0. Open3D's
+  integration kernel truncates a 16-bit colour at every update (a bias of about half a step per update that
+  the running average accumulates: ``weight / 4`` steps after ``weight`` frames), so this storage is fused by our
+  own kernel (:func:`mapping.fusion._tsdf_kernels.integrate_u16`): Open3D's integration voxel for voxel, in its
+  float32 arithmetic (TSDF values and weights bit-identical to the float grid's, ``tests/test_tsdf.py``), with
+  the colour rounded to the nearest step. The rounding error is unbiased; after ``w`` updates a voxel's colour
+  is within ``(w + 1) / 4`` steps of the exact running average at worst, ~``0.3 sqrt(w)`` steps typically.
+  Weights stop at 65535 frames. CPU only.
+- ``"float32"``: float weight and colour, fused by Open3D's kernel (float colour stored x 255); nothing is
+  clamped and colour below a step survives (e.g. 0.002 next to 250 in one map).
+
+Integration is KinectFusion's running average; the map is rendered by ray casting the zero crossing, colours by
+trilinear interpolation of the eight voxels around the surface point.
 
 Ray casts and block lists. :meth:`TSDFBackend.render_for_frame` computes the voxel blocks the frame's depth
 touches at its pose (the same list integration needs), ray casts the map within them, and hands the list over
@@ -71,7 +89,9 @@ _RANGE_FACTOR = 8          # Open3D's range map: one pixel per 8x8 image pixels
 _FRAGMENT = 16             # its fragments: 16x16 range-map pixels
 _ATTRS = ("tsdf", "weight", "color")
 SURFACES = ("debias", "refine", "open3d")
-_BYTES_PER_VOXEL = 4 + 4 + 12
+#: colour storage of the grid: bytes per voxel (TSDF, weight, 3 colours)
+COLOUR_STORAGE = {"uint16": 4 + 2 + 6, "float32": 4 + 4 + 12}
+_HEADROOM = 4.0            # uint16 colour, colour_scale=None: room for 4x the first frame's largest colour
 
 
 @dataclass
@@ -105,6 +125,16 @@ def range_map_fragments(blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray
                                int(block_resolution), f32(voxel_size), int(height) // _RANGE_FACTOR,
                                int(width) // _RANGE_FACTOR, f32(depth_min), f32(depth_max), out)
     return out
+
+
+def first_colour_scale(colour: np.ndarray) -> float:
+    """The uint16 grid's default ``colour_scale`` for a run whose first fused frame has colour ``colour``: the
+    largest power of two ``S`` with ``65535 / S >= 4 x`` its largest finite value (1 when none is above 0), so
+    that a run can grow 4x brighter than its first frame before colour is clamped."""
+    finite = np.asarray(colour)[np.isfinite(colour)]
+    top = float(finite.max()) if finite.size else 0.0
+    top = top if top > 0 else 1.0
+    return float(2.0 ** np.floor(np.log2(65535.0 / (_HEADROOM * top))))
 
 
 def _tensor(array: np.ndarray, dtype=np.float32):
@@ -147,7 +177,12 @@ class TSDFBackend:
     pixel_centre_fix:       integrate with the nearest pixel rather than Open3D's truncated pixel index.
     surface:                how the rendered surface is located (module doc): "debias" (default), "refine" or
                             "open3d" (Open3D's ray cast as it is).
-    device:                 Open3D device ("CPU:0"; "CUDA:0" where Open3D has CUDA).
+    colour_storage:         "uint16" (default: 16-bit weight and colour, 12 bytes per voxel, fused by our kernel)
+                            or "float32" (float weight and colour, 20 bytes, fused by Open3D); module doc.
+    colour_scale:           uint16 storage: stored levels per map unit (stored value = colour x colour_scale,
+                            rounded; it holds colours up to 65535 / colour_scale). None: from the first fused
+                            frame, the largest power of two that holds 4x its largest colour value.
+    device:                 Open3D device ("CPU:0"; "CUDA:0" where Open3D has CUDA; uint16 storage: CPU only).
     """
 
 
@@ -156,7 +191,8 @@ class TSDFBackend:
     def __init__(self, *, voxel_size: float = 0.01, block_resolution: int = 16, block_count: int = 2000,
                  trunc_voxel_multiplier: float = 8.0, depth_min: float = 0.1, depth_max: float = 3.0,
                  weight_threshold: float = 3.0, agreement_voxels: float = 3.0, agreement_relative: float = 0.02,
-                 pixel_centre_fix: bool = True, surface: str = "debias", device: str = "CPU:0") -> None:
+                 pixel_centre_fix: bool = True, surface: str = "debias", colour_storage: str = "uint16",
+                 colour_scale: float | None = None, device: str = "CPU:0") -> None:
         for name, value in (("voxel_size", voxel_size), ("trunc_voxel_multiplier", trunc_voxel_multiplier),
                             ("depth_max", depth_max), ("agreement_voxels", agreement_voxels)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
@@ -180,9 +216,23 @@ class TSDFBackend:
         if surface == "refine" and block_resolution & (block_resolution - 1):
             raise ValueError(f"surface='refine' needs a power-of-two block_resolution, got {block_resolution}")
         self.surface = surface
+        if colour_storage not in COLOUR_STORAGE:
+            raise ValueError(f"colour_storage must be one of {', '.join(COLOUR_STORAGE)}, got {colour_storage!r}")
+        if colour_scale is not None and not (isinstance(colour_scale, (int, float)) and np.isfinite(colour_scale)
+                                             and colour_scale > 0):
+            raise ValueError(f"colour_scale must be a positive number or None, got {colour_scale!r}")
+        self.colour_storage = colour_storage
+        self.colour_scale = None if colour_scale is None else float(colour_scale)
+        if colour_storage == "float32":
+            self.colour_scale = 255.0     # Open3D stores float colour x 255 (it takes float images as 0..1)
+        self.colour_clipped = 0           # uint16 storage: colour values clamped to [0, 65535 / colour_scale]
         self.device = o3d.core.Device(device)
+        if colour_storage == "uint16" and self.device.get_type() != o3d.core.Device.DeviceType.CPU:
+            raise ValueError(f"colour_storage='uint16' runs on the CPU only, got device {device!r}; "
+                             "pass colour_storage='float32'")
+        value = o3d.core.uint16 if colour_storage == "uint16" else o3d.core.float32
         self.grid = o3d.t.geometry.VoxelBlockGrid(
-            list(_ATTRS), [o3d.core.float32] * 3, [[1], [1], [3]], voxel_size=self.voxel_size,
+            list(_ATTRS), [o3d.core.float32, value, value], [[1], [1], [3]], voxel_size=self.voxel_size,
             block_resolution=self.block_resolution, block_count=int(block_count), device=self.device)
         self.frames_integrated = 0
         self._last_blocks = None          # block coordinates of the last fused frame (for render())
@@ -290,7 +340,7 @@ class TSDFBackend:
         table = self._block_table(lo, hi)
         _kernels().surface_colour(depth, Rc, o, fx, fy, cx, cy, self.grid.attribute("color").numpy().reshape(-1),
                                   self.grid.attribute("weight").numpy().reshape(-1), table[0], table[1],
-                                  self.block_resolution, f32(self.voxel_size), colour)
+                                  self.block_resolution, f32(self.voxel_size), f32(self.colour_scale), colour)
         return colour, table
 
     def _block_table(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -388,13 +438,45 @@ class TSDFBackend:
                 view = self._ray_cast(prepared.blocks, K, pose, depth.shape[0], depth.shape[1],
                                       extrinsic=prepared.extrinsic)
             pairs = self.colour_pairs(depth, colour, view)
-        colour_image = o3d.t.geometry.Image(_tensor(colour))
-        Kt = o3d.core.Tensor(self._integration_intrinsics(K))
-        self.grid.integrate(prepared.blocks, prepared.depth_image, colour_image, Kt, prepared.extrinsic_t, 1.0,
-                            self.depth_max, self.trunc_voxel_multiplier)
+        if self.colour_storage == "uint16":
+            self._integrate_u16(prepared, colour, K)
+        else:
+            colour_image = o3d.t.geometry.Image(_tensor(colour))
+            Kt = o3d.core.Tensor(self._integration_intrinsics(K))
+            self.grid.integrate(prepared.blocks, prepared.depth_image, colour_image, Kt, prepared.extrinsic_t, 1.0,
+                                self.depth_max, self.trunc_voxel_multiplier)
         self._last_blocks = prepared.blocks
         self.frames_integrated += 1
         return pairs
+
+    def _integrate_u16(self, prepared: _Prepared, colour: np.ndarray, K: np.ndarray) -> None:
+        """Fuse a frame into the 16-bit grid with our kernel (module doc): Open3D's integration, voxel for voxel,
+        but with the colour rounded, not truncated."""
+        f32 = np.float32
+        colour = np.ascontiguousarray(colour, f32)
+        if self.colour_scale is None:
+            self.colour_scale = first_colour_scale(colour)
+        hashmap = self.grid.hashmap()
+        hashmap.activate(prepared.blocks)     # as Open3D's integrate: new blocks (zeroed), then every block's slot
+        slots, found = hashmap.find(prepared.blocks)
+        found = found.numpy()
+        keys = np.ascontiguousarray(prepared.blocks.numpy()[found], np.int32)
+        slots = np.ascontiguousarray(slots.numpy()[found], np.int64)
+        Ki = self._integration_intrinsics(K)
+        clipped = np.zeros(len(slots), np.int64)
+        _kernels().integrate_u16(np.ascontiguousarray(prepared.depth, f32), colour, f32(Ki[0, 0]), f32(Ki[1, 1]),
+                                 f32(Ki[0, 2]), f32(Ki[1, 2]), np.ascontiguousarray(prepared.extrinsic[:3], f32),
+                                 keys, slots, self.block_resolution, f32(self.voxel_size),
+                                 f32(f32(self.trunc_voxel_multiplier) * f32(self.voxel_size)), f32(self.depth_max),
+                                 self.colour_scale, self.grid.attribute("tsdf").numpy().reshape(-1),
+                                 self.grid.attribute("weight").numpy().reshape(-1),
+                                 self.grid.attribute("color").numpy().reshape(-1), clipped)
+        n = int(clipped.sum())
+        if n and not self.colour_clipped:
+            log.warning("colour outside the 16-bit grid's range [0, %.6g] map units was clamped (%d values in frame "
+                        "%d; stats()['colour_clipped'] counts them all); pass a smaller colour_scale or "
+                        "colour_storage='float32'", 65535.0 / self.colour_scale, n, self.frames_integrated)
+        self.colour_clipped += n
 
     # ---------------------------------------------------------------- output
     def extract_mesh(self, weight_threshold: float | None = None) -> MeshData:
@@ -411,9 +493,12 @@ class TSDFBackend:
         if n == 0:
             return MeshData(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
                             np.zeros((0, 3), np.float32))
+        colours = mesh.vertex.colors.numpy().copy()   # Open3D divides the stored colour by 255
+        if self.colour_storage == "uint16":
+            colours *= np.float32(255.0 / self.colour_scale)
         return MeshData(vertices=mesh.vertex.positions.numpy().copy(),
                         triangles=mesh.triangle.indices.numpy().astype(np.int32),
-                        colours=mesh.vertex.colors.numpy().copy(),
+                        colours=colours,
                         normals=mesh.vertex.normals.numpy().copy() if "normals" in mesh.vertex
                         else np.zeros((n, 3), np.float32))
 
@@ -431,9 +516,12 @@ class TSDFBackend:
         blocks = int(hashmap.size())
         capacity = int(hashmap.capacity())
         voxels_per_block = self.block_resolution ** 3
+        per_voxel = COLOUR_STORAGE[self.colour_storage]
         return {"backend": self.name, "voxel_size": self.voxel_size, "block_resolution": self.block_resolution,
                 "truncation_m": self.truncation, "blocks": blocks, "block_capacity": capacity,
                 "voxels": blocks * voxels_per_block,
-                "allocated_mb": capacity * voxels_per_block * _BYTES_PER_VOXEL / 2 ** 20,
-                "used_mb": blocks * voxels_per_block * _BYTES_PER_VOXEL / 2 ** 20,
+                "colour_storage": self.colour_storage, "colour_scale": self.colour_scale,
+                "colour_clipped": self.colour_clipped,
+                "allocated_mb": capacity * voxels_per_block * per_voxel / 2 ** 20,
+                "used_mb": blocks * voxels_per_block * per_voxel / 2 ** 20,
                 "frames_integrated": self.frames_integrated, "ray_casts": self.ray_casts}
