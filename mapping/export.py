@@ -11,6 +11,9 @@ Layout (``radiomap reconstruct ... -o OUT``)::
     OUT/mesh.ply, OUT/mesh.glb       the map's surface, colours in display units (response at k_ref); the GLB
                                      stores them linear (sRGB-decoded), as glTF defines COLOR_0
     OUT/mesh_colours.npz             vertices, triangles and map-unit colours (irradiance), for evaluation
+    OUT/mesh_colourmap.*, OUT/mesh_colourmap_colours.npz, OUT/colour_map.json
+                                     with --colour-map: the colour-map optimised mesh (when the held-out check kept
+                                     it) and the stage's report (mapping.colour_map.write_colour_map)
     OUT/histogram.json, .npz         the colour-disagreement histogram with statistics
     OUT/histogram.png                its plot (paper Fig. 9 style)
     OUT/summary.txt                  the summary table printed at the end
@@ -52,7 +55,8 @@ MESH_FORMATS = ("ply", "glb", "obj")
 RESULT_NAMES = frozenset({
     RUNNING_MARKER, "config.json", "metrics.json", "trajectory.txt", "frames.csv", "summary.txt", "histogram.json",
     "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz", "surfels.ply",
-    "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", MANIFEST})
+    "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", "colour_map.json",
+    "mesh_colourmap.ply", "mesh_colourmap.glb", "mesh_colourmap.obj", "mesh_colourmap_colours.npz", MANIFEST})
 
 _HELD: dict[str, "FolderLock"] = {}   # resolved folder -> the lock this process holds on it
 

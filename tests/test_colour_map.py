@@ -1,0 +1,270 @@
+"""Colour-map optimisation stage (mapping.colour_map): the mesh renderer against the pinhole model, the stage on a
+textured wall whose answer is known analytically, the failure detector on constructed failures, bad options."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapping.colour import RawIntensity
+from mapping.datasets.base import RGBDFrame
+
+F, W, H = 200.0, 160, 120
+K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1]])
+WALL = 1.5                               # the wall is the plane z = WALL (world), the cameras look along +z
+
+
+def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The wall's colour (levels) at world (x, y): smooth stripes of ~10 cm, different per channel."""
+    r = 128 + 70 * np.sin(2 * np.pi * x / 0.11)
+    g = 128 + 70 * np.cos(2 * np.pi * y / 0.13)
+    b = 128 + 50 * np.sin(2 * np.pi * (x + y) / 0.17)
+    return np.stack([r, g, b], axis=-1)
+
+
+def camera(tx: float, ty: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = (tx, ty, 0.0)
+    return pose
+
+
+def wall_frame(index: int, pose: np.ndarray) -> RGBDFrame:
+    """What a pinhole camera at ``pose`` (looking along +z) sees of the wall: computed from the model, not by the
+    renderer under test."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    x = (u - K[0, 2]) / F * WALL + pose[0, 3]
+    y = (v - K[1, 2]) / F * WALL + pose[1, 3]
+    rgb = np.clip(np.rint(texture(x, y)), 0, 255).astype(np.uint8)
+    return RGBDFrame(index, float(index), rgb, np.full((H, W), WALL, np.float32), K.copy(), pose)
+
+
+def wall_mesh(spacing: float = 0.01, half: float = 0.75):
+    """A grid of triangles on the wall; vertex positions (N, 3), triangles (M, 3)."""
+    ticks = np.arange(-half, half + 1e-9, spacing)
+    gx, gy = np.meshgrid(ticks, ticks)
+    vertices = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, WALL)], axis=1).astype(np.float32)
+    n = len(ticks)
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
+    a = (j * n + i).ravel()
+    tris = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
+    return vertices, tris.astype(np.int32)
+
+
+@pytest.fixture(scope="module")
+def wall():
+    poses = [camera(0.03 * (k % 5) - 0.06, 0.02 * (k // 5) - 0.03) for k in range(15)]
+    frames = [wall_frame(k, p) for k, p in enumerate(poses)]
+    vertices, triangles = wall_mesh()
+    return frames, poses, vertices, triangles
+
+
+def blurred(vertices: np.ndarray, width: float = 0.06) -> np.ndarray:
+    """The texture box-averaged over ``width`` (what a coarse map would hold): deliberately blurred colours."""
+    offsets = np.linspace(-width / 2, width / 2, 7)
+    acc = np.zeros((len(vertices), 3))
+    for dx in offsets:
+        for dy in offsets:
+            acc += texture(vertices[:, 0] + dx, vertices[:, 1] + dy)
+    return (acc / len(offsets) ** 2).astype(np.float32)
+
+
+# ------------------------------------------------------------------ the renderer
+def test_renderer_reproduces_a_linear_colour_field_and_the_depth():
+    """Vertex colours linear in the world position: barycentric interpolation is exact, so every pixel's colour is
+    the field at the point the pinhole ray meets the wall, and its depth the wall's distance."""
+    from mapping.colour_map import MeshRenderer
+
+    vertices, triangles = wall_mesh(spacing=0.25)
+    field = lambda x, y: np.stack([50 + 40 * x, 100 + 60 * y, 30 + 20 * x - 10 * y], -1)  # noqa: E731
+    colours = field(vertices[:, 0].astype(np.float64), vertices[:, 1].astype(np.float64)).astype(np.float32)
+    pose = camera(0.1, -0.05)
+    colour, depth = MeshRenderer(vertices, triangles, colours)(pose, K, H, W)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    x = (u - K[0, 2]) / F * WALL + 0.1
+    y = (v - K[1, 2]) / F * WALL - 0.05
+    assert np.all(depth > 0)
+    np.testing.assert_allclose(depth, WALL, atol=1e-4)
+    np.testing.assert_allclose(colour, field(x, y), atol=2e-3)
+
+
+def test_renderer_leaves_pixels_without_surface_at_zero():
+    from mapping.colour_map import MeshRenderer
+
+    vertices, triangles = wall_mesh(spacing=0.1, half=0.2)     # a 40 cm square in the middle of the view
+    colour, depth = MeshRenderer(vertices, triangles, np.full((len(vertices), 3), 77, np.float32))(camera(0, 0), K,
+                                                                                                     H, W)
+    covered = depth > 0
+    # the square spans |x|, |y| <= 0.2 m at 1.5 m: |u - cx| <= 0.2 / 1.5 * F pixels
+    v, u = np.mgrid[0:H, 0:W]
+    inside = (np.abs(u - K[0, 2]) < 0.2 / WALL * F - 1) & (np.abs(v - K[1, 2]) < 0.2 / WALL * F - 1)
+    outside = (np.abs(u - K[0, 2]) > 0.2 / WALL * F + 1) | (np.abs(v - K[1, 2]) > 0.2 / WALL * F + 1)
+    assert covered[inside].all() and not covered[outside].any()
+    np.testing.assert_allclose(colour[inside], 77, rtol=1e-5)
+    assert np.all(colour[outside] == 0)
+
+
+# ------------------------------------------------------------------ the stage on a known wall
+def test_stage_sharpens_blurred_colours_on_the_wall(wall):
+    """The map's colours are the texture blurred over 6 cm; the keyframes see it sharp: the optimised mesh is
+    closer to the true texture and its held-out PSNR higher, and the stage keeps it."""
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    plain = blurred(vertices)
+    truth = texture(vertices[:, 0].astype(np.float64), vertices[:, 1].astype(np.float64))
+    seen = (np.abs(vertices[:, 0]) < 0.3) & (np.abs(vertices[:, 1]) < 0.25)   # well inside every view
+    holdout = [(k, poses[k]) for k in (2, 7, 12)]
+    fused = [None if k in (2, 7, 12) else p for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), method="rigid",
+                               iterations=20, holdout=holdout, depth_max=3.0, window=3)
+    assert outcome.kept == "optimised", outcome.reason
+    r = outcome.result
+    before = np.abs(plain[seen] - truth[seen]).mean()
+    after = np.abs(r.colours[seen] - truth[seen]).mean()
+    assert before > 10 and after < 0.3 * before, (before, after)
+    assert outcome.optimised.psnr > outcome.plain.psnr + 1
+    assert r.black == 0.0 and len(r.keyframes) == 4      # 12 fused frames, one keyframe per 3
+    assert r.pose_change["translation_cm_max"] < 1.0     # the poses were right: the optimiser leaves them
+
+
+def test_non_rigid_does_not_make_the_wall_worse(wall):
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    plain = blurred(vertices)
+    fused = [None if k in (4, 9) else p for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), method="non-rigid",
+                               iterations=5, holdout=[(4, poses[4]), (9, poses[9])], depth_max=3.0, window=4)
+    assert outcome.kept == "optimised", outcome.reason
+    assert outcome.optimised.psnr >= outcome.plain.psnr
+
+
+def test_keyframes_are_the_sharpest_of_each_window(wall):
+    from mapping.colour_map import select_keyframes
+
+    frames = list(wall[0][:6])
+    soft = frames[1].rgb.astype(np.float32)
+    frames[1] = RGBDFrame(1, 1.0, np.rint((soft + np.roll(soft, 1, 0) + np.roll(soft, 1, 1)) / 3).astype(np.uint8),
+                          frames[1].depth, K, frames[1].pose)
+    sharp = frames[4].rgb.astype(np.int16)
+    noise = np.random.default_rng(0).integers(-40, 41, sharp.shape)
+    frames[4] = RGBDFrame(4, 4.0, np.clip(sharp + noise, 0, 255).astype(np.uint8), frames[4].depth, K, frames[4].pose)
+    assert select_keyframes([0, 1, 2, 3, 4, 5], frames, window=3)[1] == 4
+    assert select_keyframes([1], frames, window=3) == [1]
+    with pytest.raises(ValueError, match="window"):
+        select_keyframes([0, 1], frames, window=0)
+
+
+# ------------------------------------------------------------------ failures are detected, the plain mesh kept
+def test_unseen_output_is_rejected(wall):
+    """A visibility range shorter than the wall's distance (Open3D's maximum_allowable_depth, a cause of
+    black meshes in its issue tracker): no keyframe sees any vertex, Open3D returns black, the stage keeps the
+    plain mesh and says why."""
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    plain = blurred(vertices)
+    fused = [None if k == 7 else p for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), iterations=0,
+                               holdout=[(7, poses[7])], depth_max=1.0)
+    assert outcome.kept == "plain"
+    assert "no keyframe saw 100.0 % of the vertices" in outcome.reason
+    assert outcome.result.unseen == 1.0
+
+
+def test_black_output_is_rejected(wall):
+    """Keyframes that recorded (nearly) black, level 1 (a covered lens), while the check frames are fine: the
+    optimiser returns a black mesh, the detector flags it and the plain mesh is kept."""
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    dark = [f if k in (3, 8) else RGBDFrame(f.index, f.timestamp, np.ones_like(f.rgb), f.depth, K, f.pose)
+            for k, f in enumerate(frames)]
+    fused = [None if k in (3, 8) else p for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, blurred(vertices), dark, fused, RawIntensity(), iterations=0,
+                               holdout=[(3, poses[3]), (8, poses[8])], depth_max=3.0)
+    assert outcome.kept == "plain"
+    assert "of the vertices went black" in outcome.reason
+    assert outcome.result.black > 0.3            # all the keyframes see (the mesh is larger than the views)
+
+
+def test_misaligned_keyframes_are_rejected(wall):
+    """Keyframe poses 4 cm off (the mesh and the check frames are right): re-coloured from them, the mesh is
+    misregistered; the held-out check catches it."""
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    truth = texture(vertices[:, 0].astype(np.float64), vertices[:, 1].astype(np.float64)).astype(np.float32)
+    wrong = [None if k in (3, 8) else p @ camera(0.04, 0.0) for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, truth, frames, wrong, RawIntensity(), iterations=0,
+                               holdout=[(3, poses[3]), (8, poses[8])], depth_max=3.0)
+    assert outcome.kept == "plain"
+    assert "PSNR fell" in outcome.reason
+    assert outcome.plain.psnr > outcome.optimised.psnr + 3
+
+
+def test_too_few_keyframes_keep_the_plain_mesh(wall):
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    fused = [poses[0]] + [None] * (len(poses) - 1)
+    outcome = colour_map_stage(vertices, triangles, blurred(vertices), frames, fused, RawIntensity())
+    assert outcome.kept == "plain" and outcome.result is None
+    assert "at least 2 keyframes" in outcome.reason
+
+
+# ------------------------------------------------------------------ display <-> map units
+def test_display_inverse_undoes_the_export_display():
+    from mapping.colour import IrradianceColour
+    from mapping.colour_map import display_inverse
+    from mapping.exposure_compensation import CompensatedColour
+    from radiometry.response import CameraResponse
+
+    E = np.random.default_rng(1).uniform(0.02, 0.6, (500, 3)).astype(np.float32)
+    for model in (IrradianceColour(CameraResponse.gamma(2.2), reference_exposure=1.3),
+                  CompensatedColour(IrradianceColour(CameraResponse.gamma(2.2)), export_reference=[0.8, 1.0, 1.2])):
+        shown = model.display_for_export()(E)
+        np.testing.assert_allclose(display_inverse(model)(shown), E, rtol=2e-3)
+    levels = np.array([[3.0, 100.0, 250.0]], np.float32)
+    np.testing.assert_array_equal(display_inverse(RawIntensity())(levels), levels)
+
+
+def test_bad_options_are_one_line_errors(wall):
+    from mapping.colour_map import colour_map_stage, optimise_colour_map
+
+    frames, poses, vertices, triangles = wall
+    colours = blurred(vertices)
+    with pytest.raises(ValueError, match="colour-map method must be one of rigid, non-rigid, got 'affine'"):
+        colour_map_stage(vertices, triangles, colours, frames, poses, RawIntensity(), method="affine")
+    with pytest.raises(ValueError, match="iterations must be a whole number >= 0"):
+        optimise_colour_map(vertices, triangles, colours, frames, poses, RawIntensity(), iterations=-1)
+    with pytest.raises(ValueError, match="depth_max"):
+        optimise_colour_map(vertices, triangles, colours, frames, poses, RawIntensity(), depth_max=0)
+    with pytest.raises(ValueError, match="one entry per frame"):
+        optimise_colour_map(vertices, triangles, colours, frames, poses[:3], RawIntensity())
+
+
+def test_written_beside_the_plain_mesh_only_when_kept(wall, tmp_path):
+    import json
+
+    from mapping.colour_map import colour_map_stage, write_colour_map
+    from mapping.export import RESULT_NAMES, read_mesh_colours
+
+    frames, poses, vertices, triangles = wall
+    plain = blurred(vertices)
+    fused = [None if k in (2, 7, 12) else p for k, p in enumerate(poses)]
+    kept = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), iterations=0,
+                            holdout=[(k, poses[k]) for k in (2, 7, 12)], depth_max=3.0)
+    files = write_colour_map(tmp_path / "a", kept, RawIntensity(), formats=("ply",))
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["colour_map.json", "mesh_colourmap.ply",
+                                                                    "mesh_colourmap_colours.npz"]
+    assert {p.name for p in files.values()} <= RESULT_NAMES
+    np.testing.assert_allclose(read_mesh_colours(tmp_path / "a" / "mesh_colourmap_colours.npz")["colours"],
+                               kept.result.colours)
+    doc = json.loads((tmp_path / "a" / "colour_map.json").read_text())
+    assert doc["kept"] == "optimised" and doc["holdout_optimised"]["psnr"] > doc["holdout_plain"]["psnr"]
+    rejected = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), iterations=0,
+                                holdout=[(k, poses[k]) for k in (2, 7, 12)], depth_max=1.0)
+    write_colour_map(tmp_path / "b", rejected, RawIntensity())
+    assert [p.name for p in (tmp_path / "b").iterdir()] == ["colour_map.json"]
+    assert json.loads((tmp_path / "b" / "colour_map.json").read_text())["kept"] == "plain"
