@@ -40,6 +40,7 @@ class ReconstructConfig:
     reference_exposure: float = 1.0             # --display-exposure: the histogram's display reference
     exposure_compensation: bool | None = None   # None: on when a response is given
     exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
+    holdout_every: int | None = None            # --holdout-every: withhold every N-th frame (mapping.holdout)
     force: bool = False
     progress: bool = True
 

@@ -27,6 +27,7 @@ frames, not against zero.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -94,6 +95,7 @@ class HoldoutResult:
 
     frames: list[HoldoutFrame]
     settings: dict = field(default_factory=dict)
+    seconds: float = math.nan     # wall time of the evaluation (renders included)
 
     @property
     def evaluated(self) -> list[HoldoutFrame]:
@@ -116,7 +118,7 @@ class HoldoutResult:
 
     def to_dict(self) -> dict:
         return {"psnr": self.psnr, "l1": self.l1, "pixels": self.pixels, "frames_held_out": len(self.frames),
-                "frames_evaluated": len(self.evaluated), "settings": dict(self.settings),
+                "frames_evaluated": len(self.evaluated), "seconds": self.seconds, "settings": dict(self.settings),
                 "per_frame": [f.to_dict() for f in self.frames]}
 
     def csv(self, method: str | None = None) -> str:
@@ -187,12 +189,13 @@ def evaluate_holdout(frames: Sequence[Any], poses: Sequence[np.ndarray | None], 
                 "gain_fit": "per-channel median of observed / rendered over the valid pixels, in map units",
                 "l1": "mean over valid pixels of sum_c |predicted - observed| (levels)",
                 "psnr": "10 log10(255^2 / MSE), MSE over the channel values of the valid pixels"}
+    started = time.perf_counter()
     records = []
     for frame, pose in zip(frames, poses):
         records.append(_evaluate_frame(frame, pose, render, colour_model, min_pixels,
                                        dict(depth_tolerance=depth_tolerance, depth_relative=depth_relative, dark=dark,
                                             saturated=saturated, edge_dilation=edge_dilation)))
-    return HoldoutResult(records, settings)
+    return HoldoutResult(records, settings, time.perf_counter() - started)
 
 
 def _evaluate_frame(frame, pose, render: Renderer, colour_model, min_pixels: int, thresholds: dict) -> HoldoutFrame:

@@ -17,6 +17,10 @@ Per frame (ICP mode), the contract between the parts (:class:`~mapping.fusion.ba
     histogram.add(colour_model.display_l1(pairs.map_colour, pairs.sample_colour))
     view_prev, pose_prev = view, pose                         # the tracker's target for frame i + 1
 
+With ``holdout_every = N`` every N-th frame (:mod:`mapping.holdout`) is tracked (or given its ground-truth pose)
+and then withheld: never rendered for, coloured, fused or measured. After the loop the final map is rendered at
+the withheld frames' poses and judged against them (``RunResult.holdout``).
+
 One ray cast per frame serves both the histogram (the map before this frame) and the tracking of the next
 frame (the map at the last pose, lacking only the last frame), like Open3D's dense SLAM loop which also
 casts once per frame. When that view covers less than ``refresh_coverage`` of the frame's valid depth (the
@@ -36,6 +40,7 @@ from mapping.colour import ColourModel, RawIntensity
 from mapping.datasets.base import RGBDDataset
 from mapping.fusion.base import FusionBackend, masked_depth
 from mapping.histogram import DisagreementHistogram
+from mapping.holdout import HELD_OUT, backend_renderer, check_holdout_every, evaluate_holdout, is_held_out
 from mapping.metrics import ATEResult, absolute_trajectory_error
 from mapping.results import (FrameRecord, RunResult, backend_stats, peak_rss_mb, reason_kind, write_partial,
                              write_results)
@@ -55,7 +60,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                 backend: FusionBackend, tracker=None, poses: str = "icp", initial_pose: np.ndarray | None = None,
                 output=None, refresh_coverage: float = 0.5, max_consecutive_failures: int = 30,
                 progress: bool = True, histogram_label: str | None = None,
-                write_mesh: bool = True) -> RunResult:
+                write_mesh: bool = True, holdout_every: int | None = None) -> RunResult:
     """Track (or take ground-truth poses), correct, fuse and measure colour disagreement over a sequence.
 
     dataset:       an :class:`~mapping.datasets.base.RGBDDataset` (frame range and stride applied).
@@ -70,6 +75,8 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     max_consecutive_failures: raise :class:`TrackingError` when tracking fails this many frames in a row.
     progress:      a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     write_mesh:    export the map's mesh into ``output``.
+    holdout_every: None (fuse every frame) or N in ``2 .. len(dataset) - 1``: withhold every N-th frame from fusion and
+                   judge the final map by them (:func:`mapping.holdout.evaluate_holdout`; ``holdout.csv``).
     """
     if poses not in POSE_SOURCES:
         raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
@@ -77,9 +84,10 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         raise ValueError("poses='icp' needs a tracker (mapping.tracking.FrameToModelTracker)")
     if not 0 <= refresh_coverage <= 1:
         raise ValueError(f"refresh_coverage must be in [0, 1], got {refresh_coverage}")
+    holdout_every = 0 if holdout_every is None else check_holdout_every(holdout_every, len(dataset))
     colour_model = colour_model or RawIntensity()
     loop = _Loop(dataset, colour_model, backend, tracker, poses, initial_pose, refresh_coverage,
-                 max_consecutive_failures, histogram_label or colour_model.name)
+                 max_consecutive_failures, histogram_label or colour_model.name, holdout_every)
     bar = _progress_bar(len(dataset), progress, dataset.name)
     status = "failed"
     try:
@@ -99,6 +107,11 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
             write_partial(run, backend, output)
     run.map_stats = backend_stats(backend)
     run.ate = _ate(run, dataset, poses)
+    if holdout_every:
+        positions = sorted(run.held_out_poses)
+        run.holdout = evaluate_holdout(_Frames(dataset, positions), [run.held_out_poses[i] for i in positions],
+                                       backend_renderer(backend), colour_model)
+        run.holdout.settings["every"] = holdout_every
     if output is not None:
         write_results(run, dataset, colour_model, backend, tracker, output, write_mesh=write_mesh)
     return run
@@ -108,7 +121,7 @@ class _Loop:
     """The per-frame steps of :func:`reconstruct` and the state they share."""
 
     def __init__(self, dataset, colour_model: ColourModel, backend: FusionBackend, tracker, poses, initial_pose,
-                 refresh_coverage, max_failures, label) -> None:
+                 refresh_coverage, max_failures, label, holdout_every: int = 0) -> None:
         self.dataset, self.colour_model, self.backend, self.tracker = dataset, colour_model, backend, tracker
         self.poses, self.initial_pose = poses, initial_pose
         self.refresh_coverage, self.max_failures = refresh_coverage, max_failures
@@ -122,6 +135,8 @@ class _Loop:
         self.depth_valid = 0            # valid depth pixels seen, and those at or beyond the depth range
         self.depth_far = 0
         self.skipped = 0   # frames done and not fused (the bar's postfix)
+        self.holdout_every = holdout_every
+        self.held_out: dict[int, np.ndarray | None] = {}  # position -> pose of each withheld frame (None: no pose)
         self.started = time.perf_counter()
 
     @contextlib.contextmanager
@@ -141,6 +156,11 @@ class _Loop:
         self.records.append(record)
         self._count_far_depth(frame.depth)
         pose = self._pose(frame, record)
+        # withheld after its pose is known (ICP tracks it), unless it founds the map (ICP: nothing fused yet)
+        if is_held_out(i, self.holdout_every) and (self.poses == "gt" or self.track_view is not None):
+            self.held_out[i] = pose
+            record.reason = record.reason or HELD_OUT
+            return
         if pose is None:
             return
         with self.timed("render"):  # the map before this frame, at its pose (reused by fusion and tracking)
@@ -237,8 +257,8 @@ class _Loop:
         from mapping.validation import check_fused
 
         fused = sum(r.fused for r in self.records)
-        reasons = Counter(reason_kind(r.reason) for r in self.records if not r.fused)
-        check_fused(fused, len(self.records), dict(reasons),
+        reasons = Counter(reason_kind(r.reason) for r in self.records if not r.fused and r.reason != HELD_OUT)
+        check_fused(fused, len(self.records) - len(self.held_out), dict(reasons),
                     str(getattr(self.dataset, "root", None) or self.dataset.name or "the sequence"))  # a folder, if any
 
     def drop_unfinished(self) -> None:
@@ -251,7 +271,21 @@ class _Loop:
         return RunResult(stamps=np.asarray(self.stamps), poses=np.asarray(self.est).reshape(-1, 4, 4),
                          histogram=self.histogram, records=self.records, seconds=time.perf_counter() - self.started,
                          stage_seconds=dict(self.stage_seconds), ate=None, map_stats={}, peak_rss_mb=peak_rss_mb(),
-                         status=status, depth_beyond_range=self.depth_far / max(self.depth_valid, 1))
+                         status=status, depth_beyond_range=self.depth_far / max(self.depth_valid, 1),
+                         held_out_poses=dict(self.held_out))
+
+
+class _Frames:
+    """The dataset's frames at ``positions``, read when asked for (the held-out frames, judged one at a time)."""
+
+    def __init__(self, dataset, positions: list[int]) -> None:
+        self.dataset, self.positions = dataset, positions
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def __getitem__(self, k: int):
+        return self.dataset[self.positions[k]]
 
 
 def _initial_pose(frame, initial_pose):

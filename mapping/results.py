@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mapping.histogram import DisagreementHistogram
+from mapping.holdout import HoldoutResult
 from mapping.metrics import ATEResult, format_tum_trajectory
 from radiometry.tables import format_table
 
@@ -49,6 +50,8 @@ class RunResult:
     status: str = "complete"
     files: dict[str, Path] = field(default_factory=dict)
     depth_beyond_range: float = 0.0     # fraction of the valid depth pixels at or beyond the backend's depth_max
+    held_out_poses: dict[int, np.ndarray | None] = field(default_factory=dict)  # position -> pose, withheld frames
+    holdout: HoldoutResult | None = None  # the final map judged by the withheld frames (mapping.holdout)
 
     @property
     def frames(self) -> int:
@@ -87,6 +90,7 @@ class RunResult:
             "depth_beyond_range": self.depth_beyond_range,
             "map": self.map_stats,
             "memory": {"peak_rss_mb": self.peak_rss_mb},
+            **({} if self.holdout is None else {"holdout": self.holdout.to_dict()}),
         }
 
     def summary_row(self) -> dict:
@@ -95,6 +99,8 @@ class RunResult:
                 "fps": round(self.frames_per_second, 2), "L1 mean": s["mean"], "L1 median": s["median"],
                 "L1 p90": s["p90"], "pairs": s["count"],
                 "ATE cm": "-" if self.ate is None else round(100 * self.ate.rmse, 2),
+                **({} if self.holdout is None else {"holdout PSNR": round(self.holdout.psnr, 2),
+                                                    "holdout L1": round(self.holdout.l1, 2)}),
                 "peak MB": round(self.peak_rss_mb)}
 
 
@@ -168,6 +174,8 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     if write_mesh:  # colours e.g. at the sequence's median exposure
         files.update(backend.export(output.path, colour_model.display_for_export()))
     files.update(colour_model.save_results(output.path))  # e.g. per-frame exposure estimates
+    if run.holdout is not None:
+        files["holdout"] = output.write_text("holdout.csv", run.holdout.csv())
     run.files = files
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()

@@ -146,3 +146,145 @@ def test_every_held_out_positions():
     assert not any(is_held_out(i, 0) for i in range(12))
     with pytest.raises(HoldoutError, match="at least 3"):
         check_holdout_every(2, 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# through the pipeline: withheld frames are tracked, never fused
+# --------------------------------------------------------------------------------------------------
+def _box(n):
+    from box_room import box_room_sequence
+
+    ds, _ = box_room_sequence(n_frames=n, width=160, height=120)
+    return ds
+
+
+def test_withheld_frames_are_not_fused_the_map_is_the_subsets():
+    """A run withholding frames 2, 5, 8 fuses exactly what a run of the other frames alone fuses: the same
+    histogram bin by bin and the same map size; the withheld frames are judged at their ground-truth poses."""
+    from mapping.datasets.in_memory import ArrayDataset
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
+
+    ds = _box(10)
+    full_backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    run = reconstruct(ds, backend=full_backend, poses="gt", progress=False, holdout_every=3)
+    sub_backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    subset = reconstruct(ArrayDataset([f for i, f in enumerate(ds.frames) if i not in (2, 5, 8)]),
+                         backend=sub_backend, poses="gt", progress=False)
+    assert full_backend.frames_integrated == 7 == sub_backend.frames_integrated
+    np.testing.assert_array_equal(run.histogram.counts, subset.histogram.counts)
+    assert run.histogram.total == subset.histogram.total > 0
+    full_stats, sub_stats = full_backend.stats(), sub_backend.stats()
+    assert full_stats.pop("ray_casts") == sub_stats.pop("ray_casts") + 3   # the three renders that judge
+    assert full_stats == sub_stats
+    assert [r.reason for r in run.records if not r.fused] == ["held out for evaluation"] * 3
+    assert sorted(run.held_out_poses) == [2, 5, 8]
+    for i, pose in run.held_out_poses.items():
+        np.testing.assert_array_equal(pose, ds.frames[i].pose)
+    assert [f.index for f in run.holdout.frames] == [ds.frames[i].index for i in (2, 5, 8)]
+    assert all(f.evaluated and f.pixels > 5000 for f in run.holdout.frames)
+    # raw intensities of a box with constant light: the fitted gains are 1 and the prediction close
+    np.testing.assert_allclose([f.gain for f in run.holdout.frames], 1.0, atol=0.01)
+    assert run.holdout.psnr > 35
+    assert run.metrics()["holdout"]["frames_evaluated"] == 3
+    assert run.fused == 7 and run.metrics()["frames"]["skip_reasons"] == {"held out for evaluation": 3}
+
+
+def test_withheld_frames_are_tracked_with_icp():
+    from mapping.factory import make_backend, make_tracker
+    from mapping.pipeline import reconstruct
+
+    ds = _box(9)
+    backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    run = reconstruct(ds, backend=backend, tracker=make_tracker(depth_max=5.0), poses="icp", progress=False,
+                      holdout_every=4)
+    assert backend.frames_integrated == 7 and sorted(run.held_out_poses) == [3, 7]
+    for i, pose in run.held_out_poses.items():
+        assert np.isfinite(run.records[i].fitness)                     # ICP ran on it
+        np.testing.assert_allclose(pose[:3, 3], ds.frames[i].pose[:3, 3], atol=0.02)
+    assert len(run.holdout.evaluated) == 2
+
+
+def test_reconstruct_refuses_a_bad_every_before_anything_runs():
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
+
+    backend = make_backend("tsdf", voxel_size=0.02, depth_max=5.0)
+    with pytest.raises(HoldoutError, match="2..3 for 4 frames"):
+        reconstruct(_box(4), backend=backend, poses="gt", progress=False, holdout_every=4)
+    assert backend.frames_integrated == 0
+
+
+# --------------------------------------------------------------------------------------------------
+# the commands
+# --------------------------------------------------------------------------------------------------
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    return CliRunner().invoke(cli, list(args), catch_exceptions=False)
+
+
+@pytest.fixture(scope="module")
+def room_seq():
+    from mapping.simulation import sample_sequence
+
+    return sample_sequence("room")
+
+
+def test_compare_holdout_end_to_end(room_seq, tmp_path):
+    """Three methods, ICP tracked once: every method judges the same withheld frames at the same poses; the figures
+    reach compare.csv/.json, holdout.csv, each method's metrics.json and the report."""
+    import csv
+    import json
+
+    seq, out = room_seq, tmp_path / "cmp"
+    res = _cli("compare", str(seq), "-r", str(seq / "truth" / "response.npz"), "--vignetting-lut",
+               str(seq / "truth" / "vignetting.npy"), "--methods", "none,response+ec,lut+ec", "--poses", "icp",
+               "--frames", "0:10", "--voxel-size", "0.02", "--depth-max", "4", "--holdout-every", "3", "--views", "0",
+               "--no-glb", "--no-progress", "-o", str(out))
+    assert res.exit_code == 0, res.output
+    assert "holdout PSNR" in res.output and "1 frame in 3 withheld" in res.output
+    rows = list(csv.DictReader((out / "holdout.csv").open()))
+    assert [r["method"] for r in rows] == ["none"] * 3 + ["response+ec"] * 3 + ["lut+ec"] * 3
+    assert [r["index"] for r in rows[:3]] == ["2", "5", "8"] and all(r["reason"] == "" for r in rows)
+    table = {r["method"]: r for r in csv.DictReader((out / "compare.csv").open())}
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["parameters"]["holdout_every"] == 3 and "holdout PSNR" in doc["columns"]
+    for name in ("none", "response+ec", "lut+ec"):
+        metrics = json.loads((out / name / "metrics.json").read_text())
+        assert metrics["frames"]["fused"] == 7 and metrics["holdout"]["frames_evaluated"] == 3
+        assert float(table[name]["holdout PSNR"]) == pytest.approx(metrics["holdout"]["psnr"], abs=1e-3)
+        assert 15 < metrics["holdout"]["psnr"] < 60 and metrics["holdout"]["l1"] > 0
+        assert (out / name / "holdout.csv").is_file()
+    # the same frames at the same pixels for every method (their maps' geometry is the same up to clipped pixels)
+    pixels = {r["method"]: int(r["pixels"]) for r in rows if r["index"] == "5"}
+    assert max(pixels.values()) - min(pixels.values()) < 0.02 * max(pixels.values())
+    assert "Held-out frames" in (out / "report.html").read_text()
+
+
+def test_reconstruct_holdout_end_to_end(room_seq, tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    res = _cli("reconstruct", str(room_seq), "--poses", "gt", "--frames", "0:8", "--voxel-size", "0.02",
+               "--depth-max", "4", "--holdout-every", "4", "--no-progress", "-o", str(out))
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"]["fused"] == 6 and metrics["holdout"]["frames_evaluated"] == 2
+    assert (out / "holdout.csv").read_text().splitlines()[0].startswith("index,psnr_db")
+    assert json.loads((out / "config.json").read_text())["pipeline"]["holdout_every"] == 4
+
+
+@pytest.mark.parametrize("every", ["0", "-2", "1", "8", "20"])
+@pytest.mark.parametrize("command", ["reconstruct", "compare"])
+def test_bad_holdout_every_is_one_line(room_seq, tmp_path, command, every):
+    out = tmp_path / "x"
+    extra = ["-r", str(room_seq / "truth" / "response.npz"), "--methods", "none"] if command == "compare" else []
+    res = _cli(command, str(room_seq), *extra, "--frames", "0:8", "--holdout-every", every, "--no-progress",
+               "-o", str(out))
+    assert res.exit_code == 1, res.output
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--holdout-every must be a whole number in 2..7 for 8 frames" in lines[0], res.output
+    assert not out.exists()

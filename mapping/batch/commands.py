@@ -36,18 +36,21 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     from mapping.datasets import describe_dataset
     from mapping.export import ResultsFolder, plain_value
     from mapping.factory import ReconstructConfig, build_run
+    from mapping.holdout import check_holdout_every
     from mapping.pipeline import reconstruct
     from radiometry.tables import format_table
 
     config = ReconstructConfig(**options)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
+    if config.holdout_every is not None:
+        check_holdout_every(config.holdout_every, len(kwargs["dataset"]))
     folder = ResultsFolder(config.output, force=config.force)
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
     try:
-        run = reconstruct(**kwargs, output=folder)
+        run = reconstruct(**kwargs, output=folder, holdout_every=config.holdout_every)
         summary = format_table([run.summary_row()]) + "\n" + settings
         folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
     finally:
@@ -72,7 +75,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     backend: str, poses: str, frames: slice | None, voxel_size: float, depth_max: float,
                     brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
                     views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
-                    settings: str, notify: Callable[[str], None] = log.warning):
+                    settings: str, notify: Callable[[str], None] = log.warning, holdout_every: int | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -80,7 +83,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     ``exposure_compensation``); :class:`MethodChoiceError` when a method's model is missing.
     manifest: config.json's record of the options (``methods_run`` is added).
     settings: the summary's settings line (which value came from where).
-    notify:   receives a note on the sequence before the run (a light that changes during a simulation)."""
+    notify:   receives a note on the sequence before the run (a light that changes during a simulation).
+    holdout_every: withhold every N-th frame from fusion and judge each map by them (:mod:`mapping.holdout`)."""
     from mapping.compare import compare
     from mapping.datasets import open_dataset
 
@@ -97,6 +101,9 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
         if scene is None:
             lines.append("(no ground truth: colour error not measured)")
         lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
+        if holdout_every is not None:
+            lines.append(f"holdout: 1 frame in {holdout_every} withheld from fusion; PSNR (dB) and L1 (levels, summed "
+                         "over R, G, B) of each final map rendered at them, exposure fitted per frame (holdout.csv)")
         return "\n".join(lines + [settings]) + "\n"
 
     # config.json and summary.txt are written by compare() in its locked folder: they belong to the run
@@ -105,7 +112,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      render_width=render_width, progress=progress, force=force,
                      title=f"radiomap compare: {Path(sequence).name}",
                      mesh_formats=("ply", "glb") if glb else ("ply",),
-                     config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary)
+                     config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
+                     holdout_every=holdout_every)
     return result, summary(result)
 
 

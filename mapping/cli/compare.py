@@ -76,13 +76,17 @@ def _methods(ctx, param, value):
               help="Width of each render in pixels.")
 @click.option("--glb/--no-glb", default=True, show_default=True,
               help="Also write each mesh as binary glTF (mesh.glb) for web viewers, as reconstruct does.")
+@click.option("--holdout-every", type=int, default=None, metavar="N",
+              help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
+                   "rendered at their poses (holdout.csv, metrics.json).")
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None, output: Path,
             backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, frames: slice | None,
             voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
-            format: str | None, views: int, render_width: int, glb: bool, force: bool, no_progress: bool) -> None:
+            format: str | None, views: int, render_width: int, glb: bool, holdout_every: int | None, force: bool,
+            no_progress: bool) -> None:
     """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
     optionally with exposure compensation) at identical poses, and compare the colour disagreement
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
@@ -121,7 +125,7 @@ def task_arguments(ctx: click.Context) -> dict:
                                    ("glb", "glb", "on" if p["glb"] else "off")])
     options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "frames", "voxel_size", "depth_max",
                                  "brightness", "depth_scale", "intrinsics", "format", "views", "render_width", "glb",
-                                 "force")}
+                                 "holdout_every", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"], "manifest": replay_manifest(ctx, files=("intrinsics",)),
             "settings": settings}

@@ -70,6 +70,9 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--mesh-exposure", default=None, callback=_mesh_exposure, metavar="median|first|K|R,G,B",
               help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
                    "median (of the sequence's estimates; the default), first, a number or r,g,b.")
+@click.option("--holdout-every", type=int, default=None, metavar="N",
+              help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
+                   "rendered at their poses (holdout.csv, metrics.json).")
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -79,7 +82,8 @@ def _mesh_exposure(ctx, param, value):
 def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
-            exposure_compensation: bool | None, mesh_exposure: str | None, force: bool, no_progress: bool) -> None:
+            exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None, force: bool,
+            no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample.
 
@@ -121,7 +125,8 @@ def task_arguments(ctx: click.Context) -> dict:
                    depth_scale=p["depth_scale"], intrinsics=p["intrinsics"], backend=backend,
                    surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
-                   exposure_reference=p["mesh_exposure"] or "median", force=p["force"], progress=not p["no_progress"])
+                   exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"], force=p["force"],
+                   progress=not p["no_progress"])
     settings = [("poses", "poses", p["poses"]),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]

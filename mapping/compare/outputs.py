@@ -11,7 +11,7 @@ import numpy as np
 
 from mapping.compare.colour_error import irradiance_model
 from mapping.compare.methods import EC_SUFFIX
-from mapping.compare.results import MARKER, TABLE_COLUMNS, CompareResult
+from mapping.compare.results import MARKER, CompareResult
 from mapping.export import display_colours_uint8
 from radiometry.fileio import atomic_write_json, atomic_write_text
 from radiometry.tables import csv_text
@@ -28,8 +28,15 @@ def write_outputs(result: CompareResult, dataset, scene, *, views: int, render_w
     out = result.output
     rows = result.table()
     files = result.files
-    files["csv"] = atomic_write_text(out / "compare.csv", csv_text(rows, TABLE_COLUMNS))
+    files["csv"] = atomic_write_text(out / "compare.csv", csv_text(rows, result.columns))
     files["txt"] = atomic_write_text(out / "compare.txt", result.table_text() + "\n")
+    held_out = [r for r in result.results if r.run.holdout is not None]
+    if held_out:
+        lines: list[str] = []   # one header, then every method's rows
+        for r in held_out:
+            text = r.run.holdout.csv(r.method.name).splitlines(keepends=True)
+            lines += text[1:] if lines else text
+        files["holdout"] = atomic_write_text(out / "holdout.csv", "".join(lines))
     histograms = {r.method.label: r.run.histogram for r in result.results if r.run.histogram.total}
     figures = []
     if histograms:
@@ -78,8 +85,10 @@ def write_outputs(result: CompareResult, dataset, scene, *, views: int, render_w
         notes.append(f"ATE of the shared ICP trajectory: {100 * result.ate.rmse:.2f} cm RMSE over {result.ate.pairs} "
                      "frames.")
     summary = ReportSection("Results", notes,
-                            tables=[ReportTable("", [_rounded(r) for r in rows], TABLE_COLUMNS)], figures=figures)
+                            tables=[ReportTable("", [_rounded(r) for r in rows], result.columns)], figures=figures)
     sections.append(summary)
+    if held_out:
+        sections.append(_holdout_section(held_out, p["holdout_every"]))
     if "colour_error" in files:
         sections.append(ReportSection("Colour against ground truth", [
             "Mean absolute error of every mesh vertex's colour against the true radiance of the surface it lies on, "
@@ -108,6 +117,30 @@ def write_outputs(result: CompareResult, dataset, scene, *, views: int, render_w
                                             "mesh_colours.npz beside each holds the map-unit colours."], links=links))
     files["report"] = write_html_report(out / "report.html", title=title or "radiomap: comparison of corrections",
                                         sections=sections, intro=intro)
+
+
+def _holdout_section(held_out, every: int):
+    """The report's section on the withheld frames: how they judge each map, and the table beside the histogram."""
+    from mapping.report import ReportSection, ReportTable
+
+    settings = held_out[0].run.holdout.settings
+    rows = [{"method": r.method.name, "frames judged": len(r.run.holdout.evaluated),
+             "frames withheld": len(r.run.holdout.frames), "pixels": r.run.holdout.pixels,
+             "PSNR dB": r.run.holdout.psnr, "L1": r.run.holdout.l1, "histogram L1 mean": r.run.histogram.stats()["mean"]}
+            for r in held_out]
+    text = [f"One frame in {every} was withheld from fusion (tracked, never fused, never in the histogram). Each "
+            "method's final map is rendered at those frames' poses; the frame's exposure is fitted per channel against "
+            "the render (median of observed / rendered in the method's map units: irradiance f^-1(I)/V for the "
+            "corrected maps, levels for the raw one, so no method gets a freer exposure model than the others) and the "
+            "render goes back through the camera model (f(k V(x) E), or k times the level) to predict the 8-bit image.",
+            f"Judged pixels: a rendered surface; observed levels in {settings['dark']}..{settings['saturated'] - 1} in "
+            f"every channel; render and frame depth within {settings['depth_tolerance_m']:g} m + "
+            f"{100 * settings['depth_relative']:g} % of the depth (occlusion); no depth edge within "
+            f"{settings['edge_dilation']} pixels in either. PSNR over all judged channel values pooled (peak 255); L1 "
+            "per pixel summed over R, G, B (the histogram's distance). The map is a low-pass image of the scene, so "
+            "part of the residual is blur common to every method: compare methods, not the figures with 0. "
+            "Per-frame figures: holdout.csv."]
+    return ReportSection("Held-out frames", text, tables=[ReportTable("", [_rounded(r) for r in rows], list(rows[0]))])
 
 
 def _rounded(row: dict[str, Any]) -> dict[str, Any]:
@@ -171,7 +204,7 @@ def write_compare_json(result: CompareResult) -> None:
         "ate": None if result.ate is None else result.ate.to_dict(),
         "seconds": result.seconds,
         "ranking_l1_mean": result.ranking(),
-        "columns": TABLE_COLUMNS,
+        "columns": result.columns,
         "table": result.table(),
         "methods": [{**r.method.describe(), "folder": r.folder.name,
                      "colour_model": r.colour_model.describe(),

@@ -10,6 +10,8 @@ Layout (``OUT``)::
     OUT/report.html                              everything above in one self-contained page
     OUT/<method>/                                a reconstruct results folder per method (histogram,
                                                  trajectory, metrics, mesh.ply, mesh_colours.npz)
+    OUT/holdout.csv                              with ``holdout_every``: every method's figures per withheld frame
+                                                 (:mod:`mapping.holdout`; its pooled PSNR and L1 are table columns)
     OUT/config.json, summary.txt                 the CLI's options and printed summary (``config``, ``summary``)
     OUT/.radiomap-files.json                     the files and method folders the comparison wrote: the next
                                                  ``force`` run removes them (:class:`ComparisonFolder`)
@@ -32,6 +34,7 @@ from radiometry.tables import format_table
 
 TABLE_COLUMNS = ["method", "description", "frames fused", "pairs", "L1 mean", "L1 median", "L1 p90",
                  "colour err", "colour err p90", "seconds"]
+HOLDOUT_COLUMNS = ["holdout frames", "holdout PSNR", "holdout L1"]   # with held-out frames, before "seconds"
 MARKER = "compare.json"
 
 
@@ -51,10 +54,14 @@ class MethodResult:
     def row(self) -> dict[str, Any]:
         s = self.run.histogram.stats()
         err = self.colour_error
+        holdout = self.run.holdout
         return {"method": self.method.name, "description": self.method.label, "frames fused": self.run.fused,
                 "pairs": s["count"], "L1 mean": s["mean"], "L1 median": s["median"], "L1 p90": s["p90"],
                 "colour err": math.nan if err is None else err.mean,
-                "colour err p90": math.nan if err is None else err.p90, "seconds": self.seconds}
+                "colour err p90": math.nan if err is None else err.p90,
+                **({} if holdout is None else {"holdout frames": len(holdout.evaluated), "holdout PSNR": holdout.psnr,
+                                               "holdout L1": holdout.l1}),
+                "seconds": self.seconds}
 
 
 @dataclass
@@ -85,12 +92,20 @@ class CompareResult:
     def table(self) -> list[dict[str, Any]]:
         return [r.row() for r in self.results]
 
+    @property
+    def columns(self) -> list[str]:
+        """The table's columns: :data:`TABLE_COLUMNS`, with :data:`HOLDOUT_COLUMNS` before "seconds" when the runs
+        withheld frames."""
+        if not any(r.run.holdout is not None for r in self.results):
+            return list(TABLE_COLUMNS)
+        return TABLE_COLUMNS[:-1] + HOLDOUT_COLUMNS + TABLE_COLUMNS[-1:]
+
     def table_text(self) -> str:
         rows = []
         for row in self.table():
             rows.append({k: ("-" if isinstance(v, float) and not math.isfinite(v) else
                              round(v, 2) if isinstance(v, float) else v) for k, v in row.items()})
-        return format_table(rows, TABLE_COLUMNS)
+        return format_table(rows, self.columns)
 
     @property
     def poses_identical(self) -> bool:
@@ -118,6 +133,6 @@ class ComparisonFolder(ResultsFolder):
                "output folder")
     result_names = frozenset({MARKER, "compare.csv", "compare.txt", "histograms.png", "colour_error.png",
                               "renders.jpg", "report.html", "exposures.png", "trajectory.png", "config.json",
-                              "summary.txt", RUNNING_MARKER, MANIFEST})
+                              "summary.txt", "holdout.csv", RUNNING_MARKER, MANIFEST})
     result_folders = frozenset(METHOD_NAMES)
     status_file = None

@@ -69,7 +69,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
             parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply", "glb"),
             config: Mapping[str, Any] | None = None,
-            summary: Callable[[CompareResult], str] | None = None) -> CompareResult:
+            summary: Callable[[CompareResult], str] | None = None, holdout_every: int | None = None) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report. The
     folder ``output`` and each method's folder in it are locked against a second run
     (:class:`mapping.export.FolderLock`) from their creation until the comparison ends.
@@ -94,9 +94,13 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     config, summary:  written as ``config.json`` (a JSON document, e.g. the CLI's replay manifest) and
                       ``summary.txt`` (the text ``summary(result)`` returns) when the comparison has finished, in
                       the locked folder before it is marked complete: they belong to this run (its MANIFEST).
+    holdout_every:    None, or N: every method withholds the same frames (every N-th) from fusion and its final map is
+                      judged by them (:mod:`mapping.holdout`: PSNR and L1 columns, ``holdout.csv``); with ICP poses
+                      the first method tracks the withheld frames too and every method judges at those poses.
     """
     from mapping._open3d import o3d
     from mapping.factory import make_backend, make_tracker
+    from mapping.holdout import check_holdout_every
     from mapping.pipeline import POSE_SOURCES, reconstruct
     from mapping.validation import check_run
     from radiometry.fileio import atomic_write_json, atomic_write_text
@@ -128,12 +132,15 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     output = Path(output)
     height, width = dataset.height, dataset.width
     n = len(dataset)
+    if holdout_every is not None:
+        holdout_every = check_holdout_every(holdout_every, n)
 
     # the comparison's folder, then each method's: released (their files listed) in reverse when it ends
     with contextlib.ExitStack() as folders:
         top = folders.enter_context(ComparisonFolder(output, force=force))  # the previous comparison removed
         start = time.perf_counter()
-        bar = progress_bar(total=n * len(methods), desc="compare", enabled=progress)
+        reads = n + (n // holdout_every if holdout_every else 0)   # the withheld frames are read again to judge
+        bar = progress_bar(total=reads * len(methods), desc="compare", enabled=progress)
         results: list[MethodResult] = []
         fixed: list[np.ndarray | None] | None = None
         ate = None
@@ -151,7 +158,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
                                       poses="icp" if track else "gt", output=folder, progress=False,
-                                      histogram_label=method.label, write_mesh=False)
+                                      histogram_label=method.label, write_mesh=False, holdout_every=holdout_every)
                     seconds = time.perf_counter() - t0
                     if track:
                         fixed = _poses_by_frame(run, n)
@@ -170,7 +177,8 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                                output=output, files={}, seconds=0.0, ate=ate,
                                parameters={"backend": backend, "poses": poses, "voxel_size": voxel_size,
                                            "depth_max": depth_max, "brightness": brightness, "frames": n,
-                                           "width": width, "height": height, **dict(parameters or {})})
+                                           "width": width, "height": height, "holdout_every": holdout_every,
+                                           **dict(parameters or {})})
         if not result.poses_identical:  # cannot happen by construction; never report a comparison that breaks it
             raise RadiomapError("the methods were fused at different poses; this is a bug, please report it")
         write_outputs(result, dataset, scene, views=views, render_width=render_width, title=title,
@@ -226,11 +234,13 @@ def _colour_model(method: Method, height: int, width: int, brightness: str):
 
 
 def _poses_by_frame(run, n: int) -> list[np.ndarray | None]:
-    """Per dataset position: the pose the run fused that frame at, or None if it skipped it."""
+    """Per dataset position: the pose the run fused (or withheld) that frame at, or None if it skipped it."""
     out: list[np.ndarray | None] = [None] * n
     k = 0
     for i, record in enumerate(run.records):
         if record.fused:
             out[i] = run.poses[k]
             k += 1
+        else:
+            out[i] = run.held_out_poses.get(i)
     return out
