@@ -271,6 +271,7 @@ def test_reconstruct_holdout_end_to_end(room_seq, tmp_path):
     res = _cli("reconstruct", str(room_seq), "--poses", "gt", "--frames", "0:8", "--voxel-size", "0.02",
                "--depth-max", "4", "--holdout-every", "4", "--no-progress", "-o", str(out))
     assert res.exit_code == 0, res.output
+    assert "warning: skipped" not in res.output    # the withheld frames were asked for
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"]["fused"] == 6 and metrics["holdout"]["frames_evaluated"] == 2
     assert (out / "holdout.csv").read_text().splitlines()[0].startswith("index,psnr_db")

@@ -89,13 +89,15 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
     from mapping.batch.commands import reconstruct_command
+    from mapping.holdout import HELD_OUT
 
     run, summary = reconstruct_command(**task_arguments(click.get_current_context()))
     click.echo(summary)
-    if run.skipped:
-        reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
-        click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
-                   err=True)
+    skipped = {k: v for k, v in run.skip_reasons().items() if k != HELD_OUT}  # withheld frames were asked for
+    if skipped:
+        reasons = ", ".join(f"{k}: {v}" for k, v in skipped.items())
+        click.echo(f"warning: skipped {sum(skipped.values())} of {run.frames} frames ({reasons}); see "
+                   f"{output / 'frames.csv'}", err=True)
     warn_far_depth(run.depth_beyond_range, depth_max)
     click.echo(f"results in {output}")
 
