@@ -37,7 +37,7 @@ from radiometry.self_calibration import Observations, SelfCalibration, SelfCalib
 log = logging.getLogger(__name__)
 
 MARKER = "self_calibration.json"
-FIGURES = ("vignetting.png", "coverage.png", "exposures.png", "residuals.png")
+FIGURES = ("vignetting.png", "stderr.png", "coverage.png", "exposures.png", "residuals.png")
 
 
 class SelfCalibrationFolder(ResultsFolder):
@@ -71,7 +71,9 @@ class SamplingOptions:
 @dataclass
 class SelfCalibrationRun:
     """What :func:`run_self_calibration` returns: the solver's result, the frames' indices and timestamps in the
-    sequence, the sightings' statistics, timings (seconds per stage) and peak memory (MiB), and the files."""
+    sequence, the sightings' statistics, timings (wall seconds per stage and in total; ``cpu``: CPU seconds of
+    the whole run, ``cpu_per_100_frames`` the same per 100 frames used), peak memory (MiB, the process's peak
+    resident size) and the files."""
 
     result: SelfCalibration
     indices: np.ndarray
@@ -245,6 +247,14 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _cpu_seconds() -> float:
+    """CPU time (user + system) of this process so far: unlike the wall clock, hardly changed by other load."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_self_calibration(sequence: str | Path, output: str | Path, *, response: CameraResponse | str | Path | None
                          = None, poses: str = "gt", frames: slice | None = None, format: str | None = None,
                          depth_scale: float | None = None, intrinsics=None, options: SamplingOptions =
@@ -265,7 +275,7 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     from mapping.metrics import format_tum_trajectory
 
     seconds: dict[str, float] = {}
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
     response_given = response is not None
     response = as_response(response) if response_given else CameraResponse.gamma(2.2)
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
@@ -301,6 +311,8 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
 
             files.update(save_figures(folder.path, result, indices))
         seconds["total"] = time.perf_counter() - t0
+        seconds["cpu"] = _cpu_seconds() - cpu0
+        seconds["cpu_per_100_frames"] = 100.0 * seconds["cpu"] / len(use)
         run = SelfCalibrationRun(result=result, indices=indices, timestamps=stamps, sampling=stats,
                                  seconds={k: round(v, 2) for k, v in seconds.items()}, peak_rss_mb=_peak_rss_mb(),
                                  files=files)

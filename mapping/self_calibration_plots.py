@@ -1,6 +1,6 @@
-"""Figures of a self-calibration (``radiomap self-calibrate``, :mod:`mapping.self_calibration`): ``V`` per channel,
-the coverage of image positions, the exposure of each frame and the residuals before and after (matplotlib, every
-drawing function takes the axis first)."""
+"""Figures of a self-calibration (``radiomap self-calibrate``, :mod:`mapping.self_calibration`): ``V`` per channel and
+its standard error, the coverage of image positions, the exposure of each frame and the residuals before and after
+(matplotlib, every drawing function takes the axis first)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,15 @@ def plot_vignetting(ax, lut: np.ndarray, channel: int, *, title: str = "") -> ob
     im = ax.imshow(v, cmap="viridis", vmin=float(v.min()), vmax=1.0)
     ax.contour(v, levels=np.arange(0.3, 1.0, 0.05), colors="white", linewidths=0.5)
     ax.set_title(title or f"V ({'RGB'[channel]})")
+    ax.set_axis_off()
+    return im
+
+
+def plot_stderr(ax, stderr: np.ndarray, channel: int, *, vmax: float | None = None) -> object:
+    """The relative standard error of ``V`` (in %) of one channel as an image; returns the image artist."""
+    se = 100.0 * stderr[:, :, channel]
+    im = ax.imshow(se, cmap="magma", vmin=0.0, vmax=vmax if vmax is not None else float(se.max()))
+    ax.set_title(f"stderr of V ({'RGB'[channel]}), %")
     ax.set_axis_off()
     return im
 
@@ -56,8 +65,8 @@ def plot_residuals(ax, before: list[np.ndarray], after: list[np.ndarray]) -> Non
 
 
 def save_figures(folder: Path, result, indices: np.ndarray) -> dict[str, Path]:
-    """Write ``vignetting.png``, ``coverage.png``, ``exposures.png`` and ``residuals.png`` into ``folder``
-    (atomically); returns name -> path."""
+    """Write ``vignetting.png``, ``stderr.png`` (the standard error of ``V``), ``coverage.png``, ``exposures.png``
+    and ``residuals.png`` into ``folder`` (atomically); returns name -> path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -81,6 +90,12 @@ def save_figures(folder: Path, result, indices: np.ndarray) -> dict[str, Path]:
         im = plot_vignetting(ax, lut, c)
     fig.colorbar(im, ax=list(np.atleast_1d(axes)), shrink=0.8)
     save(fig, "vignetting")
+    se = result.vignetting.stderr
+    fig, axes = plt.subplots(1, se.shape[2], figsize=(4.2 * se.shape[2], 3.2))
+    for c, ax in enumerate(np.atleast_1d(axes)):
+        im = plot_stderr(ax, se, c, vmax=100.0 * float(se.max()))
+    fig.colorbar(im, ax=list(np.atleast_1d(axes)), shrink=0.8)
+    save(fig, "stderr")
     fig, ax = plt.subplots(figsize=(5, 4))
     plot_coverage(ax, result.coverage)
     save(fig, "coverage")
@@ -93,4 +108,4 @@ def save_figures(folder: Path, result, indices: np.ndarray) -> dict[str, Path]:
     return files
 
 
-__all__ = ["plot_coverage", "plot_exposures", "plot_residuals", "plot_vignetting", "save_figures"]
+__all__ = ["plot_coverage", "plot_exposures", "plot_residuals", "plot_stderr", "plot_vignetting", "save_figures"]

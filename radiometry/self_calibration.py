@@ -111,8 +111,9 @@ class Observations:
 class SelfCalibration:
     """The result of :func:`self_calibrate`.
 
-    vignetting: the LUT model (``stderr``: relative standard error of ``V`` from the last ``V`` update, with
-    exposures and radiances held fixed); exposures: ``(F, C)`` ``k_j`` (``k_0 = 1``; NaN for frames without
+    vignetting: the LUT model (``stderr``: relative standard error of ``V`` per pixel and channel in its gauge,
+    exposures and radiances marginalised, cluster-robust over blocks of frames and over points: :func:`_covariance`);
+    exposures: ``(F, C)`` ``k_j`` (``k_0 = 1``; NaN for frames without
     sightings); radiance: ``(P, C)``; sightings: ``(F,)`` observations per frame used; residuals_before /
     residuals_after: the log residuals per channel with ``V = 1`` and with the fitted ``V`` (``(N,)`` each);
     coverage: ``(gh, gw)`` sightings per position bin; info: parameters and diagnostics.
@@ -291,7 +292,7 @@ def check_constrained(obs: Observations, *, min_frames: int = 3, min_points: int
 def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, iterations: int = 15,
                    huber: float = 2.0, smoothness: float = 0.01, min_frames: int = 3, min_points: int = 20,
                    centre: tuple[float, float] | None = None, centre_sigma: float = 1.0,
-                   stderr_bins: int = 40) -> SelfCalibration:
+                   stderr_bins: int = 40, stderr_block: int | None = None) -> SelfCalibration:
     """Estimate ``V``, ``k_j`` and ``L_i`` per channel from ``obs`` (see the module doc).
 
     grid: (columns, rows) of the non-radial residual; iterations: IRLS rounds; huber: the Huber threshold in
@@ -299,7 +300,8 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
     (relative to the number of sightings per grid cell); min_frames, min_points: :func:`check_constrained`;
     centre: the principal point (default: the image centre), the prior of the polynomial's centre, with
     ``centre_sigma`` half-diagonals of spread; stderr_bins: grid across the width on which the standard error of
-    ``V`` is evaluated (then resized).
+    ``V`` is evaluated (then resized); stderr_block: consecutive frames per cluster of the standard error
+    (:func:`_covariance`; default a sixth of the frames, 1 to 10).
     """
     regions = check_constrained(obs, min_frames=min_frames, min_points=min_points)
     width, height = obs.resolution
@@ -317,6 +319,7 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
     lam = smoothness * per_cell
     centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0]) if centre is None else np.asarray(centre, float)
     centre_weight = 1.0 / centre_sigma ** 2
+    block = stderr_block or int(np.clip(n_frames // 6, 1, 10))
     luts, ses, kappas, radiances = [], [], [], []
     before, after, params_out, scales = [], [], [], []
     for c in range(obs.channels):
@@ -335,8 +338,7 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
                                        obs.resolution)
             res = y - model.value(p)[bin_of] - kappa[frame] - lp[point]
             w, scale = _huber_weights(res, huber)
-        wb = np.bincount(bin_of, w, minlength=n_bins)
-        tb = np.bincount(bin_of, w * (y - kappa[frame] - lp[point]), minlength=n_bins) / np.maximum(wb, 1e-300)
+        cov = _covariance(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior, scale, block)
         kappa[np.bincount(frame, minlength=n_frames) == 0] = np.nan
         # gauge: V = 1 at the polynomial's centre (g shifted to 0 there), k_0 = 1 (kappa_0 = 0 already)
         centre_model = _LogV(np.array([p[0]]), np.array([p[1]]), obs.resolution, grid)
@@ -346,7 +348,7 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
         after.append(res)
         scales.append(scale)
         luts.append(np.exp(log_v_image(p, obs.resolution, grid)))
-        ses.append(_stderr(model, p, tb, wb, penalty, lam, prior, scale, stderr_bins, (height, width)))
+        ses.append(_stderr(p, cov, obs.resolution, grid, stderr_bins))
         kappas.append(kappa)
         radiances.append(np.exp(lp))
         params_out.append(p)
@@ -365,22 +367,30 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
                            residuals_after=after, coverage=coverage, info=info)
 
 
-def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
-                point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
-                prior: tuple[np.ndarray, float], resolution: tuple[int, int]
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One Gauss-Newton step on all unknowns at once (exposures, radiances, ``V``), the radiances eliminated
-    exactly (Schur complement), with step halving; ``kappa_0`` stays 0."""
+@dataclass
+class _Reduced:
+    """The Gauss-Newton system of one IRLS round with the radiances eliminated: ``schur`` (square, frames + V
+    parameters), its right-hand side ``rhs``, the radiances' couplings ``c`` ``(P, F + nv)`` and inverse diagonal
+    ``inv_l``, their gradient ``g_l``, the free unknowns ``free`` (``kappa_0`` and unseen frames held) and the V
+    Jacobian ``jv`` on the position bins."""
+
+    schur: np.ndarray
+    rhs: np.ndarray
+    c: np.ndarray
+    inv_l: np.ndarray
+    g_l: np.ndarray
+    free: np.ndarray
+    jv: np.ndarray
+
+
+def _reduced_system(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
+                    point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
+                    prior: tuple[np.ndarray, float]) -> _Reduced:
+    """The normal equations of all unknowns at ``(p, kappa, lp)`` with weights ``w``, the radiances eliminated
+    exactly (Schur complement)."""
     from scipy import sparse
 
     n_points, n_frames, n_bins = lp.size, kappa.size, model.x.size
-    w_, h_ = resolution
-
-    def cost(q, k, l):
-        r = y - model.value(q)[bin_of] - k[frame] - l[point]
-        return float(np.sum(w * r * r) + lam * np.sum((penalty @ q[5:]) ** 2)
-                     + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
-
     jv = model.jacobian(p)                                      # (bins, nv)
     nv = jv.shape[1]
     r = y - model.value(p)[bin_of] - kappa[frame] - lp[point]
@@ -412,11 +422,30 @@ def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, 
     free = np.ones(n_frames + nv, bool)
     free[0] = False
     free[:n_frames] &= d_k > 0
-    step = np.zeros(n_frames + nv)
-    sub = schur[np.ix_(free, free)]
+    return _Reduced(schur, rhs, c, inv_l, g_l, free, jv)
+
+
+def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
+                point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
+                prior: tuple[np.ndarray, float], resolution: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One Gauss-Newton step on all unknowns at once (exposures, radiances, ``V``), the radiances eliminated
+    exactly (:func:`_reduced_system`), with step halving; ``kappa_0`` stays 0."""
+    n_frames = kappa.size
+    w_, h_ = resolution
+
+    def cost(q, k, l):
+        r = y - model.value(q)[bin_of] - k[frame] - l[point]
+        return float(np.sum(w * r * r) + lam * np.sum((penalty @ q[5:]) ** 2)
+                     + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
+
+    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior)
+    free = red.free
+    step = np.zeros(free.size)
+    sub = red.schur[np.ix_(free, free)]
     sub[np.diag_indices_from(sub)] += 1e-9 * max(float(np.max(np.diag(sub))), 1.0)
-    step[free] = np.linalg.solve(sub, rhs[free])
-    step_l = inv_l * (g_l - c @ step)
+    step[free] = np.linalg.solve(sub, red.rhs[free])
+    step_l = red.inv_l * (red.g_l - red.c @ step)
     current = cost(p, kappa, lp)
     t = 1.0
     while t > 1e-3:
@@ -430,41 +459,66 @@ def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, 
     return p, kappa, lp
 
 
-def _normal_equations(model: _LogV, p: np.ndarray, tb: np.ndarray, wb: np.ndarray, penalty: np.ndarray,
-                      lam: float, prior: tuple[np.ndarray, float] | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    jac = model.jacobian(p)
-    r = tb - model.value(p)
-    jw = jac * wb[:, None]
-    a = jac.T @ jw
-    g = jw.T @ r
-    reg = lam * (penalty.T @ penalty)
-    a[5:, 5:] += reg
-    g[5:] -= reg @ p[5:]
-    a[:5, :5] += np.diag(np.maximum(np.diag(a[:5, :5]), 1e-12)) * 1e-6
-    if prior is not None:
-        centre0, weight = prior
-        a[0, 0] += weight
-        a[1, 1] += weight
-        g[:2] -= weight * (p[:2] - centre0)
-    return a, g, jac
+def _covariance(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
+                point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
+                prior: tuple[np.ndarray, float], scale: float, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Covariances (cluster-robust, model-based) of ``V``'s parameters at the solution, exposures and radiances
+    marginalised (not held fixed).
+
+    Sightings are not independent: a frame's pose error or an exposure that follows the camera's pitch moves
+    many sightings of neighbouring frames alike, and a point's texture all its sightings. So the covariance is
+    cluster-robust (a sandwich ``B M B``, ``B`` the inverse of the reduced normal matrix): the scores summed over
+    blocks of ``block`` consecutive frames plus those summed over points (two one-way clusterings added, each
+    scaled by ``G / (G - 1)``), and never below the model-based ``s^2 B`` (``s`` the robust residual scale).
+    Measured on the demo's simulated room (60 frames, 320x240): the model-based error alone was 6-10x below the
+    true error of ``V``, this one 1.3-1.7x (75-82 % of pixels within 2 standard errors)."""
+    from scipy import sparse
+
+    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior)
+    n_frames, n_points, n_bins = kappa.size, lp.size, model.x.size
+    free = red.free
+    sub = red.schur[np.ix_(free, free)]
+    bread = np.linalg.pinv(sub + np.eye(len(sub)) * 1e-9 * max(float(np.max(np.diag(sub))), 1.0))
+    wr = w * (y - model.value(p)[bin_of] - kappa[frame] - lp[point])
+    cbar = red.c * red.inv_l[:, None]                   # each point's weighted mean Jacobian (its radiance's pull)
+    # scores per frame (the radiances' part projected out), then summed over blocks of consecutive frames
+    by_frame = np.zeros((n_frames, free.size))
+    by_frame[np.arange(n_frames), np.arange(n_frames)] = np.bincount(frame, wr, minlength=n_frames)
+    by_frame[:, n_frames:] = sparse.coo_matrix((wr, (frame, bin_of)), shape=(n_frames, n_bins)).tocsr() @ red.jv
+    by_frame -= sparse.coo_matrix((wr, (frame, point)), shape=(n_frames, n_points)).tocsr() @ cbar
+    by_block = np.add.reduceat(by_frame[:, free], np.arange(0, n_frames, block), axis=0)
+    # scores per point
+    by_point = np.hstack([sparse.coo_matrix((wr, (point, frame)), shape=(n_points, n_frames)).toarray(),
+                          sparse.coo_matrix((wr, (point, bin_of)), shape=(n_points, n_bins)).tocsr() @ red.jv])
+    by_point = (by_point - cbar * red.g_l[:, None])[:, free]
+    meat = np.zeros((int(free.sum()),) * 2)
+    for scores in (by_block, by_point):
+        g = len(scores)
+        if g > 1:
+            meat += g / (g - 1.0) * (scores.T @ scores)
+    full = np.zeros((free.size, free.size))
+    full[np.ix_(free, free)] = bread @ meat @ bread
+    model_based = np.zeros_like(full)
+    model_based[np.ix_(free, free)] = scale ** 2 * bread
+    return full[n_frames:, n_frames:], model_based[n_frames:, n_frames:]
 
 
-def _stderr(model: _LogV, p: np.ndarray, tb: np.ndarray, wb: np.ndarray, penalty: np.ndarray,
-            lam: float, prior: tuple[np.ndarray, float], scale: float, bins: int, shape: tuple[int, int]) -> np.ndarray:
-    """Relative standard error of ``V`` per pixel: ``sqrt(j(x)^T cov j(x))`` with ``cov = s^2 A^-1`` (``A`` the
-    normal matrix of the last ``V`` update, ``s`` the robust residual scale), exposures and radiances fixed."""
+def _stderr(p: np.ndarray, cov: tuple[np.ndarray, np.ndarray], resolution: tuple[int, int], grid: tuple[int, int],
+            bins: int) -> np.ndarray:
+    """Relative standard error of ``V`` per pixel in its gauge (``V = 1`` at the polynomial's centre):
+    ``sqrt(j(x)^T cov j(x))``, ``j`` the Jacobian of ``log V(x) - log V(centre)``; the larger of the cluster-robust
+    and the model-based covariance (:func:`_covariance`) at each pixel. Evaluated on ``bins`` points across the
+    width and resized."""
     import cv2
 
-    a, _, _ = _normal_equations(model, p, tb, wb, penalty, lam, prior)
-    cov = scale ** 2 * np.linalg.pinv(a)
-    height, width = shape
+    width, height = resolution
     gx = np.linspace(0, width - 1, bins)
     gy = np.linspace(0, height - 1, max(2, int(round(bins * height / width))))
     xx, yy = np.meshgrid(gx, gy)
-    coarse = _LogV(xx.ravel(), yy.ravel(), (width, height), (model.nodes[1] - 1, model.nodes[0] - 1))
-    jac = coarse.jacobian(p)
-    se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, cov, jac), 0.0)).reshape(xx.shape)
+    jac = _LogV(xx.ravel(), yy.ravel(), resolution, grid).jacobian(p)
+    jac[:, 5:] -= _LogV(np.array([p[0]]), np.array([p[1]]), resolution, grid).bilinear[0]
+    var = np.max([np.einsum("ij,jk,ik->i", jac, c, jac) for c in cov], axis=0)
+    se = np.sqrt(np.maximum(var, 0.0)).reshape(xx.shape)
     return cv2.resize(se.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
 
 

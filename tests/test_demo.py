@@ -111,7 +111,58 @@ def test_everything_is_written_into_out_only(demo):
     assert demo["demo"]["quick"] is True and demo["demo"]["size"]["width"] == 160
     assert demo["demo"]["camera"] == "asymmetric" and "asymmetric preset" in demo["output"]
     assert demo["demo"]["seconds"] > 0 and set(demo["demo"]["timings"]) == {"response", "vignetting", "room",
-                                                                           "compare"}
+                                                                           "self_calibration", "compare"}
+
+
+def test_quick_demo_says_why_it_has_no_self_calibrated_method(demo):
+    """The quick demo's 15 frames at 160x120 never carry a surface from the top of the image to elsewhere, so
+    self-calibration refuses (its one-line reason) and the demo runs the other methods and says so; the full
+    demo (60 frames at 320x240) has the method (checked on a room it can constrain below)."""
+    skipped = demo["demo"]["calibration"]["self_calibration"]["skipped"]
+    assert "cannot constrain vignetting" in skipped
+    assert f"self-calibrated vignetting: none, {skipped}" in demo["output"]
+    assert not any(n.startswith("self") for n in demo["table"])
+    assert "self" not in demo["demo"]["calibration"]["vignetting_error_levels"]
+
+
+def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
+    """The demo's step 5 on a room that constrains V (160x120, 30 frames, seed 1: measured 1.3-1.4 levels with
+    the true response): V's error against the truth in the calibration table's measure, the stderr recorded,
+    and the model the compare method takes."""
+    from mapping.demo import _self_calibrate
+    from mapping.simulation.sequences import simulate_room
+    from mapping.simulation.trajectory import HandheldMotion
+    from radiometry.simulation import CameraSpec, SimulatedCamera
+    from radiometry.vignetting import LUTVignetting
+
+    sim = SimulatedCamera(CameraSpec.preset("asymmetric", width=160, height=120))
+    seq = simulate_room(tmp_path / "room", camera=sim.spec, seed=1, n_frames=30, width=160, height=120,
+                        motion=HandheldMotion(speed=3.0), progress=False)
+    timings, lines = {}, []
+    model, record = _self_calibrate(tmp_path / "calib", seq, sim, sim.response, progress=False, timings=timings,
+                                    say=lines.append)
+    assert isinstance(model, LUTVignetting) and model.stderr is not None
+    err = np.array(record["vignetting_error_levels"])
+    assert err.shape == (3,) and np.all(err < 2.5), err
+    assert record["exposure_error_median_percent"] < 2.0
+    assert 0 < record["stderr_median_percent"] < 5 and record["frames"] == 30 and timings["self_calibration"] > 0
+    assert (tmp_path / "calib" / "self" / "vignetting.npz").is_file() and "self-calibration: V" in lines[0]
+
+
+def test_self_method_takes_the_self_calibrated_lut():
+    from mapping.compare import make_methods
+    from radiometry.response import CameraResponse
+    from radiometry.vignetting import LUTVignetting, PolynomialVignetting
+
+    resp = CameraResponse.gamma(2.2)
+    lut = LUTVignetting(np.ones((12, 16, 3), np.float32))
+    (m,) = make_methods(resp, vignetting_self=lut, names=["self+ec"])
+    assert m.vignetting is lut and m.exposure_compensation and m.label.startswith("self-calibrated vignetting")
+    with pytest.raises(ValueError, match="needs the self vignetting model .*radiomap self-calibrate"):
+        make_methods(resp, vignetting_lut=lut, names=["self"])
+    poly = PolynomialVignetting([0.0, 0.0, 0.0], [7.5, 5.5], (16, 12))
+    with pytest.raises(ValueError, match="vignetting_self holds a polynomial .* --vignetting-poly"):
+        make_methods(resp, vignetting_self=poly, names=["self"])
 
 
 def test_models_written_by_the_demo_load(demo):

@@ -22,7 +22,9 @@ def true_v(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def synthetic(seed: int = 0, *, frames: int = 30, points: int = 1500, per_point: int = 8, outliers: float = 0.05,
-              spread: bool = True):
+              spread: bool = True, noise: float = 0.005, noise_seed: int | None = None):
+    """Sightings of a scene with known V, k and L; ``noise_seed`` redraws only the noise and outliers (the same
+    scene, exposures and geometry as ``seed``)."""
     rng = np.random.default_rng(seed)
     k = np.exp(rng.normal(0, 0.3, (frames, 3)))
     k[0] = 1.0
@@ -33,7 +35,9 @@ def synthetic(seed: int = 0, *, frames: int = 30, points: int = 1500, per_point:
         x, y = rng.uniform(0, W - 1, point.size), rng.uniform(0, H - 1, point.size)
     else:   # every point at one image position: V is not constrained
         x, y = np.repeat(rng.uniform(0, W - 1, points), per_point), np.repeat(rng.uniform(0, H - 1, points), per_point)
-    e = k[frame] * true_v(x, y) * L[point] * np.exp(rng.normal(0, 0.005, (point.size, 3)))
+    if noise_seed is not None:
+        rng = np.random.default_rng(noise_seed)
+    e = k[frame] * true_v(x, y) * L[point] * np.exp(rng.normal(0, noise, (point.size, 3)))
     bad = rng.random(point.size) < outliers
     e[bad] *= np.exp(rng.choice([-1, 1], (bad.sum(), 1)) * rng.uniform(0.3, 0.8, (bad.sum(), 3)))
     return Observations(point, frame, x, y, e, (W, H), frames), k, L
@@ -71,6 +75,50 @@ def test_gauge(solved):
         assert v[int(round(cy)), int(round(cx)), c] == pytest.approx(1.0, abs=0.01)
     assert res.vignetting.stderr is not None and res.vignetting.stderr.shape == v.shape
     assert np.all(np.isfinite(res.vignetting.stderr))
+
+
+def _gauge_error(res) -> np.ndarray:
+    """log(V_est / V_true) with the truth in the estimate's gauge (V = 1 at the fitted centre), ``(H, W, 3)``."""
+    ys, xs = np.mgrid[0:H, 0:W]
+    truth = true_v(xs.astype(float), ys.astype(float))
+    out = np.empty_like(truth)
+    for c, (cx, cy) in enumerate(res.info["centre"]):
+        out[:, :, c] = np.log(res.vignetting.evaluate()[:, :, c] / (truth[:, :, c] /
+                                                                     truth[int(round(cy)), int(round(cx)), c]))
+    return out
+
+
+def test_stderr_matches_the_spread_of_v_across_noise_seeds():
+    """The same scene and camera, four noise draws: the stated standard error of V describes how far V lands from
+    the truth. Measured (this scene, 2 % noise): 86-92 % of pixels within 2 standard errors (95 % if the error
+    were Gaussian and unbiased; the rest is the model's bias against this non-radial truth), RMS error / RMS
+    stderr 0.8-1.1. The error with exposures and radiances held fixed, as before, was 5-10x too small here, and
+    would put well under half of the pixels within 2 standard errors."""
+    within, ratios = [], []
+    for noise_seed in range(4):
+        obs, _, _ = synthetic(5, frames=20, points=800, noise=0.02, noise_seed=100 + noise_seed)
+        res = self_calibrate(obs, smoothness=0.01, centre=((W - 1) / 2, (H - 1) / 2))
+        d, se = _gauge_error(res), res.vignetting.stderr.astype(float)
+        away = se > 0.2 * np.median(se)      # not at the gauge point, where both are ~0
+        within.append(np.mean(np.abs(d[away]) < 2 * se[away]))
+        ratios.append(np.sqrt(np.mean(d[away] ** 2) / np.mean(se[away] ** 2)))
+    assert 0.75 < np.mean(within) < 0.995, within
+    assert 0.6 < np.mean(ratios) < 1.6, ratios
+
+
+def test_thinly_covered_regions_get_a_larger_stderr():
+    """Nine in ten sightings in the top-left ninth of the image dropped: V's standard error there grows against
+    the opposite corner, which kept all of its sightings."""
+    full, _, _ = synthetic(6, frames=20, points=800, noise=0.02)
+    thin = (full.x < W / 3) & (full.y < H / 3) & (np.random.default_rng(0).random(full.x.size) < 0.9)
+    keep = ~thin
+    obs = Observations(full.point[keep], full.frame[keep], full.x[keep], full.y[keep], full.irradiance[keep],
+                       (W, H), full.n_frames)
+    se_full = self_calibrate(full, smoothness=0.01).vignetting.stderr
+    se_thin = self_calibrate(obs, smoothness=0.01).vignetting.stderr
+    tl, br = (slice(0, H // 4), slice(0, W // 4)), (slice(-H // 4, None), slice(-W // 4, None))
+    assert np.median(se_thin[tl]) > 1.5 * np.median(se_thin[br])
+    assert np.median(se_thin[tl]) > 1.5 * np.median(se_full[tl])
 
 
 def test_huber_resists_outliers_that_plain_least_squares_does_not():

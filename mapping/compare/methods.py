@@ -1,5 +1,7 @@
 """The methods a comparison fuses: no correction, the response alone, the response with a polynomial or a LUT
-vignetting model, each but the first optionally with exposure compensation (``+ec``).
+vignetting model from a white-paper calibration or with a LUT self-calibrated from an RGB-D sequence
+(``self``: the ``vignetting.npz`` of ``radiomap self-calibrate``), each but the first optionally with exposure
+compensation (``+ec``).
 
 Equal brightness (``brightness="mean"``, the default of :func:`mapping.compare.compare`). Where ``V = 1`` is put
 is a convention (the optical centre), yet it sets the brightness of the corrected images: ``f^-1(I) / V`` is
@@ -24,12 +26,15 @@ from radiometry.errors import CalibrationFileError
 from radiometry.response import CameraResponse
 from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel
 
-BASE_METHODS = ("none", "response", "poly", "lut")
+BASE_METHODS = ("none", "response", "poly", "lut", "self")
 EC_SUFFIX = "+ec"
 METHOD_NAMES = BASE_METHODS + tuple(m + EC_SUFFIX for m in BASE_METHODS[1:])
 DEFAULT_METHODS = ("none", "poly", "lut")
 LABELS = {"none": "no correction", "response": "response only", "poly": "polynomial vignetting",
-          "lut": "LUT vignetting"}
+          "lut": "LUT vignetting", "self": "self-calibrated vignetting"}
+#: how a method's missing model is supplied (the error names it)
+MODEL_SOURCES = {"poly": "--vignetting-poly", "lut": "--vignetting-lut",
+                 "self": "vignetting_self: the vignetting.npz that 'radiomap self-calibrate' writes"}
 BRIGHTNESS = ("mean", "calibrated")
 
 
@@ -37,7 +42,8 @@ BRIGHTNESS = ("mean", "calibrated")
 class Method:
     """One way of turning frames into map colours.
 
-    name:        short identifier (``none``, ``response``, ``poly``, ``lut``, each but ``none`` with ``+ec``);
+    name:        short identifier (``none``, ``response``, ``poly``, ``lut``, ``self``, each but ``none`` with
+                 ``+ec``);
                  also the name of the method's results folder.
     label:       what the figures call it.
     response:    the camera response, or None for raw intensities (no correction).
@@ -67,12 +73,14 @@ class Method:
 
 
 def make_methods(response: CameraResponse | None, *, vignetting_poly: VignettingModel | None = None,
-                 vignetting_lut: VignettingModel | None = None, exposure_compensation: bool = False,
-                 names: Sequence[str] | None = None) -> list[Method]:
+                 vignetting_lut: VignettingModel | None = None, vignetting_self: LUTVignetting | None = None,
+                 exposure_compensation: bool = False, names: Sequence[str] | None = None) -> list[Method]:
     """The methods to compare, in order.
 
-    names: among :data:`METHOD_NAMES`; default ``none, poly, lut`` plus ``poly+ec, lut+ec`` when
-    ``exposure_compensation``. A method whose model is not given is an error naming the missing option.
+    vignetting_self: a LUT self-calibrated from a sequence (:func:`mapping.self_calibration.run_self_calibration`),
+    for the ``self`` methods. names: among :data:`METHOD_NAMES`; default ``none, poly, lut`` plus ``poly+ec,
+    lut+ec`` when ``exposure_compensation``. A method whose model is not given is an error naming the missing
+    option.
     """
     if names is None:
         names = list(DEFAULT_METHODS)
@@ -87,7 +95,7 @@ def make_methods(response: CameraResponse | None, *, vignetting_poly: Vignetting
                          "('none' cannot be exposure-compensated: raw intensities are not linear in exposure)")
     if len(set(names)) != len(names):
         raise ValueError(f"names must not repeat a method, got {names}")
-    models = {"poly": vignetting_poly, "lut": vignetting_lut}
+    models = {"poly": vignetting_poly, "lut": vignetting_lut, "self": vignetting_self}
     out = []
     for name in names:
         base = name.removesuffix(EC_SUFFIX)
@@ -99,7 +107,7 @@ def make_methods(response: CameraResponse | None, *, vignetting_poly: Vignetting
             raise ValueError(f"method {name!r} needs the camera response (--response)")
         vig = models.get(base)
         if base in models and vig is None:
-            raise ValueError(f"method {name!r} needs the {base} vignetting model (--vignetting-{base})")
+            raise ValueError(f"method {name!r} needs the {base} vignetting model ({MODEL_SOURCES[base]})")
         if vig is not None:
             _check_model_kind(base, vig)
         label = LABELS[base] + (" + exposure comp." if ec else "")
@@ -108,22 +116,27 @@ def make_methods(response: CameraResponse | None, *, vignetting_poly: Vignetting
 
 
 def _check_model_kind(base: str, model: VignettingModel) -> None:
-    """The ``poly`` method needs a polynomial model and ``lut`` a look-up table: a model of the other kind would be
-    compared under the wrong label (ValueError: a model object passed as an argument)."""
+    """The ``poly`` method needs a polynomial model and ``lut`` and ``self`` a look-up table: a model of the other
+    kind would be compared under the wrong label (ValueError: a model object passed as an argument)."""
     problem = _kind_mismatch(base, model)
     if problem is not None:
         source = model.info.get("source") if isinstance(getattr(model, "info", None), dict) else None
-        raise ValueError(f"--vignetting-{base} holds {problem[0]}{f' ({source})' if source else ''}, {problem[1]}")
+        where = "vignetting_self" if base == "self" else f"--vignetting-{base}"
+        raise ValueError(f"{where} holds {problem[0]}{f' ({source})' if source else ''}, {problem[1]}")
 
 
 def _kind_mismatch(base: str, model: VignettingModel) -> tuple[str, str] | None:
-    """None if ``model`` is of the kind the method ``base`` (``poly``, ``lut``) needs; else (what it holds, the fix)."""
-    wanted = {"poly": PolynomialVignetting, "lut": LUTVignetting}[base]
+    """None if ``model`` is of the kind the method ``base`` (``poly``, ``lut``, ``self``) needs; else (what it holds,
+    the fix)."""
+    wanted = {"poly": PolynomialVignetting, "lut": LUTVignetting, "self": LUTVignetting}[base]
     if isinstance(model, wanted):
         return None
     kind = "polynomial" if isinstance(model, PolynomialVignetting) else "look-up table (LUT)" \
         if isinstance(model, LUTVignetting) else type(model).__name__
     other = "lut" if base == "poly" else "poly"
+    if base == "self":
+        return (f"a {kind} vignetting model", "not the look-up table 'radiomap self-calibrate' writes (its "
+                "vignetting.npz); pass a polynomial as --vignetting-poly")
     return (f"a {kind} vignetting model", f"not a {'polynomial' if base == 'poly' else 'look-up table'}; pass it as "
             f"--vignetting-{other}, or calibrate the other kind with 'radiomap vignetting --model {base}'")
 
