@@ -37,6 +37,7 @@ class ReconstructConfig:
     block_resolution: int = 16
     trunc_voxel_multiplier: float = 8.0
     motion_model: str = "constant_velocity"
+    tracker: str = "icp"                        # --tracker: icp | hybrid | coloured-icp (mapping.factory.TRACKERS)
     reference_exposure: float = 1.0             # --display-exposure: the histogram's display reference
     exposure_compensation: bool | None = None   # None: on when a response is given
     exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
@@ -87,11 +88,17 @@ def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0,
                  trunc_voxel_multiplier=trunc_voxel_multiplier, **options)
 
 
-def make_tracker(*, depth_max: float = 3.0, motion_model: str = "constant_velocity", **kwargs):
-    """Frame-to-model point-to-plane ICP (:class:`mapping.tracking.FrameToModelTracker`)."""
-    from mapping.tracking import FrameToModelTracker
+#: trackers by name: point-to-plane ICP (depth only), hybrid RGB-D odometry and coloured ICP (depth and the colour
+#: the map holds; :mod:`mapping.tracking_photometric`)
+TRACKERS = Registry("tracker", {"icp": "mapping.tracking:FrameToModelTracker",
+                                "hybrid": "mapping.tracking_photometric:HybridTracker",
+                                "coloured-icp": "mapping.tracking_photometric:ColouredICPTracker"})
 
-    return FrameToModelTracker(depth_max=depth_max, motion_model=motion_model, **kwargs)
+
+def make_tracker(name: str = "icp", *, depth_max: float = 3.0, motion_model: str = "constant_velocity", **kwargs):
+    """A frame-to-model tracker by name (:data:`TRACKERS`; default point-to-plane ICP,
+    :class:`mapping.tracking.FrameToModelTracker`)."""
+    return TRACKERS[name](depth_max=depth_max, motion_model=motion_model, **kwargs)
 
 
 def build_run(config: ReconstructConfig) -> dict[str, Any]:
@@ -124,10 +131,10 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     backend = make_backend(config.backend, voxel_size=config.voxel_size, depth_max=config.depth_max,
                            block_resolution=config.block_resolution,
                            trunc_voxel_multiplier=config.trunc_voxel_multiplier, surfel_mesh=config.surfel_mesh)
-    tracker = make_tracker(depth_max=config.depth_max, motion_model=config.motion_model) \
+    tracker = make_tracker(config.tracker, depth_max=config.depth_max, motion_model=config.motion_model) \
         if config.poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
             "poses": config.poses, "progress": config.progress}
 
 
-__all__ = ["BACKENDS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]
+__all__ = ["BACKENDS", "TRACKERS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]

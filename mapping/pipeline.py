@@ -199,8 +199,9 @@ class _Loop:
             self.tracker.start(pose)
             return pose
         view, view_pose = self.track_view
-        with self.timed("track"):
-            result = self.tracker.track(frame.depth, frame.K, view, view_pose)
+        with self.timed("track"):  # photometric trackers get the frame's colour in map units
+            colour = _tracking_colour(self.colour_model, frame) if self.tracker.needs_colour else None
+            result = self.tracker.track(frame.depth, frame.K, view, view_pose, colour=colour)
         record.fitness, record.inlier_rmse = result.fitness, result.inlier_rmse
         if result.ok:
             self.failures = 0
@@ -286,6 +287,12 @@ class _Frames:
 
     def __getitem__(self, k: int):
         return self.dataset[self.positions[k]]
+
+
+def _tracking_colour(colour_model, frame):
+    from mapping.tracking_photometric import tracking_colour  # loads Open3D: only for photometric trackers
+
+    return tracking_colour(colour_model, frame.rgb)
 
 
 def _initial_pose(frame, initial_pose):

@@ -223,13 +223,13 @@ class HybridTracker(_PhotometricTracker):
 class ColouredICPTracker(_PhotometricTracker):
     """Open3D's coloured ICP (``registration.multi_scale_icp`` with ``TransformationEstimationForColoredICP``),
     frame to model: the frame's points with their intensity (as grey colour) against the view's points with
-    normals and intensity, at ``voxel_sizes`` (coarse to fine) with correspondences up to ``2, 1, 0.5 x
-    depth_diff``."""
+    normals and intensity (every ``pixel_step``-th pixel of each), at ``voxel_sizes`` (coarse to fine) with
+    correspondences up to ``2, 1, 0.5 x depth_diff``."""
 
     name = "coloured-icp"
 
-    def __init__(self, *, voxel_sizes: Sequence[float] = (0.04, 0.02, 0.01),
-                 icp_iterations: Sequence[int] = (15, 8, 4), **options) -> None:
+    def __init__(self, *, voxel_sizes: Sequence[float] = (0.08, 0.04, 0.02),
+                 icp_iterations: Sequence[int] = (15, 8, 4), pixel_step: int = 2, **options) -> None:
         super().__init__(**options)
         if len(voxel_sizes) != len(icp_iterations) or list(voxel_sizes) != sorted(voxel_sizes, reverse=True) \
                 or min(voxel_sizes) <= 0:
@@ -237,15 +237,20 @@ class ColouredICPTracker(_PhotometricTracker):
                              f"and {icp_iterations}")
         self.voxel_sizes = tuple(float(v) for v in voxel_sizes)
         self.icp_iterations = tuple(int(i) for i in icp_iterations)
+        if not (isinstance(pixel_step, int) and pixel_step >= 1):
+            raise ValueError(f"pixel_step must be a whole number >= 1, got {pixel_step!r}")
+        self.pixel_step = pixel_step
 
     def _align(self, depth, intensity, K, view, invalid_t, target_intensity, T0):
         reg = o3d.t.pipelines.registration
-        valid = (depth > self.depth_min) & (depth < self.depth_max)
+        sub = np.zeros(depth.shape, bool)
+        sub[::self.pixel_step, ::self.pixel_step] = True
+        valid = (depth > self.depth_min) & (depth < self.depth_max) & sub
         v, u = np.nonzero(valid)
         z = depth[v, u].astype(np.float64)
         pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
         source = _cloud(pts, intensity[v, u])
-        tv = ~invalid_t
+        tv = ~invalid_t & sub
         target = _cloud(view.vertex[tv], target_intensity[tv])
         target.point.normals = _to_tensor(view.normal[tv])
         n = len(self.voxel_sizes)
