@@ -184,6 +184,33 @@ def test_uint16_grid_agrees_with_the_float_grid():
     assert b16.stats()["used_mb"] == pytest.approx(b32.stats()["used_mb"] * 12 / 20)
 
 
+@pytest.mark.parametrize("storage", ["uint16", "float32"])
+def test_block_list_follows_the_hash_map(storage):
+    """The block list behind the colour kernel's table (coordinates and buffer slots) is kept up to date frame by
+    frame as blocks are added, is dropped when the hash map grows (which moves every block), and always equals
+    the hash map's own: on a room swept fast enough to add blocks every frame, from a 4-block hash map."""
+    ds, _ = box_room_sequence(n_frames=10, width=160, height=120, step=0.1, turn_deg=8)
+    backend = TSDFBackend(voxel_size=0.01, depth_max=5.0, block_count=4, colour_storage=storage)
+    kept = dropped = 0
+    for f in ds:
+        hashmap = backend.grid.hashmap()
+        size, capacity = hashmap.size(), hashmap.capacity()
+        backend.integrate(f.depth, np.ones(f.depth.shape + (3,), np.float32), f.K, f.pose,
+                          view=backend.render_for_frame(f.depth, f.K, f.pose))
+        hashmap = backend.grid.hashmap()
+        assert hashmap.size() > size                                   # blocks added every frame
+        if hashmap.capacity() != capacity:
+            assert backend._blocks_known is None
+            dropped += 1
+        elif backend.frames_integrated > 1:
+            assert len(backend._blocks_known[1]) == hashmap.size()      # complete without reading the hash map
+            kept += 1
+        keys, slots = backend._known_blocks()
+        truth = hashmap.active_buf_indices().numpy()
+        assert dict(zip(map(tuple, keys), slots)) == dict(zip(map(tuple, hashmap.key_tensor().numpy()[truth]), truth))
+    assert kept >= 3 and dropped >= 2
+
+
 @pytest.mark.parametrize("surface, max_bias_mm", [("open3d", None), ("debias", 1.5), ("refine", 1.0)])
 def test_rendered_surface_bias(surface, max_bias_mm):
     """Open3D's ray cast reads floored voxels: rendered walls are ~half a voxel too far. The fixes remove it."""

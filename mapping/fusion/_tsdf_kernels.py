@@ -314,6 +314,15 @@ def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res,
                 out[y, x, 2] = c2 / r_sum
 
 
+@njit(cache=True, nogil=True)
+def fill_block_table(keys, slots, lo, index):  # pragma: no cover
+    """Write the slot of each block ``keys[i]`` that lies in the dense table ``index`` over blocks ``lo ..``."""
+    for i in range(keys.shape[0]):
+        jx, jy, jz = keys[i, 0] - lo[0], keys[i, 1] - lo[1], keys[i, 2] - lo[2]
+        if 0 <= jx < index.shape[0] and 0 <= jy < index.shape[1] and 0 <= jz < index.shape[2]:
+            index[jx, jy, jz] = slots[i]
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _block_slot(bx, by, bz, index, lo):  # pragma: no cover
     """Buffer slot of block (bx, by, bz) in a dense table over blocks ``lo ..`` (-1: absent or outside)."""
