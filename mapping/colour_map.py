@@ -471,6 +471,29 @@ def write_colour_map(folder, outcome: ColourMapOutcome, colour_model, *, normals
     return files
 
 
-__all__ = ["ColourMapError", "ColourMapOutcome", "ColourMapResult", "ITERATIONS", "MeshRenderer",
-           "OPTIMISERS", "check_positions", "colour_map_stage", "display_frame", "display_inverse", "export_exposure",
-           "frame_exposures", "optimise_colour_map", "select_keyframes", "sharpness", "write_colour_map"]
+def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, depth_max: float, folder=None,
+                       formats: Sequence[str] = ("ply", "glb"), **options: Any) -> ColourMapOutcome:
+    """The stage after :func:`mapping.pipeline.reconstruct`: the backend's fused surface
+    (:func:`mapping.compare.geometry.map_geometry`), the run's poses by dataset position (``run.records``,
+    ``run.poses``) and its withheld frames (``run.held_out_poses``, ``--holdout-every``) as the check; written into
+    ``folder`` (a path, or None) by :func:`write_colour_map`. ``options``: :func:`colour_map_stage` keywords."""
+    from mapping.compare.geometry import map_geometry
+
+    geometry = map_geometry(backend)
+    poses: list[np.ndarray | None] = [None] * len(run.records)
+    fused = iter(run.poses)
+    for i, record in enumerate(run.records):
+        if record.fused:
+            poses[i] = next(fused)
+    holdout = [(i, p) for i, p in sorted(run.held_out_poses.items()) if p is not None]
+    outcome = colour_map_stage(geometry.vertices, geometry.triangles, geometry.colours, dataset, poses, colour_model,
+                               method=method, holdout=holdout or None, depth_max=depth_max, **options)
+    if folder is not None:
+        write_colour_map(folder, outcome, colour_model, normals=geometry.normals, formats=formats)
+    return outcome
+
+
+__all__ = ["ColourMapError", "ColourMapOutcome", "ColourMapResult", "ITERATIONS", "MeshRenderer", "OPTIMISERS",
+           "check_positions", "colour_map_for_run", "colour_map_stage", "display_frame", "display_inverse",
+           "export_exposure", "frame_exposures", "optimise_colour_map", "select_keyframes", "sharpness",
+           "write_colour_map"]

@@ -268,3 +268,28 @@ def test_written_beside_the_plain_mesh_only_when_kept(wall, tmp_path):
     write_colour_map(tmp_path / "b", rejected, RawIntensity())
     assert [p.name for p in (tmp_path / "b").iterdir()] == ["colour_map.json"]
     assert json.loads((tmp_path / "b" / "colour_map.json").read_text())["kept"] == "plain"
+
+
+def test_after_a_pipeline_run_with_withheld_frames(tmp_path):
+    """The stage on a real run of the pipeline (sample room, 15 frames, every 5th withheld): the withheld frames are
+    the check, the files land beside the run's mesh."""
+    import json
+
+    from mapping.colour_map import colour_map_for_run
+    from mapping.datasets import open_dataset
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
+    from mapping.simulation import sample_sequence
+
+    dataset = open_dataset(sample_sequence("room"), frames=slice(0, 15))
+    backend = make_backend("tsdf", voxel_size=0.04, depth_max=5.0)
+    run = reconstruct(dataset, colour_model=RawIntensity(), backend=backend, poses="gt", progress=False,
+                      write_mesh=False, holdout_every=5)
+    outcome = colour_map_for_run(run, dataset, backend, RawIntensity(), method="rigid", depth_max=5.0,
+                                 folder=tmp_path, iterations=10)
+    assert outcome.check == "3 frames withheld from fusion"
+    assert outcome.result is not None and not set(outcome.result.keyframes) & {4, 9, 14}
+    assert outcome.plain.pixels > 0 and len(outcome.plain.evaluated) == 3
+    doc = json.loads((tmp_path / "colour_map.json").read_text())
+    assert doc["kept"] == outcome.kept and doc["optimisation"]["iterations"] == 10
+    assert (tmp_path / "mesh_colourmap.ply").is_file() == outcome.accepted
