@@ -371,11 +371,17 @@ class ColourMapOutcome:
                 "optimisation": None if self.result is None else self.result.describe()}
 
     def summary_line(self) -> str:
-        if self.plain is None or self.optimised is None:
-            return f"colour map ({self.method}): {self.kept} mesh kept: {self.reason}"
-        return (f"colour map ({self.method}): {self.kept} mesh kept ({self.reason}); held-out PSNR "
-                f"{self.plain.psnr:.2f} -> {self.optimised.psnr:.2f} dB, L1 {self.plain.l1:.2f} -> "
-                f"{self.optimised.l1:.2f} on {self.check}")
+        return summary_line(self.to_dict())
+
+
+def summary_line(doc: dict) -> str:
+    """One line on a stage's outcome from its record (:meth:`ColourMapOutcome.to_dict`, ``colour_map.json``)."""
+    plain, optimised = doc["holdout_plain"], doc["holdout_optimised"]
+    if plain is None or optimised is None:
+        return f"colour map ({doc['method']}): {doc['kept']} mesh kept: {doc['reason']}"
+    return (f"colour map ({doc['method']}): {doc['kept']} mesh kept ({doc['reason']}); held-out PSNR "
+            f"{plain['psnr']:.2f} -> {optimised['psnr']:.2f} dB, L1 {plain['l1']:.2f} -> {optimised['l1']:.2f} on "
+            f"{doc['check_frames']}")
 
 
 def check_positions(poses: Sequence[np.ndarray | None], keyframes: Sequence[int], *, count: int = 10) -> list[int]:
@@ -496,4 +502,4 @@ def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, dept
 __all__ = ["ColourMapError", "ColourMapOutcome", "ColourMapResult", "ITERATIONS", "MeshRenderer", "OPTIMISERS",
            "check_positions", "colour_map_for_run", "colour_map_stage", "display_frame", "display_inverse",
            "export_exposure", "frame_exposures", "optimise_colour_map", "select_keyframes", "sharpness",
-           "write_colour_map"]
+           "summary_line", "write_colour_map"]

@@ -317,3 +317,17 @@ def test_after_a_pipeline_run_with_withheld_frames(tmp_path):
     doc = json.loads((tmp_path / "colour_map.json").read_text())
     assert doc["kept"] == outcome.kept and doc["optimisation"]["iterations"] == 10
     assert (tmp_path / "mesh_colourmap.ply").is_file() == outcome.accepted
+
+
+def test_summary_line_reads_the_record(wall):
+    from mapping.colour_map import ColourMapOutcome, colour_map_stage, summary_line
+
+    frames, poses, vertices, triangles = wall
+    fused = [None if k in (2, 7) else p for k, p in enumerate(poses)]
+    outcome = colour_map_stage(vertices, triangles, blurred(vertices), frames, fused, RawIntensity(), iterations=0,
+                               holdout=[(2, poses[2]), (7, poses[7])], depth_max=3.0)
+    line = outcome.summary_line()
+    assert line.startswith("colour map (rigid): optimised mesh kept (passed the held-out check); held-out PSNR ")
+    assert f"-> {outcome.optimised.psnr:.2f} dB" in line and line.endswith("on 2 frames withheld from fusion")
+    assert summary_line(ColourMapOutcome("non-rigid", "plain", "not run: no mesh", "none").to_dict()) == \
+        "colour map (non-rigid): plain mesh kept: not run: no mesh"
