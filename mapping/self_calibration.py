@@ -14,9 +14,9 @@ window (``window`` pixels, which forgives sub-pixel pose and depth error). Point
 sampled (``max_texture``: the window's relative standard deviation in the anchor), for the same reason.
 The sightings go to :func:`radiometry.self_calibration.self_calibrate`.
 
-:func:`run_self_calibration` is ``radiomap self-calibrate``: sequence -> poses (ground truth or ICP through
-:func:`mapping.pipeline.reconstruct`) -> sightings -> solver -> a :class:`SelfCalibrationFolder` holding
-``vignetting.npz`` (a LUT model with its standard error, readable by ``radiomap reconstruct --vignetting``),
+:func:`run_self_calibration` is ``radiomap self-calibrate`` (and each task of ``radiomap batch self-calibrate``):
+sequence -> poses (ground truth or ICP through :func:`mapping.pipeline.reconstruct`) -> sightings -> solver -> a
+:class:`SelfCalibrationFolder` holding ``vignetting.npz`` (a LUT model with its standard error, readable by ``radiomap reconstruct --vignetting``),
 ``exposures.txt`` (``reconstruct``'s format), the figures and the summary.
 """
 
@@ -331,6 +331,24 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     return run
 
 
+def self_calibration_complete(folder: Path) -> bool:
+    """A self-calibration folder is complete when its record (``self_calibration.json``) is there and no RUNNING
+    marker (a batch skips it)."""
+    return (Path(folder) / MARKER).is_file() and not (Path(folder) / RUNNING_MARKER).exists()
+
+
+def self_calibration_rows(folder: Path) -> list[dict]:
+    """The batch summary's row of a complete self-calibration folder (from its ``self_calibration.json``)."""
+    import json
+
+    doc = json.loads((Path(folder) / MARKER).read_text(encoding="utf-8"))
+    seconds = doc["seconds"]
+    return [{"frames": doc["frames_used"], "sightings": doc["sampling"]["sightings"],
+             "seconds": seconds.get("total"), "cpu s/100 frames": seconds.get("cpu_per_100_frames"),
+             "resid after %": round(100 * max(doc["residual_log_scale_after"]), 2),
+             "thin regions": ", ".join(doc["thin_regions"]) or "-", "peak MiB": doc["peak_rss_mb"]}]
+
+
 def _mad(res: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
@@ -383,4 +401,5 @@ def summary_text(run: SelfCalibrationRun, name: str, response_given: bool, poses
 
 
 __all__ = ["FIGURES", "MARKER", "SamplingOptions", "SelfCalibrationFolder", "SelfCalibrationRun",
-           "collect_observations", "exposures_text", "run_self_calibration", "summary_text"]
+           "collect_observations", "exposures_text", "run_self_calibration", "self_calibration_complete",
+           "self_calibration_rows", "summary_text"]

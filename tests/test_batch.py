@@ -279,6 +279,45 @@ def test_batch_compare_and_usage_errors(data, tmp_path):
     assert res.returncode == 2 and "--force of batch" in res.stderr
 
 
+def test_batch_self_calibrate_is_the_single_command_per_sequence(data, tmp_path):
+    """A room that constrains V (160x120, 30 frames) and one that cannot (beta: 8 frames at 64x48): the first's
+    folder holds what 'radiomap self-calibrate' writes alone (same V, stderr and exposures), the second fails in
+    one line without stopping it, and a rerun skips the complete one."""
+    import numpy as np
+
+    from mapping.simulation.sequences import simulate_room
+    from mapping.simulation.trajectory import HandheldMotion
+    from radiometry.simulation import CameraSpec
+
+    room = simulate_room(tmp_path / "seqs" / "room", camera=CameraSpec.preset("asymmetric", width=160, height=120),
+                         seed=1, n_frames=30, motion=HandheldMotion(speed=3.0), progress=False)
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{room}\n{data['seqs'][1]}\n")
+    out = tmp_path / "out"
+    options = ["-r", str(room / "truth" / "response.npz"), "--poses", "gt", "--no-plots"]
+    args = [*RADIOMAP, "batch", "self-calibrate", str(listing), "-o", str(out), "--engine", "processes",
+            "--workers", "1", "--no-progress", "--", *options]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert res.returncode == 1 and "1 of 2 sequences failed (beta)" in res.stderr, res.stderr
+    assert any(line.startswith("beta: failed: ") and "cannot constrain vignetting" in line
+               for line in res.stderr.splitlines())
+    assert COMMANDS["self-calibrate"].complete(out / "room") and not COMMANDS["self-calibrate"].complete(out / "beta")
+    alone = tmp_path / "alone"
+    single = subprocess.run([*RADIOMAP, "self-calibrate", str(room), "-o", str(alone), *options],
+                            capture_output=True, text=True, timeout=600)
+    assert single.returncode == 0, single.stderr
+    a, b = (np.load(d / "vignetting.npz") for d in (out / "room", alone))
+    assert np.array_equal(a["lut"], b["lut"]) and np.array_equal(a["stderr"], b["stderr"])
+    assert (out / "room" / "exposures.txt").read_text() == (alone / "exposures.txt").read_text()
+    rows = {r["sequence"]: r for r in csv.DictReader((out / "summary.csv").open())}
+    doc = json.loads((out / "room" / "self_calibration.json").read_text())
+    assert rows["room"]["status"] == "complete" and int(rows["room"]["frames"]) == 30
+    assert int(rows["room"]["sightings"]) == doc["sampling"]["sightings"] and rows["beta"]["status"] == "failed"
+    assert 'href="room/summary.txt"' in (out / "index.html").read_text()
+    res = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert "room: skipped, complete in" in res.stdout
+
+
 def test_a_command_batch_does_not_run_is_named_in_one_line(data, tmp_path):
     names = ", ".join(COMMANDS)
     for wrong in ("demo", "reconstuct"):   # a command batch does not run; a typo

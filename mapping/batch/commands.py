@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from mapping.self_calibration import run_self_calibration, self_calibration_complete, self_calibration_rows
 from radiometry.registry import Registry
 
 log = logging.getLogger(__name__)
@@ -197,6 +198,8 @@ COMMANDS = Registry("batch command", {
     "reconstruct": BatchCommand(run=reconstruct_command, complete=_reconstruct_complete, rows=reconstruct_rows,
                                 report="summary.txt"),
     "compare": BatchCommand(run=compare_command, complete=compare_complete, rows=compare_rows, report="report.html"),
+    "self-calibrate": BatchCommand(run=run_self_calibration, complete=self_calibration_complete,
+                                   rows=self_calibration_rows, report="summary.txt"),
 })
 
 

@@ -31,10 +31,11 @@ def summary_rows(outcomes: list[Outcome]) -> list[dict]:
 
 
 def columns_of(rows: list[dict]) -> list[str]:
-    """:data:`COLUMNS`, with ``method`` after the status when a row has one (comparisons)."""
-    if any("method" in r for r in rows):
-        return COLUMNS[:2] + ["method"] + COLUMNS[2:]
-    return list(COLUMNS)
+    """:data:`COLUMNS`, with ``method`` after the status when a row has one (comparisons) and a command's own
+    columns (self-calibrate's sightings, ...) before ``error``, in the order the rows have them."""
+    columns = COLUMNS[:2] + ["method"] + COLUMNS[2:] if any("method" in r for r in rows) else list(COLUMNS)
+    extra = [k for k in dict.fromkeys(k for r in rows for k in r) if k not in columns]
+    return columns[:-1] + extra + columns[-1:]
 
 
 def write_summary(outcomes: list[Outcome], out: str | os.PathLike, *, title: str) -> dict[str, Path]:

@@ -39,16 +39,28 @@ def command(sequence: str, response_path: str | None, poses: str, frames, depth_
     Writes OUTPUT/vignetting.npz (LUT model with its standard error, for reconstruct/compare --vignetting),
     OUTPUT/exposures.txt (reconstruct's format), trajectory.txt, figures and summary.txt.
     """
-    from mapping.cli._common import run_manifest
     from mapping.self_calibration import run_self_calibration
+
+    run = run_self_calibration(**task_arguments(click.get_current_context()))
+    click.echo(run.summary)
+
+
+def task_arguments(ctx: click.Context) -> dict:
+    """The options of ``ctx`` (a parsed self-calibrate command) checked, as the keyword arguments of
+    :func:`mapping.self_calibration.run_self_calibration`: plain values (the response as its path, loaded here
+    once to check it) and the manifest; what ``radiomap self-calibrate`` runs and what each task of ``radiomap
+    batch self-calibrate`` runs."""
+    from mapping.cli._common import run_manifest
     from radiometry.formats import load_response
 
-    response = load_response(response_path) if response_path else None
-    manifest = run_manifest("self-calibrate", {"sequence": sequence, "response": response_path, "poses": poses,
-                                               "frames": None if frames is None else
+    p = ctx.params
+    if p["response_path"]:
+        load_response(p["response_path"])       # a bad file fails here, before anything is written
+    frames = p["frames"]
+    manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
+                                               "poses": p["poses"], "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
-                                               "output": output})
-    run = run_self_calibration(sequence, output, response=response, poses=poses, frames=frames, format=format,
-                               depth_scale=depth_scale, intrinsics=intrinsics, plots=not no_plots, force=force,
-                               progress=not no_progress, manifest=manifest)
-    click.echo(run.summary)
+                                               "output": p["output"]})
+    return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],
+            "frames": frames, "format": p["format"], "depth_scale": p["depth_scale"], "intrinsics": p["intrinsics"],
+            "plots": not p["no_plots"], "force": p["force"], "progress": not p["no_progress"], "manifest": manifest}
