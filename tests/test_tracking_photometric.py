@@ -229,3 +229,63 @@ def test_a_wrong_tracker_name_lists_the_valid_ones():
     assert tuple(TRACKERS) == ("icp", "hybrid", "coloured-icp")
     with pytest.raises(ValueError, match="tracker must be one of icp, hybrid, coloured-icp, got 'orb'"):
         make_tracker("orb")
+
+
+@pytest.fixture(scope="module")
+def tiny_room(tmp_path_factory):
+    from mapping.simulation.sequences import simulate_room
+
+    return simulate_room(tmp_path_factory.mktemp("room") / "seq", seed=5, n_frames=6, width=160, height=120,
+                         progress=False)
+
+
+@pytest.mark.parametrize("name", ["hybrid", "coloured-icp"])
+def test_reconstruct_tracker_option_end_to_end(tiny_room, tmp_path, name):
+    """``radiomap reconstruct --tracker NAME`` on raw levels and on irradiance with exposure compensation:
+    every frame tracked and fused, the tracker recorded in config.json, the trajectory close to the truth."""
+    import json
+
+    from click.testing import CliRunner
+    from mapping.cli import cli
+
+    for extra in ([], ["--response", str(tiny_room / "truth" / "response.npz")]):
+        out = tmp_path / f"out{len(extra)}"
+        res = CliRunner().invoke(cli, ["reconstruct", str(tiny_room), "-o", str(out), "--tracker", name,
+                                       "--voxel-size", "0.02", "--no-progress", *extra])
+        assert res.exit_code == 0, res.output
+        config = json.loads((out / "config.json").read_text())
+        assert config["pipeline"]["tracker"] == name
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["frames"]["fused"] == 6
+        assert metrics["ate"]["rmse"] < 0.02, metrics["ate"]
+        assert f"tracker {name}" in res.output
+
+
+def test_compare_tracker_option_end_to_end(tiny_room, tmp_path):
+    import json
+
+    from click.testing import CliRunner
+    from mapping.cli import cli
+
+    out = tmp_path / "cmp"
+    res = CliRunner().invoke(cli, ["compare", str(tiny_room), "--response", str(tiny_room / "truth" / "response.npz"),
+                                   "-o", str(out), "--poses", "icp", "--tracker", "hybrid", "--methods",
+                                   "none,response", "--views", "0", "--no-glb", "--voxel-size", "0.02", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "config.json").read_text())["parameters"]["tracker"] == "hybrid"
+    assert "tracker hybrid (given)" in res.output
+    none = json.loads((out / "none" / "config.json").read_text())
+    assert none["tracker"]["class"] == "HybridTracker"
+
+
+def test_a_wrong_tracker_option_lists_the_valid_ones(tiny_room, tmp_path):
+    from click.testing import CliRunner
+    from mapping.cli import cli
+
+    for command in ("reconstruct", "compare"):
+        res = CliRunner().invoke(cli, [command, str(tiny_room), "-o", str(tmp_path / command), "--tracker", "orb",
+                                       *(["--response", str(tiny_room / "truth" / "response.npz")]
+                                         if command == "compare" else [])])
+        assert res.exit_code == 2
+        assert "'orb' is not one of 'icp', 'hybrid', 'coloured-icp'" in res.output
+        assert not (tmp_path / command).exists()

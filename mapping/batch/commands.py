@@ -76,7 +76,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     backend: str, poses: str, frames: slice | None, voxel_size: float, depth_max: float,
                     brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
                     views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
-                    settings: str, notify: Callable[[str], None] = log.warning, holdout_every: int | None = None):
+                    settings: str, notify: Callable[[str], None] = log.warning, holdout_every: int | None = None,
+                    tracker: str = "icp"):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -114,7 +115,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      title=f"radiomap compare: {Path(sequence).name}",
                      mesh_formats=("ply", "glb") if glb else ("ply",),
                      config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
-                     holdout_every=holdout_every)
+                     holdout_every=holdout_every, tracker_options={"name": tracker})
     return result, summary(result)
 
 

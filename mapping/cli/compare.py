@@ -8,6 +8,7 @@ import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, fusion_options, replay_manifest,
                                  sequence_options, settings_line, warn_far_depth)
+from mapping.factory import TRACKERS
 
 EPILOG = """\b
 Examples:
@@ -66,6 +67,9 @@ def _methods(ctx, param, value):
                    "response, poly, lut, and response+ec, poly+ec, lut+ec.")
 @click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
               help="Ground-truth poses, or ICP tracked once and reused by every method (reconstruct's default).")
+@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="icp", show_default=True,
+              help="With --poses icp: point-to-plane ICP, hybrid RGB-D odometry or coloured ICP, on the first "
+                   "method's colour (see reconstruct --help).")
 @sequence_options
 @click.option("--brightness", type=click.Choice(["mean", "calibrated"]), default="mean", show_default=True,
               help="mean: compare the corrections at equal brightness (each V rescaled to an image mean of 1); "
@@ -83,10 +87,10 @@ def _methods(ctx, param, value):
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None, output: Path,
-            backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, frames: slice | None,
-            voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
-            format: str | None, views: int, render_width: int, glb: bool, holdout_every: int | None, force: bool,
-            no_progress: bool) -> None:
+            backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, tracker: str,
+            frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
+            intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
+            holdout_every: int | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
     optionally with exposure compensation) at identical poses, and compare the colour disagreement
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
@@ -119,13 +123,13 @@ def task_arguments(ctx: click.Context) -> dict:
     except MethodChoiceError as exc:
         raise click.UsageError(str(exc)) from None
     ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
-    settings = settings_line(ctx, [("poses", "poses", p["poses"]),
+    settings = settings_line(ctx, [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
                                    else ("exposure compensation", None, f"{ec}, as --methods lists"),
                                    ("glb", "glb", "on" if p["glb"] else "off")])
-    options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "frames", "voxel_size", "depth_max",
-                                 "brightness", "depth_scale", "intrinsics", "format", "views", "render_width", "glb",
-                                 "holdout_every", "force")}
+    options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "tracker", "frames", "voxel_size",
+                                 "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
+                                 "render_width", "glb", "holdout_every", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"], "manifest": replay_manifest(ctx, files=("intrinsics",)),
             "settings": settings}

@@ -8,6 +8,7 @@ import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, fusion_options,
                                  positive, replay_manifest, sequence_options, settings_line, warn_far_depth)
+from mapping.factory import TRACKERS
 
 EPILOG = """\b
 Examples:
@@ -55,6 +56,9 @@ def _mesh_exposure(ctx, param, value):
                    "H x W x C). Needs --response.")
 @click.option("--poses", type=click.Choice(["icp", "gt"]), default="icp", show_default=True,
               help="Track with frame-to-model ICP, or take the sequence's ground-truth poses (compare's default).")
+@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="icp", show_default=True,
+              help="With --poses icp: point-to-plane ICP (depth), Open3D's hybrid RGB-D odometry or coloured ICP "
+                   "(depth and the colour the map holds: raw levels, or irradiance at the map's exposure).")
 @sequence_options
 @fusion_options
 @click.option("--surfel-mesh", is_flag=True,
@@ -79,7 +83,7 @@ def _mesh_exposure(ctx, param, value):
 @deprecated_alias("-v", "vignetting", "--vignetting", "-v is radiomap's --verbose: radiomap -v reconstruct ...")
 @deprecated_alias("--reference-exposure", "display_exposure", "--display-exposure")
 @deprecated_alias("--exposure-reference", "mesh_exposure", "--mesh-exposure")
-def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str,
+def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str, tracker: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
             exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None, force: bool,
@@ -123,13 +127,13 @@ def task_arguments(ctx: click.Context) -> dict:
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
-                   poses=p["poses"], voxel_size=p["voxel_size"], frames=p["frames"] or slice(None),
-                   depth_scale=p["depth_scale"], intrinsics=p["intrinsics"], backend=backend,
-                   surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
+                   poses=p["poses"], tracker=p["tracker"], voxel_size=p["voxel_size"],
+                   frames=p["frames"] or slice(None), depth_scale=p["depth_scale"], intrinsics=p["intrinsics"],
+                   backend=backend, surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
                    exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"], force=p["force"],
                    progress=not p["no_progress"])
-    settings = [("poses", "poses", p["poses"]),
+    settings = [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
