@@ -42,6 +42,7 @@ class ReconstructConfig:
     exposure_compensation: bool | None = None   # None: on when a response is given
     exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
     holdout_every: int | None = None            # --holdout-every: withhold every N-th frame (mapping.holdout)
+    colour_map: str | None = None               # --colour-map: rigid | non-rigid after fusion (mapping.colour_map)
     force: bool = False
     progress: bool = True
 

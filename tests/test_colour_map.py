@@ -331,3 +331,66 @@ def test_summary_line_reads_the_record(wall):
     assert f"-> {outcome.optimised.psnr:.2f} dB" in line and line.endswith("on 2 frames withheld from fusion")
     assert summary_line(ColourMapOutcome("non-rigid", "plain", "not run: no mesh", "none").to_dict()) == \
         "colour map (non-rigid): plain mesh kept: not run: no mesh"
+
+
+# ------------------------------------------------------------------ the command
+def _cli(*args: str):
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    return CliRunner().invoke(cli, list(args), catch_exceptions=False)
+
+
+def test_reconstruct_colour_map_end_to_end(tmp_path):
+    import json
+
+    from mapping.simulation import sample_sequence
+
+    seq = sample_sequence("room")
+    out = tmp_path / "run"
+    args = ["reconstruct", str(seq), "-o", str(out), "--poses", "gt", "--frames", "0:15", "--voxel-size", "0.04",
+            "--depth-max", "5", "--holdout-every", "5", "--colour-map", "rigid", "--no-progress"]
+    res = _cli(*args)
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "colour_map.json").read_text())
+    assert doc["method"] == "rigid" and doc["check_frames"] == "3 frames withheld from fusion"
+    assert doc["optimisation"]["iterations"] == 100 and len(doc["optimisation"]["keyframes"]) == 3
+    assert "colour map (rigid): " in res.output and (out / "mesh.ply").is_file()
+    assert (out / "mesh_colourmap.ply").is_file() == (doc["kept"] == "optimised")
+    config = json.loads((out / "config.json").read_text())
+    assert config["pipeline"]["colour_map"] == "rigid"
+    # a --force run without the option removes the previous run's colour-map files
+    res = _cli(*args[:-3], "--force", "--no-progress")
+    assert res.exit_code == 0, res.output
+    assert not (out / "colour_map.json").exists() and not (out / "mesh_colourmap.ply").exists()
+
+
+def test_colour_map_option_errors_are_one_line(tmp_path):
+    from mapping.simulation import sample_sequence
+
+    seq = str(sample_sequence("room"))
+    res = _cli("reconstruct", seq, "-o", str(tmp_path / "a"), "--colour-map", "affine", "--no-progress")
+    assert res.exit_code == 2 and "Invalid value for '--colour-map'" in res.output and "'non-rigid'" in res.output
+    res = _cli("reconstruct", seq, "-o", str(tmp_path / "b"), "--backend", "surfel", "--colour-map", "rigid",
+               "--no-progress")
+    assert res.exit_code == 2 and "applies to --backend tsdf only" in res.output
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
+    import json
+
+    from mapping.simulation import sample_sequence
+
+    seq = sample_sequence("room")
+    out = tmp_path / "cmp"
+    res = _cli("compare", str(seq), "-r", str(seq / "truth" / "response.npz"), "--methods", "none,response",
+               "--poses", "gt", "--frames", "0:15", "--voxel-size", "0.04", "--depth-max", "5", "--views", "0",
+               "--no-glb", "--holdout-every", "5", "--colour-map", "non-rigid", "--no-progress", "-o", str(out))
+    assert res.exit_code == 0, res.output
+    for method in ("none", "response"):
+        doc = json.loads((out / method / "colour_map.json").read_text())
+        assert doc["method"] == "non-rigid" and doc["check_frames"] == "3 frames withheld from fusion"
+        assert f"{method}: colour map (non-rigid): {doc['kept']} mesh kept" in res.output
+        assert (out / method / "mesh_colourmap.ply").is_file() == (doc["kept"] == "optimised")

@@ -53,6 +53,12 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     try:
         run = reconstruct(**kwargs, output=folder, holdout_every=config.holdout_every)
         summary = format_table([run.summary_row()]) + "\n" + settings
+        if config.colour_map is not None:   # the optimised mesh beside the plain one (mapping.colour_map)
+            from mapping.colour_map import colour_map_for_run
+
+            summary += "\n" + colour_map_for_run(run, kwargs["dataset"], kwargs["backend"], kwargs["colour_model"],
+                                                 method=config.colour_map, depth_max=config.depth_max,
+                                                 folder=folder.path).summary_line()
         folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
     finally:
         folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
@@ -77,7 +83,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
                     views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
                     settings: str, notify: Callable[[str], None] = log.warning, holdout_every: int | None = None,
-                    tracker: str = "icp"):
+                    tracker: str = "icp", colour_map: str | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -106,6 +112,11 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
         if holdout_every is not None:
             lines.append(f"holdout: 1 frame in {holdout_every} withheld from fusion; PSNR (dB) and L1 (levels, summed "
                          "over R, G, B) of each final map rendered at them, exposure fitted per frame (holdout.csv)")
+        if colour_map is not None:
+            from mapping.colour_map import summary_line
+
+            lines += [f"{r.method.name}: " + summary_line(json.loads((r.folder / "colour_map.json").read_text()))
+                      for r in result.results]
         return "\n".join(lines + [settings]) + "\n"
 
     # config.json and summary.txt are written by compare() in its locked folder: they belong to the run
@@ -115,7 +126,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      title=f"radiomap compare: {Path(sequence).name}",
                      mesh_formats=("ply", "glb") if glb else ("ply",),
                      config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
-                     holdout_every=holdout_every, tracker_options={"name": tracker})
+                     holdout_every=holdout_every, tracker_options={"name": tracker}, colour_map=colour_map)
     return result, summary(result)
 
 

@@ -83,6 +83,9 @@ def _methods(ctx, param, value):
 @click.option("--holdout-every", type=int, default=None, metavar="N",
               help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
                    "rendered at their poses (holdout.csv, metrics.json).")
+@click.option("--colour-map", type=click.Choice(["rigid", "non-rigid"]), default=None,
+              help="After fusion, optimise each method's mesh colours on its corrected frames (Zhou & Koltun, "
+                   "Open3D): mesh_colourmap.ply beside its mesh.ply if the held-out check keeps it (colour_map.json).")
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -90,7 +93,7 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
             backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, tracker: str,
             frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
             intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
-            holdout_every: int | None, force: bool, no_progress: bool) -> None:
+            holdout_every: int | None, colour_map: str | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
     optionally with exposure compensation) at identical poses, and compare the colour disagreement
     histograms, the meshes and (for simulated sequences) the colours against the true radiance.
@@ -127,9 +130,12 @@ def task_arguments(ctx: click.Context) -> dict:
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
                                    else ("exposure compensation", None, f"{ec}, as --methods lists"),
                                    ("glb", "glb", "on" if p["glb"] else "off")])
+    if p["colour_map"] is not None and p["backend"] != "tsdf":
+        raise click.BadParameter(f"applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
+                                 f"{p['backend']}; drop --colour-map or use --backend tsdf", param_hint="--colour-map")
     options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "tracker", "frames", "voxel_size",
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
-                                 "render_width", "glb", "holdout_every", "force")}
+                                 "render_width", "glb", "holdout_every", "colour_map", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"], "manifest": replay_manifest(ctx, files=("intrinsics",)),
             "settings": settings}

@@ -77,6 +77,9 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--holdout-every", type=int, default=None, metavar="N",
               help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
                    "rendered at their poses (holdout.csv, metrics.json).")
+@click.option("--colour-map", type=click.Choice(["rigid", "non-rigid"]), default=None,
+              help="After fusion, optimise the mesh colours on the corrected frames (Zhou & Koltun, Open3D) and "
+                   "write mesh_colourmap.ply beside mesh.ply if the held-out check keeps it (colour_map.json).")
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -86,8 +89,8 @@ def _mesh_exposure(ctx, param, value):
 def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str, tracker: str,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
-            exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None, force: bool,
-            no_progress: bool) -> None:
+            exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None,
+            colour_map: str | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample.
 
@@ -126,12 +129,16 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
+    if p["colour_map"] is not None and backend != "tsdf":
+        raise click.BadParameter(f"applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
+                                 f"{backend}; drop --colour-map or use --backend tsdf", param_hint="--colour-map")
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
                    poses=p["poses"], tracker=p["tracker"], voxel_size=p["voxel_size"],
                    frames=p["frames"] or slice(None), depth_scale=p["depth_scale"], intrinsics=p["intrinsics"],
                    backend=backend, surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
-                   exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"], force=p["force"],
+                   exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"],
+                   colour_map=p["colour_map"], force=p["force"],
                    progress=not p["no_progress"])
     settings = [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",

@@ -69,7 +69,8 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
             parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply", "glb"),
             config: Mapping[str, Any] | None = None,
-            summary: Callable[[CompareResult], str] | None = None, holdout_every: int | None = None) -> CompareResult:
+            summary: Callable[[CompareResult], str] | None = None, holdout_every: int | None = None,
+            colour_map: str | None = None) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report. The
     folder ``output`` and each method's folder in it are locked against a second run
     (:class:`mapping.export.FolderLock`) from their creation until the comparison ends.
@@ -97,6 +98,9 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     holdout_every:    None, or N: every method withholds the same frames (every N-th) from fusion and its final map is
                       judged by them (:mod:`mapping.holdout`: PSNR and L1 columns, ``holdout.csv``); with ICP poses
                       the first method tracks the withheld frames too and every method judges at those poses.
+    colour_map:       None, ``rigid`` or ``non-rigid``: each method's mesh also colour-map optimised, a variant of
+                      the method (:func:`mapping.colour_map.colour_map_for_run`: ``mesh_colourmap.*`` and
+                      ``colour_map.json`` in the method's folder, judged by the withheld frames when there are any).
     """
     from mapping._open3d import o3d
     from mapping.factory import make_backend, make_tracker
@@ -166,6 +170,11 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     results.append(_method_result(method, run, folder.path, fusion, colour_model, seconds,
                                                   backend=backend, scene=scene, display_response=display_response,
                                                   max_distance=max(3 * voxel_size, 0.03), mesh_formats=mesh_formats))
+                    if colour_map is not None:
+                        from mapping.colour_map import colour_map_for_run
+
+                        colour_map_for_run(run, dataset, fusion, colour_model, method=colour_map, depth_max=depth_max,
+                                           folder=folder.path, formats=mesh_formats)
                     del fusion
         finally:
             bar.close()
