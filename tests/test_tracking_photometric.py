@@ -103,8 +103,7 @@ def _error(T_est, T_true):
 
 def _raw_view(scene, pose):
     """The map of raw levels as the frame at ``pose`` shows them (linear camera, 200/255 of radiance)."""
-    view = _view(scene, pose, k=200.0)
-    return view
+    return _view(scene, pose, k=200.0)
 
 
 MOTION = _pose(_rotation((0.3, 1, 0.1), 1.0), (0.015, -0.01, 0.01))
