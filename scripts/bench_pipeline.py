@@ -293,8 +293,9 @@ def main(argv=None) -> int:
         print(f"ATE ratio radiomap / {peers[0]}: {ate_ratio:.3f} (target <= 1.0; radiomap ATE {a:.2f} cm)")
     scaling = _scaling(runs, args) if args.scaling else []
     if scaling:
-        print(f"time per frame (ms, median over repeats) over the {args.window} frames before frame n (load: the "
-              "range of the 1-minute load average over the runs):")
+        loads = [x for rs in runs.values() for r in rs for x in r["load"]]
+        print(f"time per frame (ms, median over repeats) over the {args.window} frames before frame n (1-minute load "
+              f"average {min(loads):.1f}-{max(loads):.1f} at the runs' starts and ends):")
         print(format_table(scaling))
     for m in ours:
         print(f"{m} stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages[m].items()))
@@ -320,8 +321,6 @@ def _scaling(runs: dict[str, list[dict]], args) -> list[dict]:
             for peer in PEERS:
                 if isinstance(row.get(peer), float) and isinstance(row.get(ours), float):
                     row[f"{ours}/{peer}"] = round(row[ours] / row[peer], 3)
-        row["load"] = f"{min(r['load'][0] for rs in runs.values() for r in rs):.1f}-" \
-                      f"{max(r['load'][1] for rs in runs.values() for r in rs):.1f}"
         rows.append(row)
     return rows
 

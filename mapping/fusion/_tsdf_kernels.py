@@ -246,7 +246,8 @@ def hit_bounds(depth, Rc, o, fx, fy, cx, cy, block_size):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res, voxel_size, scale, out):  # pragma: no cover
+def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res, voxel_size, scale,
+                   out):  # pragma: no cover
     """Colour of each pixel's ray-cast surface point (``depth`` along the ray, as :func:`hit_bounds`), as
     Open3D's ``VoxelBlockGrid.ray_cast`` colours it: the trilinear interpolation of the eight voxels around the
     point, over those observed (weight > 0), 0 where the point's block is absent or no corner is observed.
