@@ -113,6 +113,10 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     dataset = open_dataset(config.sequence, format=config.format, depth_scale=config.depth_scale,
                            intrinsics=config.intrinsics, frames=config.frames)
     check_run(dataset, poses=config.poses, **config_options(config))  # intrinsics, ground truth, memory
+    if config.holdout_every is not None:  # 2 .. frames - 1, before anything is written
+        from mapping.holdout import check_holdout_every
+
+        check_holdout_every(config.holdout_every, len(dataset))
     # a file is loaded; a model object (mapping.reconstruct_sequence) is used as it is
     response = load_response(config.response) if isinstance(config.response, (str, Path)) else config.response
     vignetting = as_vignetting(config.vignetting)
@@ -135,7 +139,7 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     tracker = make_tracker(config.tracker, depth_max=config.depth_max, motion_model=config.motion_model) \
         if config.poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
-            "poses": config.poses, "progress": config.progress}
+            "poses": config.poses, "progress": config.progress, "holdout_every": config.holdout_every}
 
 
 __all__ = ["BACKENDS", "TRACKERS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]

@@ -218,6 +218,27 @@ def test_raw_run_and_surfels_without_a_mesh(room):
         surfels.mesh_trimesh()
 
 
+def test_holdout_and_colour_map_through_the_library(room, truth, tmp_path):
+    """holdout_every and colour_map reach the run as the command's options do: the withheld frames are judged
+    (metrics.json, holdout.csv) and never fused; the colour-map stage runs after fusion and says which mesh it
+    kept; an impossible holdout_every stops before anything is written."""
+    out = tmp_path / "run"
+    run = mapping.reconstruct_sequence(room, out, response=truth["response"], vignetting=truth["vignetting"],
+                                       poses="gt", frames=FRAMES, depth_max=5.0, progress=False, holdout_every=4,
+                                       colour_map="rigid")
+    assert run.fused == 6 and run.holdout is not None and len(run.holdout.frames) == 2
+    assert 10 < run.holdout.psnr < 80 and run.holdout.l1 > 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["holdout"]["frames_held_out"] == 2
+    assert (out / "holdout.csv").read_text().count("\n") == 3
+    assert run.colour_map is not None and run.colour_map.kept in ("optimised", "plain") and run.colour_map.reason
+    assert (out / "colour_map.json").is_file()
+    with pytest.raises(RadiomapError, match="holdout"):
+        mapping.reconstruct_sequence(room, tmp_path / "bad", poses="gt", frames=FRAMES, holdout_every=8,
+                                     progress=False)
+    assert not (tmp_path / "bad").exists()
+
+
 # ------------------------------------------------------------------------------------------------ the example
 def test_worked_example_runs(tmp_path):
     """docs/examples/from_python.py, run as a reader would (the README quotes it)."""

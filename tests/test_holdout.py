@@ -3,6 +3,7 @@ fused, the CLI end to end, bad --holdout-every."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -294,3 +295,21 @@ def test_bad_holdout_every_is_one_line(room_seq, tmp_path, command, every):
     lines = [line for line in res.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "--holdout-every must be a whole number in 2..7 for 8 frames" in lines[0], res.output
     assert not out.exists()
+
+
+def test_batch_summary_rows_carry_the_holdout_figures(tmp_path):
+    """A batch's summary.csv shows each sequence's held-out PSNR and L1 when its run withheld frames, and no such
+    columns for a run that did not."""
+    from mapping.batch.commands import reconstruct_rows
+    from mapping.batch.report import columns_of
+
+    metrics = {"frames": {"total": 10, "fused": 8}, "timing": {"seconds": 2.0},
+               "histogram": {"mean": 12.5, "median": 10.0, "p90": 30.0}, "ate": None}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    plain = reconstruct_rows(tmp_path)
+    assert "holdout PSNR" not in columns_of(plain)
+    metrics["holdout"] = {"psnr": 24.25, "l1": 30.5, "pixels": 1000}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    (row,) = reconstruct_rows(tmp_path)
+    assert row["holdout PSNR"] == 24.25 and row["holdout L1"] == 30.5 and row["L1 mean"] == 12.5
+    assert columns_of([row]).index("holdout PSNR") < columns_of([row]).index("error")

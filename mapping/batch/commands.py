@@ -37,21 +37,18 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     from mapping.datasets import describe_dataset
     from mapping.export import ResultsFolder, plain_value
     from mapping.factory import ReconstructConfig, build_run
-    from mapping.holdout import check_holdout_every
     from mapping.pipeline import reconstruct
     from radiometry.tables import format_table
 
     config = ReconstructConfig(**options)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
-    if config.holdout_every is not None:
-        check_holdout_every(config.holdout_every, len(kwargs["dataset"]))
     folder = ResultsFolder(config.output, force=config.force)
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
     try:
-        run = reconstruct(**kwargs, output=folder, holdout_every=config.holdout_every)
+        run = reconstruct(**kwargs, output=folder)
         summary = format_table([run.summary_row()]) + "\n" + settings
         if config.colour_map is not None:   # the optimised mesh beside the plain one (mapping.colour_map)
             from mapping.colour_map import colour_map_for_run
@@ -69,7 +66,7 @@ def reconstruct_rows(folder: Path) -> list[dict]:
     """The batch summary's row of a complete reconstruct folder (from its metrics.json)."""
     metrics = json.loads((folder / "metrics.json").read_text(encoding="utf-8"))
     return [_row(metrics["frames"]["total"], metrics["frames"]["fused"], metrics["timing"]["seconds"],
-                 metrics["histogram"], metrics.get("ate"))]
+                 metrics["histogram"], metrics.get("ate"), metrics.get("holdout"))]
 
 
 # ------------------------------------------------------------------ radiomap compare
@@ -168,7 +165,8 @@ def compare_rows(folder: Path) -> list[dict]:
     for method in doc["methods"]:
         metrics = json.loads((folder / method["folder"] / "metrics.json").read_text(encoding="utf-8"))
         rows.append({"method": method["name"], **_row(metrics["frames"]["total"], metrics["frames"]["fused"],
-                                                      metrics["timing"]["seconds"], metrics["histogram"], ate)})
+                                                      metrics["timing"]["seconds"], metrics["histogram"], ate,
+                                                      metrics.get("holdout"))})
     return rows
 
 
@@ -179,11 +177,15 @@ def compare_complete(folder: Path) -> bool:
     return (folder / "compare.json").is_file() and not (folder / RUNNING_MARKER).exists()
 
 
-def _row(frames: int, fused: int, seconds: float, histogram: dict, ate: dict | None) -> dict:
-    return {"frames": frames, "fused": fused, "seconds": round(seconds, 2),
-            "frames/s": round(frames / seconds, 2) if seconds > 0 else None,
-            "L1 mean": histogram.get("mean"), "L1 median": histogram.get("median"), "L1 p90": histogram.get("p90"),
-            "ATE cm": None if ate is None else round(100 * ate["rmse"], 2)}
+def _row(frames: int, fused: int, seconds: float, histogram: dict, ate: dict | None,
+         holdout: dict | None = None) -> dict:
+    row = {"frames": frames, "fused": fused, "seconds": round(seconds, 2),
+           "frames/s": round(frames / seconds, 2) if seconds > 0 else None,
+           "L1 mean": histogram.get("mean"), "L1 median": histogram.get("median"), "L1 p90": histogram.get("p90"),
+           "ATE cm": None if ate is None else round(100 * ate["rmse"], 2)}
+    if holdout is not None:  # --holdout-every: the map judged by the withheld frames (mapping.holdout)
+        row.update({"holdout PSNR": holdout.get("psnr"), "holdout L1": holdout.get("l1")})
+    return row
 
 
 def _reconstruct_complete(folder: Path) -> bool:
