@@ -289,8 +289,8 @@ class FrameToModelTracker:
     def align(self, depth: np.ndarray, K: np.ndarray, view: ModelView | None, view_pose: np.ndarray,
               init: np.ndarray, *, colour=None) -> TrackingResult:
         """One alignment from the initial pose ``init`` (camera-to-world) under the failure rules, without
-        changing the tracker's state (:meth:`start` must have been called: the motion limits count from the
-        last accepted pose). :meth:`track` is this from :meth:`predict`; the tracking study calls it from
+        changing the motion model's state (:meth:`start` must have been called: the motion limits count from
+        the last accepted pose; a photometric tracker keeps the exposure it estimates). :meth:`track` is this from :meth:`predict`; the tracking study calls it from
         perturbed poses."""
         init = np.asarray(init, dtype=np.float64)
         result = self._track(depth, K, view, view_pose, init, colour)

@@ -5,7 +5,7 @@ intensity) and coloured ICP (Park, Zhou and Koltun, ICCV 2017), beside point-to-
 Both align the frame to the map rendered at the last accepted pose (a :class:`mapping.fusion.base.ModelView`:
 depth, colour in map units, vertex, normal), as point-to-plane ICP does, and share its state (motion model)
 and failure rules: the fitness and inlier RMSE judged are those of the point-to-plane association at the final
-pose (one extra evaluation), so that "failed" means the same for every tracker.
+pose (:func:`point_to_plane_fit`), so that "failed" means the same for every tracker.
 
 The frame's colour (:func:`tracking_colour`) is in the map's units: raw levels without a response; with one,
 irradiance ``f^-1(I) / V``, divided by the frame's exposure ``k`` when the map is exposure-compensated. The
@@ -64,7 +64,8 @@ def tracking_colour(colour_model, rgb: np.ndarray) -> TrackingColour:
     from mapping.colour import IrradianceColour, RawIntensity
 
     rgb = np.asarray(rgb)
-    usable = (rgb.max(axis=2) < 254) & (rgb.max(axis=2) > 3)
+    brightest = rgb.max(axis=2)
+    usable = (brightest < 254) & (brightest > 3)
     base = getattr(colour_model, "base", colour_model)
     if isinstance(base, IrradianceColour):
         white = float(np.mean(base.response.channel_tables(3)[-1]))
@@ -155,6 +156,7 @@ class _PhotometricTracker(FrameToModelTracker):
             k = estimate_exposure(c, colour.usable, depth, K, view, T0)
             if k is None:
                 self.exposure_fallbacks += 1
+                log.debug("too few pixels agree with the map for an exposure estimate; keeping k = %s", self.exposure)
             else:
                 self.exposure = k
             c = c / self.exposure.astype(np.float32)
