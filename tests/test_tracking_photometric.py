@@ -275,6 +275,7 @@ def test_compare_tracker_option_end_to_end(tiny_room, tmp_path):
     assert "tracker hybrid (given)" in res.output
     none = json.loads((out / "none" / "config.json").read_text())
     assert none["tracker"]["class"] == "HybridTracker"
+    assert json.loads((out / "compare.json").read_text())["pose_source"] == "hybrid tracking (tracked with 'none')"
 
 
 def test_a_wrong_tracker_option_lists_the_valid_ones(tiny_room, tmp_path):

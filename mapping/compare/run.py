@@ -182,7 +182,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
         first = results[0].run
         result = CompareResult(results=results, stamps=first.stamps, poses=first.poses,
                                pose_source="ground truth" if poses == "gt" else
-                               f"ICP (tracked with '{methods[0].name}')",
+                               f"{_tracker_label(tracker_options)} (tracked with '{methods[0].name}')",
                                output=output, files={}, seconds=0.0, ate=ate,
                                parameters={"backend": backend, "poses": poses, "voxel_size": voxel_size,
                                            "depth_max": depth_max, "brightness": brightness, "frames": n,
@@ -240,6 +240,13 @@ def _colour_model(method: Method, height: int, width: int, brightness: str):
     from mapping.exposure_compensation import CompensatedColour
 
     return CompensatedColour(base, compensate=True)
+
+
+def _tracker_label(tracker_options: Mapping[str, Any] | None) -> str:
+    """How the shared poses were tracked, for the table's pose line: ``ICP``, ``hybrid`` or ``coloured-icp``
+    (:data:`mapping.factory.TRACKERS`)."""
+    name = dict(tracker_options or {}).get("name", "icp")
+    return "ICP" if name == "icp" else f"{name} tracking"
 
 
 def _poses_by_frame(run, n: int) -> list[np.ndarray | None]:
