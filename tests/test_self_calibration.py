@@ -90,10 +90,10 @@ def _gauge_error(res) -> np.ndarray:
 
 def test_stderr_matches_the_spread_of_v_across_noise_seeds():
     """The same scene and camera, four noise draws: the stated standard error of V describes how far V lands from
-    the truth. Measured (this scene, 2 % noise): 86-92 % of pixels within 2 standard errors (95 % if the error
-    were Gaussian and unbiased; the rest is the model's bias against this non-radial truth), RMS error / RMS
-    stderr 0.8-1.1. The error with exposures and radiances held fixed, as before, was 5-10x too small here, and
-    would put well under half of the pixels within 2 standard errors."""
+    the truth. Measured (this scene, 2 % noise): 95-99 % of pixels within 2 standard errors, RMS error / RMS
+    stderr 0.78-1.08. Without the single sightings' part taken off the two clusterings (counted twice) the
+    stderr was 1.4x too large (97-99.8 % within, ratio 0.66-0.89); with exposures and radiances held fixed, as
+    before, it was several times too small."""
     within, ratios = [], []
     for noise_seed in range(4):
         obs, _, _ = synthetic(5, frames=20, points=800, noise=0.02, noise_seed=100 + noise_seed)
@@ -102,13 +102,14 @@ def test_stderr_matches_the_spread_of_v_across_noise_seeds():
         away = se > 0.2 * np.median(se)      # not at the gauge point, where both are ~0
         within.append(np.mean(np.abs(d[away]) < 2 * se[away]))
         ratios.append(np.sqrt(np.mean(d[away] ** 2) / np.mean(se[away] ** 2)))
-    assert 0.75 < np.mean(within) < 0.995, within
-    assert 0.6 < np.mean(ratios) < 1.6, ratios
+    assert 0.85 < np.mean(within) < 0.995, within
+    assert 0.8 < np.mean(ratios) < 1.3, ratios      # counted twice (ratio 0.73) fails
 
 
 def test_thinly_covered_regions_get_a_larger_stderr():
     """Nine in ten sightings in the top-left ninth of the image dropped: V's standard error there grows against
-    the opposite corner, which kept all of its sightings."""
+    the opposite corner, which kept all of its sightings, and against the same corner with all of them (measured
+    1.79x and 1.76x)."""
     full, _, _ = synthetic(6, frames=20, points=800, noise=0.02)
     thin = (full.x < W / 3) & (full.y < H / 3) & (np.random.default_rng(0).random(full.x.size) < 0.9)
     keep = ~thin
