@@ -88,6 +88,12 @@ class ColourModel(Protocol):
         ``(predicted float32 levels (H, W, 3), gain float64 (3,))`` (:mod:`mapping.holdout`)."""
         ...
 
+    def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        """A uint8 (H, W, 3) frame in map units BEFORE any exposure division, for a tracker that estimates the
+        exposure itself (:mod:`mapping.tracking_photometric`): ``(colour float32 (H, W, 3), white: the map units
+        of level 255, whether the map's colours are divided by a per-frame exposure)``."""
+        ...
+
 
 class RawIntensity:
     """No correction: the map averages intensity levels (0..255 as float32); display is the identity."""
@@ -108,6 +114,9 @@ class RawIntensity:
 
     def save_results(self, folder: str | os.PathLike) -> dict[str, Path]:
         return {}
+
+    def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        return np.asarray(rgb).astype(np.float32), 255.0, False
 
     def describe(self) -> dict:
         return {"name": self.name, "map_units": "intensity levels 0..255", "display": "identity"}
@@ -241,6 +250,10 @@ class IrradianceColour:
 
     def to_display(self, colour: np.ndarray) -> np.ndarray:
         return self._forward(colour)
+
+    def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        white = float(np.mean(self.response.channel_tables(3)[-1]))
+        return self.irradiance(rgb), white, self.exposure is not None
 
     def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
         """Display-unit L1 distances of (N, 3) map-unit pairs, fused (no temporaries)."""

@@ -58,22 +58,13 @@ class TrackingColour:
 
 
 def tracking_colour(colour_model, rgb: np.ndarray) -> TrackingColour:
-    """The frame's colour in the units ``colour_model`` fuses (:class:`~mapping.colour.RawIntensity`,
-    :class:`~mapping.colour.IrradianceColour`, or one wrapped in
-    :class:`~mapping.exposure_compensation.CompensatedColour`)."""
-    from mapping.colour import IrradianceColour, RawIntensity
-
+    """The frame's colour in the units ``colour_model`` fuses, before any exposure division
+    (:meth:`mapping.colour.ColourModel.unexposed`), with the pixels the exposure estimate may use."""
     rgb = np.asarray(rgb)
     brightest = rgb.max(axis=2)
     usable = (brightest < 254) & (brightest > 3)
-    base = getattr(colour_model, "base", colour_model)
-    if isinstance(base, IrradianceColour):
-        white = float(np.mean(base.response.channel_tables(3)[-1]))
-        compensate = bool(getattr(colour_model, "compensate", False)) or base.exposure is not None
-        return TrackingColour(base.irradiance(rgb), 1.0 / white, compensate, usable)
-    if isinstance(base, RawIntensity):
-        return TrackingColour(rgb.astype(np.float32), 1.0 / 255.0, False, usable)
-    raise TypeError(f"photometric tracking knows raw and irradiance colour models, got {type(colour_model).__name__}")
+    colour, white, estimate_exposure = colour_model.unexposed(rgb)
+    return TrackingColour(colour, 1.0 / white, estimate_exposure, usable)
 
 
 def luminance(colour: np.ndarray, scale: float) -> np.ndarray:

@@ -220,8 +220,8 @@ def test_tracking_colour_is_in_the_units_the_map_holds():
     assert not irr.estimate_exposure and not irr.usable[1, 1] and irr.usable[0, 0]     # 255 is clipped
     np.testing.assert_allclose(luminance(irr.colour, irr.scale)[1, 1], 1.0, rtol=1e-5)
     assert tracking_colour(CompensatedColour(IrradianceColour(response)), rgb).estimate_exposure
-    with pytest.raises(TypeError, match="raw and irradiance"):
-        tracking_colour(object(), rgb)
+    # an ablation without exposure estimation keeps the map's colours undivided: the tracker must not divide
+    assert not tracking_colour(CompensatedColour(IrradianceColour(response), compensate=False), rgb).estimate_exposure
 
 
 def test_a_wrong_tracker_name_lists_the_valid_ones():

@@ -112,6 +112,10 @@ class CompensatedColour:
         estimator never saw the frame)."""
         return self.base.predict_observed(map_colour, rgb, valid)
 
+    def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        colour, white, exposed = self.base.unexposed(rgb)
+        return colour, white, exposed or self.compensate
+
     def export_reference_k(self) -> np.ndarray:
         """The export reference exposure (3,) relative to the first frame (resolved from the estimates)."""
         if self.estimator is None:
