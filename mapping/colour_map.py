@@ -20,19 +20,20 @@ intensities), so the optimised mesh is rendered, compared and exported exactly a
 Keyframes (:func:`select_keyframes`): the fused frames are cut into consecutive windows of ``window`` frames
 (default 5) and the sharpest frame of each window is kept (largest variance of the Laplacian of its grey image;
 Zhou & Koltun also keep the sharpest frame of each interval). Iterations: ``iterations`` (default 100 for rigid,
-50 for non-rigid, whose iteration is ~15x dearer; Open3D's tutorial uses 300 for both).
+50 for non-rigid, whose iteration costs 5-6x as much in scripts/study_colour_map.py; Open3D's tutorial uses 300 for
+both).
 
 Depth. The RGB-D images given to the optimiser carry the *mesh's* depth rendered at each keyframe's pose
 (:class:`MeshRenderer`), not the sensor's: Open3D uses depth only to decide which vertices a keyframe sees, and
 sensor depth has holes (a vertex over a hole counts as unseen, Open3D issue #4776) and, on Kinect v1 data such as
 7-Scenes, is not registered to the colour image. The visibility depth range is the fusion's ``depth_max`` (Open3D's
-default 2.5 m hides the far half of a room: black vertices). Poses go in as
-world-to-camera extrinsics (the inverse of our camera-to-world poses; the wrong one gives the misaligned colours of
-Open3D issue #823). Open3D counts a vertex as unseen where the Sobel gradient of the depth image exceeds
-``depth_threshold_for_discontinuity_check`` (default 0.1 m): on floors and box tops seen at a slant that is most of
-the surface at 320x240 (each unseen vertex then takes the colour of its 3 nearest seen ones, a smear); measured on
-the 30-frame sample room, all 30 frames as keyframes, no iteration: held-out PSNR 22.8 dB at 0.1 against 27.2 dB
-at 0.3, 1 or 10 (the plain mesh: 27.1 dB). This stage uses 0.3 (a depth step of ~7 cm between neighbours).
+default 2.5 m hides the far half of a room: black vertices). Poses go in as world-to-camera extrinsics (the inverse
+of our camera-to-world poses; the wrong one gives the misaligned colours of Open3D issue #823). Open3D counts a
+vertex as unseen where the Sobel gradient of the depth image exceeds ``depth_threshold_for_discontinuity_check``
+(default 0.1 m): on floors and box tops seen at a slant that is most of the surface at 320x240 (each unseen vertex
+then takes the colour of its 3 nearest seen ones, a smear); measured on the 30-frame sample room, raw colours, all
+30 frames as keyframes, no iteration, PSNR at 10 of the frames: 22.8 dB at 0.1 against 27.2 dB at 0.3, 1 or 10 (the
+fused mesh: 27.1 dB). This stage uses 0.3 (a depth step of ~7 cm between neighbours).
 
 Vertices no keyframe sees. Open3D leaves them black or (``invisible_vertex_color_knn``, default 3) gives them the
 mean colour of the 3 nearest seen vertices, which may lie far away: a smear wherever the keyframes miss what the
