@@ -254,7 +254,7 @@ def _self_calibrate(calib: Path, seq: Path, sim, response, *, progress: bool, ti
                     say: Callable[[str], None]):
     """5. Vignetting self-calibrated from the room sequence (``calibration/self/``): (the LUT model, a record of
     its accuracy: RMS error per channel in 8-bit levels, stderr, exposure error, sightings, seconds, memory);
-    (None, {"skipped": the reason}) when the sequence cannot constrain it (the quick demo's 15 frames)."""
+    (None, {"skipped": the reason}) when the sequence cannot constrain it (the quick demo at 160x120)."""
     import numpy as np
 
     from mapping.datasets import open_dataset
@@ -290,7 +290,7 @@ def _self_text(record: dict[str, Any]) -> str:
     """The report's sentence on the self-calibration (or why there is none)."""
     if "skipped" in record:
         return (f"Self-calibrated vignetting: none, the room sequence cannot constrain it ({record['skipped']}); "
-                "the full demo's 60 frames at 320x240 can.")
+                "the full demo at 320x240 can.")
     return ("Self-calibrated vignetting: from the room sequence itself, no white sheet (radiomap self-calibrate: "
             "every surface point seen at many image positions and exposures, with the calibrated response and "
             f"ground-truth poses; {record['sightings']} sightings, median standard error of V "
