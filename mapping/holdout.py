@@ -1,9 +1,10 @@
 """Held-out frames: a colour metric for real data without a ground truth (issue 16).
 
 Every ``every``-th frame of a run (dataset positions ``every - 1``, ``2 every - 1``, ...) is withheld from
-fusion: it is tracked (ICP) or given its ground-truth pose, but never integrated and never measured by the
-disagreement histogram. After the run the final map, made of the fused frames only, is rendered at each
-withheld frame's pose, and the colour model predicts the 8-bit image the camera recorded there
+fusion: it is tracked (by the run's tracker) or given its ground-truth pose, but never integrated, never
+measured by the disagreement histogram and not counted as skipped. After the run the final map, made of the
+fused frames only, is rendered at each withheld frame's pose, and the colour model predicts the 8-bit image the
+camera recorded there
 (:meth:`mapping.colour.ColourModel.predict_observed`): the frame's exposure is fitted against the render
 (per channel, the median over the valid pixels of observed / rendered, in the model's map units: irradiance
 ``f^-1(I) / V`` for a corrected map, levels for the raw one), and the render goes back through the camera

@@ -18,8 +18,9 @@ Per frame (ICP mode), the contract between the parts (:class:`~mapping.fusion.ba
     view_prev, pose_prev = view, pose                         # the tracker's target for frame i + 1
 
 With ``holdout_every = N`` every N-th frame (:mod:`mapping.holdout`) is tracked (or given its ground-truth pose)
-and then withheld: never rendered for, coloured, fused or measured. After the loop the final map is rendered at
-the withheld frames' poses and judged against them (``RunResult.holdout``).
+and then withheld: never rendered for, coloured, fused or measured, and not counted as skipped (one that comes
+before the map exists has no pose: it cannot found the map). After the loop the final map is rendered at the
+withheld frames' poses and judged against them (``RunResult.holdout``).
 
 One ray cast per frame serves both the histogram (the map before this frame) and the tracking of the next
 frame (the map at the last pose, lacking only the last frame), like Open3D's dense SLAM loop which also
@@ -32,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections import Counter
 
 import numpy as np
 
@@ -42,8 +42,7 @@ from mapping.fusion.base import FusionBackend, masked_depth
 from mapping.histogram import DisagreementHistogram
 from mapping.holdout import HELD_OUT, backend_renderer, check_holdout_every, evaluate_holdout, is_held_out
 from mapping.metrics import ATEResult, absolute_trajectory_error
-from mapping.results import (FrameRecord, RunResult, backend_stats, peak_rss_mb, reason_kind, write_partial,
-                             write_results)
+from mapping.results import FrameRecord, RunResult, backend_stats, peak_rss_mb, write_partial, write_results
 from radiometry.errors import RadiomapError
 
 log = logging.getLogger(__name__)
@@ -134,7 +133,7 @@ class _Loop:
         self.failures = 0
         self.depth_valid = 0            # valid depth pixels seen, and those at or beyond the depth range
         self.depth_far = 0
-        self.skipped = 0   # frames done and not fused (the bar's postfix)
+        self.skipped = 0   # frames done, neither fused nor withheld (the bar's postfix)
         self.holdout_every = holdout_every
         self.held_out: dict[int, np.ndarray | None] = {}  # position -> pose of each withheld frame (None: no pose)
         self.started = time.perf_counter()
@@ -155,9 +154,11 @@ class _Loop:
         record = FrameRecord(frame.index, float(frame.timestamp), False)
         self.records.append(record)
         self._count_far_depth(frame.depth)
-        pose = self._pose(frame, record)
-        # withheld after its pose is known (ICP tracks it), unless it founds the map (ICP: nothing fused yet)
-        if is_held_out(i, self.holdout_every) and (self.poses == "gt" or self.track_view is not None):
+        held_out = is_held_out(i, self.holdout_every)
+        pose = self._pose(frame, record, held_out)
+        # withheld after its pose is known (ICP tracks it); by position only, whatever the pose source, so that a
+        # comparison's ground-truth runs withhold exactly the frames its tracking run withheld
+        if held_out:
             self.held_out[i] = pose
             record.reason = record.reason or HELD_OUT
             return
@@ -182,8 +183,9 @@ class _Loop:
             with self.timed("render"):
                 self._keep_for_tracking(frame, pose, view)
 
-    def _pose(self, frame, record: FrameRecord) -> np.ndarray | None:
-        """The frame's pose, or None (with the reason recorded) when it must not be fused."""
+    def _pose(self, frame, record: FrameRecord, held_out: bool = False) -> np.ndarray | None:
+        """The frame's pose, or None (with the reason recorded) when it must not be fused. Tracking needs a map:
+        until a frame has been fused, each frame with depth founds it, except a withheld one (no pose)."""
         if self.poses == "gt":
             if frame.pose is None:
                 record.reason = "no ground-truth pose"
@@ -191,7 +193,9 @@ class _Loop:
                 record.reason = "no depth within the fusion range"
                 return None
             return frame.pose
-        if self.tracker.last_pose is None:  # the first frame with depth founds the map
+        if self.track_view is None:  # nothing fused yet (none had depth, or its colour was rejected)
+            if held_out:
+                return None
             if self._fusable_depth(frame.depth) < 1000:
                 record.reason = "no depth to start the map"
                 return None
@@ -247,9 +251,11 @@ class _Loop:
     def advance(self, bar) -> None:
         """One frame done: the bar advances, and a DEBUG line says so ("frame 3 of 5: fused"; ``-vv``)."""
         record = self.records[-1]
+        held_out = len(self.records) - 1 in self.held_out
+        state = "fused" if record.fused else "withheld" if held_out else "skipped"
         log.debug("frame %d of %d: %s", len(self.records), len(self.dataset),
-                  "fused" if record.fused else f"skipped ({record.reason or 'no reason'})")
-        if not record.fused:
+                  state if record.fused else f"{state} ({record.reason or 'no reason'})")
+        if not (record.fused or held_out):
             self.skipped += 1
             bar.set_postfix(skipped=self.skipped, refresh=False)
         bar.update(1)
@@ -257,9 +263,8 @@ class _Loop:
     def check_fused(self) -> None:
         from mapping.validation import check_fused
 
-        fused = sum(r.fused for r in self.records)
-        reasons = Counter(reason_kind(r.reason) for r in self.records if not r.fused and r.reason != HELD_OUT)
-        check_fused(fused, len(self.records) - len(self.held_out), dict(reasons),
+        run = self.result("running")   # its counts: the withheld frames are neither fused nor skipped
+        check_fused(run.fused, run.frames - run.held_out, run.skip_reasons(),
                     str(getattr(self.dataset, "root", None) or self.dataset.name or "the sequence"))  # a folder, if any
 
     def drop_unfinished(self) -> None:

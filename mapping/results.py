@@ -62,25 +62,36 @@ class RunResult:
         return sum(r.fused for r in self.records)
 
     @property
+    def held_out(self) -> int:
+        """Frames withheld from fusion by ``holdout_every`` (asked for: neither fused nor skipped)."""
+        return len(self.held_out_poses)
+
+    @property
     def skipped(self) -> int:
-        return self.frames - self.fused
+        """Frames neither fused nor withheld (``frames = fused + skipped + held_out``)."""
+        return self.frames - self.fused - self.held_out
 
     @property
     def frames_per_second(self) -> float:
         return self.frames / self.seconds if self.seconds > 0 else math.nan
 
+    def skipped_records(self) -> list[FrameRecord]:
+        """The records of the skipped frames (records are in the run's frame order: position = list index)."""
+        return [r for i, r in enumerate(self.records) if not r.fused and i not in self.held_out_poses]
+
     def skip_reasons(self) -> dict[str, int]:
         """Skipped frames counted by the kind of reason (the text before the first number)."""
-        return dict(Counter(reason_kind(r.reason) for r in self.records if not r.fused))
+        return dict(Counter(reason_kind(r.reason) for r in self.skipped_records()))
 
     def metrics(self) -> dict:
         """The content of ``metrics.json``."""
         return {
             "status": self.status,
             "frames": {"total": self.frames, "fused": self.fused, "skipped": self.skipped,
+                       **({"held_out": self.held_out} if self.held_out_poses else {}),
                        "skip_reasons": self.skip_reasons(),
                        "skipped_frames": [{"index": r.index, "timestamp": r.timestamp, "reason": r.reason}
-                                          for r in self.records if not r.fused]},
+                                          for r in self.skipped_records()]},
             "timing": {"seconds": self.seconds, "frames_per_second": self.frames_per_second,
                        "ms_per_frame": 1000.0 * self.seconds / max(self.frames, 1),
                        "stage_ms_per_frame": {k: 1000.0 * v / max(self.frames, 1)
@@ -96,6 +107,7 @@ class RunResult:
     def summary_row(self) -> dict:
         s = self.histogram.stats()
         return {"frames": self.frames, "fused": self.fused, "skipped": self.skipped,
+                **({"held out": self.held_out} if self.held_out_poses else {}),
                 "fps": round(self.frames_per_second, 2), "L1 mean": s["mean"], "L1 median": s["median"],
                 "L1 p90": s["p90"], "pairs": s["count"],
                 "ATE cm": "-" if self.ate is None else round(100 * self.ate.rmse, 2),

@@ -188,7 +188,11 @@ def test_withheld_frames_are_not_fused_the_map_is_the_subsets():
     np.testing.assert_allclose([f.gain for f in run.holdout.frames], 1.0, atol=0.01)
     assert run.holdout.psnr > 35
     assert run.metrics()["holdout"]["frames_evaluated"] == 3
-    assert run.fused == 7 and run.metrics()["frames"]["skip_reasons"] == {"held out for evaluation": 3}
+    # withheld frames were asked for: neither fused nor skipped (frames = fused + skipped + held out)
+    frames = run.metrics()["frames"]
+    assert run.fused == 7 and run.held_out == 3 and run.skipped == 0 and run.skip_reasons() == {}
+    assert frames["held_out"] == 3 and frames["skipped"] == 0 and frames["skipped_frames"] == []
+    assert run.summary_row()["held out"] == 3 and run.summary_row()["skipped"] == 0
 
 
 def test_withheld_frames_are_tracked_with_icp():
@@ -204,6 +208,27 @@ def test_withheld_frames_are_tracked_with_icp():
         assert np.isfinite(run.records[i].fitness)                     # ICP ran on it
         np.testing.assert_allclose(pose[:3, 3], ds.frames[i].pose[:3, 3], atol=0.02)
     assert len(run.holdout.evaluated) == 2
+
+
+def test_a_comparison_withholds_the_same_frames_when_the_map_starts_late(tmp_path):
+    """The first frame has no depth, so with ICP the map starts at position 1, a withheld position: it must stay
+    withheld (without a pose, it cannot found the map), as in the runs at the shared poses, which withhold by
+    position; every method fuses the same frames and judges the same ones."""
+    import dataclasses
+
+    from mapping.compare import compare, make_methods
+    from mapping.datasets.in_memory import ArrayDataset
+
+    frames = list(_box(8).frames)
+    frames[0] = dataclasses.replace(frames[0], depth=np.zeros_like(frames[0].depth))
+    methods = make_methods(CameraResponse.gamma(), names=["none", "response"])
+    res = compare(ArrayDataset(frames), methods, output=tmp_path / "cmp", poses="icp", views=0,
+                  progress=False, holdout_every=2, depth_max=5.0, voxel_size=0.02, mesh_formats=("ply",))
+    assert res.poses_identical
+    for r in res.results:
+        assert sorted(r.run.held_out_poses) == [1, 3, 5, 7] and r.run.held_out_poses[1] is None
+        assert r.run.fused == 3 and r.run.skipped == 1 and r.run.skip_reasons() != {}
+        assert [f.reason for f in r.run.holdout.frames] == ["no pose", "", "", ""]
 
 
 def test_reconstruct_refuses_a_bad_every_before_anything_runs():

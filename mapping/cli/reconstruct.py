@@ -96,15 +96,13 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
 
     With --config RUN/config.json, SEQUENCE and every option default to the recorded run's."""
     from mapping.batch.commands import reconstruct_command
-    from mapping.holdout import HELD_OUT
 
     run, summary = reconstruct_command(**task_arguments(click.get_current_context()))
     click.echo(summary)
-    skipped = {k: v for k, v in run.skip_reasons().items() if k != HELD_OUT}  # withheld frames were asked for
-    if skipped:
-        reasons = ", ".join(f"{k}: {v}" for k, v in skipped.items())
-        click.echo(f"warning: skipped {sum(skipped.values())} of {run.frames} frames ({reasons}); see "
-                   f"{output / 'frames.csv'}", err=True)
+    if run.skipped:   # the frames --holdout-every withheld are not skipped (they were asked for)
+        reasons = ", ".join(f"{k}: {v}" for k, v in run.skip_reasons().items())
+        click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
+                   err=True)
     warn_far_depth(run.depth_beyond_range, depth_max)
     click.echo(f"results in {output}")
 
@@ -129,6 +127,10 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
+    if p["tracker"] != "icp" and p["poses"] != "icp" and \
+            not drop_replayed(ctx, "tracker", "icp", f"--poses {p['poses']}"):
+        raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
+                                 "drop --tracker or add --poses icp", param_hint="--tracker")
     if p["colour_map"] is not None and backend != "tsdf":
         raise click.BadParameter(f"applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
                                  f"{backend}; drop --colour-map or use --backend tsdf", param_hint="--colour-map")

@@ -1,9 +1,11 @@
 """The comparison run: every method fuses the same frames at identical poses (:func:`compare`).
 
 Identical poses. With ``poses="gt"`` every run takes the dataset's ground truth. With ``poses="icp"`` the
-first method's run tracks (frame-to-model ICP on depth only, so the choice of method does not matter) and
-every later run fuses at exactly the poses it estimated, skipping exactly the frames it skipped
-(:class:`FixedPoses`). ``CompareResult.poses_identical`` checks it after the fact.
+first method's run tracks and every later run fuses at exactly the poses it estimated, skipping exactly the
+frames it skipped (:class:`FixedPoses`). Point-to-plane ICP (the default tracker) uses depth only, so the choice
+of method does not matter; the photometric trackers (``tracker_options={"name": "hybrid"}`` or
+``"coloured-icp"``) track on the FIRST method's colour, so the shared poses depend on it (the summary names it).
+``CompareResult.poses_identical`` checks it after the fact.
 """
 
 from __future__ import annotations
