@@ -59,10 +59,12 @@ class TrackingColour:
 
 def tracking_colour(colour_model, rgb: np.ndarray) -> TrackingColour:
     """The frame's colour in the units ``colour_model`` fuses, before any exposure division
-    (:meth:`mapping.colour.ColourModel.unexposed`), with the pixels the exposure estimate may use."""
+    (:meth:`mapping.colour.ColourModel.unexposed`), with the pixels the exposure estimate may use (those
+    :func:`mapping.exposure_compensation.masks.clipped_pixels` keeps, as the map's exposure estimate does)."""
+    from mapping.exposure_compensation.masks import clipped_pixels
+
     rgb = np.asarray(rgb)
-    brightest = rgb.max(axis=2)
-    usable = (brightest < 254) & (brightest > 3)
+    usable = ~clipped_pixels(rgb)
     colour, white, estimate_exposure = colour_model.unexposed(rgb)
     return TrackingColour(colour, 1.0 / white, estimate_exposure, usable)
 

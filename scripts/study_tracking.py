@@ -263,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     with open("/proc/loadavg") as fh:
         load = fh.read().split()[:3]
     text += f"\n\n{time.perf_counter() - started:.0f} s, load {' '.join(load)}\n"
-    (args.out / "runs.csv").write_text(csv_text(rows, list(rows[0].keys())))
+    columns = list(dict.fromkeys(k for r in rows for k in r))   # a lost run's row has other keys than the rest
+    (args.out / "runs.csv").write_text(csv_text(rows, columns))
     (args.out / "summary.txt").write_text(text)
     (args.out / "study.json").write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
                                                      "runs": rows, "summary": summary, "basin": basin_rows},

@@ -289,3 +289,44 @@ def test_a_wrong_tracker_option_lists_the_valid_ones(tiny_room, tmp_path):
         assert res.exit_code == 2
         assert "'orb' is not one of 'icp', 'hybrid', 'coloured-icp'" in res.output
         assert not (tmp_path / command).exists()
+
+
+@pytest.mark.parametrize("name", ["icp", "hybrid"])
+def test_the_map_is_founded_again_when_the_first_frames_colour_is_rejected(name):
+    """``_Loop._pose``: a black first frame (every pixel clipped: the clip mask fuses none of it) leaves the map
+    empty, so the next frame founds it (tracking needs a map) and the others are tracked against it (was: a
+    TypeError on the second frame)."""
+    import dataclasses
+
+    from box_room import box_room_sequence
+    from mapping.datasets.in_memory import ArrayDataset
+    from mapping.exposure_compensation import make_compensated_colour
+    from mapping.factory import make_backend
+    from mapping.pipeline import reconstruct
+
+    ds, _ = box_room_sequence(n_frames=6, width=160, height=120)
+    frames = list(ds.frames)
+    frames[0] = dataclasses.replace(frames[0], rgb=np.zeros_like(frames[0].rgb))
+    run = reconstruct(ArrayDataset(frames), colour_model=make_compensated_colour(CameraResponse.gamma(), compensate=False),
+                      backend=make_backend("tsdf", voxel_size=0.02, depth_max=5.0),
+                      tracker=make_tracker(name, depth_max=5.0), progress=False)
+    assert [r.fused for r in run.records] == [False] + [True] * 5
+    assert run.records[0].reason.startswith("colour rejected")
+    np.testing.assert_array_equal(run.poses[0], frames[1].pose)        # founded at its ground truth
+    assert run.ate is not None and run.ate.rmse < 0.01
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "compare"])
+def test_a_tracker_without_tracking_is_a_one_line_error(tiny_room, tmp_path, command):
+    """``--tracker hybrid`` with ground-truth poses (compare's default) would be silently ignored: refused in one
+    line naming the option, nothing written."""
+    from click.testing import CliRunner
+    from mapping.cli import cli
+
+    extra = ["--response", str(tiny_room / "truth" / "response.npz"), "--methods", "none,response"] \
+        if command == "compare" else []
+    res = CliRunner().invoke(cli, [command, str(tiny_room), "-o", str(tmp_path / "out"), "--tracker", "hybrid",
+                                   "--poses", "gt", *extra])
+    assert res.exit_code == 2
+    assert "--tracker" in res.output and "applies with --poses icp only" in res.output
+    assert not (tmp_path / "out").exists()

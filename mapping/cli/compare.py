@@ -125,6 +125,10 @@ def task_arguments(ctx: click.Context) -> dict:
         method_list = compare_methods(**models, exposure_compensation=p["exposure_compensation"], methods=methods)
     except MethodChoiceError as exc:
         raise click.UsageError(str(exc)) from None
+    if p["tracker"] != "icp" and p["poses"] != "icp" and \
+            not drop_replayed(ctx, "tracker", "icp", f"--poses {p['poses']}"):
+        raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
+                                 "drop --tracker or add --poses icp", param_hint="--tracker")
     ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
     settings = settings_line(ctx, [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
