@@ -20,7 +20,7 @@ intensities), so the optimised mesh is rendered, compared and exported exactly a
 Keyframes (:func:`select_keyframes`): the fused frames are cut into consecutive windows of ``window`` frames
 (default 5) and the sharpest frame of each window is kept (largest variance of the Laplacian of its grey image;
 Zhou & Koltun also keep the sharpest frame of each interval). Iterations: ``iterations`` (default 100 for rigid,
-50 for non-rigid, whose iteration costs 5-6x as much in scripts/study_colour_map.py; Open3D's tutorial uses 300 for
+50 for non-rigid, whose iteration costs 4-7x as much in scripts/study_colour_map.py; Open3D's tutorial uses 300 for
 both).
 
 Depth. The RGB-D images given to the optimiser carry the *mesh's* depth rendered at each keyframe's pose
