@@ -24,7 +24,7 @@ the ground truth before -> after the optimisation.
 - kitchen: 7-Scenes redkitchen frames 50-99 (640x480), ground-truth poses, gamma 2.2 assumed; LUT self-calibrated on
   frames 0-49 (``radiomap self-calibrate``), as in README "Self-calibration".
 
-    nice -n 10 python scripts/study_colour_map.py -o /tmp/study_cm           # the full study (~15-25 min loaded)
+    nice -n 10 python scripts/study_colour_map.py -o /tmp/study_cm   # the full study: 9-11 min at load 9-14, 2 cores
     nice -n 10 python scripts/study_colour_map.py -o /tmp/study_cm --only room --frames 30
 """
 
