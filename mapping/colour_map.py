@@ -44,7 +44,8 @@ stage asks for black (knn 0) and gives those vertices their plain (fused) colour
 Failure detection (:func:`colour_map_stage`). The optimiser can still fail (keyframes that see almost nothing of the
 mesh, colours smeared by a pose that went astray). The stage renders the plain and the optimised mesh at check
 frames through :func:`mapping.holdout.evaluate_holdout` and keeps the optimised mesh only if its held-out PSNR is
-not more than ``tolerance_db`` (0.5 dB) below the plain mesh's, the keyframes saw at least 10 % of the vertices
+not more than ``tolerance_db`` (0.5 dB) below the plain mesh's, the optimiser moved the keyframes by at most 10 cm
+(median; ``max_pose_change``: further is divergence, not refinement), the keyframes saw at least 10 % of the vertices
 (``max_unseen`` 0.9: the others keep their plain colours, so this only catches keyframes that see almost nothing,
 e.g. a depth range shorter than the scene) and at most ``max_black`` (1 %) of the vertices went black (all channels
 below 2 levels where the plain mesh is not); otherwise the plain mesh is kept and the reason reported. Check frames
@@ -398,8 +399,8 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
                      poses: Sequence[np.ndarray | None], colour_model, *, method: str = "rigid",
                      holdout: Sequence[tuple[int, np.ndarray]] | None = None, window: int = 5,
                      iterations: int | None = None, depth_max: float = 3.0, tolerance_db: float = 0.5,
-                     max_black: float = 0.01, max_unseen: float = 0.9,
-                     min_pixel_ratio: float = 0.95) -> ColourMapOutcome:
+                     max_black: float = 0.01, max_unseen: float = 0.9, min_pixel_ratio: float = 0.95,
+                     max_pose_change: float = 0.1) -> ColourMapOutcome:
     """Optimise the colour map of a fused mesh and keep it only if the held-out metric does not call it a failure
     (see the module doc).
 
@@ -408,6 +409,8 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
     tolerance_db:   reject when the optimised mesh's held-out PSNR is more than this below the plain mesh's.
     max_black:      reject when more than this fraction of the vertices went black.
     max_unseen:     reject when no keyframe saw more than this fraction of the vertices.
+    max_pose_change: reject when the optimiser moved the keyframes by more than this (metres, median over the
+                    keyframes): a refinement of tracked poses that moves them this far has diverged.
     min_pixel_ratio: reject when the optimised mesh leaves fewer valid check pixels than this fraction of the
                     plain mesh's (black surfaces drop out of the metric instead of lowering it).
     Other keywords: :func:`optimise_colour_map`. An optimisation that cannot run (too few keyframes, Open3D
@@ -415,9 +418,10 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
     from mapping.holdout import evaluate_holdout
 
     method = validate_name(method, OPTIMISERS, "colour-map method")
-    if not (tolerance_db >= 0 and all(0 <= v <= 1 for v in (max_black, max_unseen, min_pixel_ratio))):
-        raise ValueError(f"need tolerance_db >= 0 and max_black, max_unseen, min_pixel_ratio in [0, 1], got "
-                         f"{tolerance_db}, {max_black}, {max_unseen}, {min_pixel_ratio}")
+    if not (tolerance_db >= 0 and max_pose_change > 0 and all(0 <= v <= 1 for v in (max_black, max_unseen,
+                                                                                     min_pixel_ratio))):
+        raise ValueError(f"need tolerance_db >= 0, max_pose_change > 0 and max_black, max_unseen, min_pixel_ratio in "
+                         f"[0, 1], got {tolerance_db}, {max_pose_change}, {max_black}, {max_unseen}, {min_pixel_ratio}")
     try:
         result = optimise_colour_map(vertices, triangles, colours, frames, poses, colour_model, method=method,
                                      window=window, iterations=iterations, depth_max=depth_max)
@@ -437,6 +441,10 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
     optimised = evaluate_holdout(check_frames, check_poses,
                                  MeshRenderer(result.vertices, result.triangles, result.colours), colour_model)
     reasons = []
+    moved = result.pose_change.get("translation_cm_median", 0.0) / 100
+    if moved > max_pose_change:
+        reasons.append(f"the optimiser moved the keyframes by {100 * moved:.1f} cm (median; limit "
+                       f"{100 * max_pose_change:g} cm): it diverged")
     if result.unseen > max_unseen:
         reasons.append(f"no keyframe saw {100 * result.unseen:.1f} % of the vertices (check the depth range and "
                        "the poses)")

@@ -394,3 +394,45 @@ def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
         assert doc["method"] == "non-rigid" and doc["check_frames"] == "3 frames withheld from fusion"
         assert f"{method}: colour map (non-rigid): {doc['kept']} mesh kept" in res.output
         assert (out / method / "mesh_colourmap.ply").is_file() == (doc["kept"] == "optimised")
+
+
+def test_keyframes_moved_too_far_are_rejected(wall):
+    """The pose guard: keyframes 1 cm off, pulled back by the optimiser by millimetres; with a limit below that
+    the stage calls it divergence and keeps the plain mesh (its default, 10 cm, lets it through)."""
+    from mapping.colour_map import colour_map_stage
+
+    frames, poses, vertices, triangles = wall
+    shifts = np.random.default_rng(0).normal(0, 0.01, (len(poses), 2))
+    wrong = [None if k in (3, 8, 13) else p @ camera(*shifts[k]) for k, p in enumerate(poses)]
+    kwargs = dict(iterations=50, holdout=[(k, poses[k]) for k in (3, 8, 13)], depth_max=3.0, window=2)
+    strict = colour_map_stage(vertices, triangles, blurred(vertices), frames, wrong, RawIntensity(),
+                              max_pose_change=0.0005, **kwargs)
+    moved = strict.result.pose_change["translation_cm_median"]
+    assert 0.05 < moved < 10
+    assert strict.kept == "plain" and f"moved the keyframes by {moved:.1f} cm (median; limit 0.05 cm)" in strict.reason
+    assert colour_map_stage(vertices, triangles, blurred(vertices), frames, wrong, RawIntensity(), **kwargs).accepted
+
+
+def test_study_script_on_a_tiny_room(tmp_path):
+    """scripts/study_colour_map.py end to end on a 15-frame 96x72 room: every variant has a row with finite figures,
+    and the correction shows where it should (the fused LUT + exposure map beats the uncorrected one)."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "study_colour_map.py"
+    spec = importlib.util.spec_from_file_location("study_colour_map", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main(["-o", str(tmp_path), "--only", "room", "--frames", "15", "--size", "96x72",
+                        "--voxel", "0.05"]) == 0
+    rows = json.loads((tmp_path / "study_colour_map.json").read_text())["rows"]
+    variants = ["-", "keyframes, 0 it", "rigid", "non-rigid"]
+    assert [(r["dataset"], r["method"], r["colour map"]) for r in rows] == [
+        (d, m, v) for d in ("room gt", "room noisy") for m in ("none", "lut+ec") for v in variants]
+    assert all(np.isfinite(r["psnr"]) and np.isfinite(r["L1"]) and np.isfinite(r["colour err"]) for r in rows)
+    assert all(r["kept"] in ("-", "plain", "optimised") for r in rows)
+    plain = {(r["dataset"], r["method"]): r for r in rows if r["colour map"] == "-"}
+    for d in ("room gt", "room noisy"):
+        assert plain[d, "lut+ec"]["colour err"] < plain[d, "none"]["colour err"]
+        assert plain[d, "lut+ec"]["hist L1"] < plain[d, "none"]["hist L1"]
