@@ -10,8 +10,11 @@ coordinates through the poses) and projected into every frame (pinhole ``K``). A
 - no channel in the pixel's window is saturated (``>= high``) or dark (``<= low``),
 
 and its colour is the irradiance ``f^-1(I)`` (the given response; gamma 2.2 by default) averaged over a small
-window (``window`` pixels, which forgives sub-pixel pose and depth error). Points on strong texture are not
-sampled (``max_texture``: the window's relative standard deviation in the anchor), for the same reason.
+window (``window`` pixels, which forgives sub-pixel pose and depth error; by default an odd ~0.8 % of the image
+width, at least 3: 5 at 640, 3 at 320 and 160). Points on strong texture are not sampled (``max_texture``: the
+window's relative standard deviation in the anchor), for the same reason. (A fixed 5 px window at 160x120 covers
+four times the surface it covers at 320x240, and on the demo's room its texture test rejected every point in the
+top third of the image.)
 The sightings go to :func:`radiometry.self_calibration.self_calibrate`.
 
 :func:`run_self_calibration` is ``radiomap self-calibrate`` (and each task of ``radiomap batch self-calibrate``):
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +61,7 @@ class SamplingOptions:
 
     anchor_every: int = 5
     points_per_row: int = 53      # sampling grid: one point every width // points_per_row pixels
-    window: int = 5
+    window: int | None = None     # None: odd, ~0.8 % of the image width, at least 3 (:func:`sampling_window`)
     depth_tolerance: tuple[float, float] = (0.02, 0.02)    # metres + fraction of the depth
     min_cos: float = 0.35
     max_texture: float = 0.08
@@ -88,6 +91,11 @@ class SelfCalibrationRun:
 # --------------------------------------------------------------------------------------------------
 # sightings
 # --------------------------------------------------------------------------------------------------
+def sampling_window(width: int) -> int:
+    """The default sampling window for images ``width`` pixels wide: odd, ~0.8 % of the width, at least 3."""
+    return max(3, 2 * int(round(0.0035 * width)) + 1)
+
+
 def _irradiance(rgb: np.ndarray, tables: np.ndarray, window: int) -> np.ndarray:
     """``f^-1(I)`` per channel, box-averaged over ``window`` pixels, float32 ``(H, W, 3)``."""
     import cv2
@@ -152,11 +160,11 @@ def collect_observations(frames: list, poses: list[np.ndarray], response: Camera
     world), as the module doc describes; returns them and counts (points, sightings, per frame)."""
     from radiometry.progress import progress_bar
 
-    opts = options
     tables = response.channel_tables(3).astype(np.float32)
     first = frames[0]
     h, w = first.depth.shape
     K = first.K
+    opts = options if options.window is not None else replace(options, window=sampling_window(w))
     anchors = list(range(0, len(frames), opts.anchor_every))
     world, normals = [], []
     for a in anchors:
@@ -206,8 +214,8 @@ def collect_observations(frames: list, poses: list[np.ndarray], response: Camera
                        x=np.concatenate(us)[keep], y=np.concatenate(vs)[keep],
                        irradiance=np.concatenate(irr)[keep] if irr else np.zeros((0, 3)), resolution=(w, h),
                        n_frames=len(frames))
-    stats = {"anchors": len(anchors), "points_sampled": int(len(world)), "points_used": int(len(used)),
-             "sightings": int(len(obs.point)),
+    stats = {"window": opts.window, "anchors": len(anchors), "points_sampled": int(len(world)),
+             "points_used": int(len(used)), "sightings": int(len(obs.point)),
              "sightings_per_point": round(float(len(obs.point)) / max(len(used), 1), 2)}
     return obs, stats
 
@@ -401,5 +409,5 @@ def summary_text(run: SelfCalibrationRun, name: str, response_given: bool, poses
 
 
 __all__ = ["FIGURES", "MARKER", "SamplingOptions", "SelfCalibrationFolder", "SelfCalibrationRun",
-           "collect_observations", "exposures_text", "run_self_calibration", "self_calibration_complete",
-           "self_calibration_rows", "summary_text"]
+           "collect_observations", "exposures_text", "run_self_calibration", "sampling_window",
+           "self_calibration_complete", "self_calibration_rows", "summary_text"]

@@ -44,13 +44,14 @@ def test_methods_are_ordered_as_in_the_paper(demo):
     on the L1 mean is small although the polynomial misses V by 2.5 % RMS: a point keeps nearly the same image
     position over a short handheld sequence, so a smooth residual largely cancels between the map and the new
     sample, and the L1 mean adds such errors to the noise floor only at second order; the colour error
-    against the truth below separates the two at first order."""
+    against the truth below separates the two at first order. The paper's methods only: the self-calibrated
+    method ties the LUT on the L1 mean (15.87), see the test after the next."""
     table = demo["table"]
-    l1 = {name: row["L1 mean"] for name, row in table.items()}
+    l1 = {name: row["L1 mean"] for name, row in table.items() if not name.startswith("self")}
     assert max(l1, key=l1.get) == "none"
     assert min(l1, key=l1.get) == _name(table, "lut")
-    assert demo["demo"]["ranking_l1_mean"][0] == _name(table, "lut")
-    assert demo["demo"]["ranking_l1_mean"][-1] == "none"
+    ranking = [n for n in demo["demo"]["ranking_l1_mean"] if not n.startswith("self")]
+    assert ranking[0] == _name(table, "lut") and ranking[-1] == "none"
     # vignetting correction is what makes the difference (not the response or exposure alone)
     lut, poly = _name(table, "lut"), _name(table, "poly")
     resp = _name(table, "response")
@@ -66,6 +67,17 @@ def test_mesh_colours_against_the_truth_follow_the_same_order(demo):
     assert err[poly] > 1.1 * err[lut]          # measured 4.31 vs 3.58: the non-radial field the polynomial misses
     assert err["none"] > 2.0 * err[lut]
     assert err[lut] < 5.0
+
+
+def test_self_calibrated_method_is_near_the_lut_and_ahead_of_the_polynomial(demo):
+    """V from the room's own 15 frames (1.3-1.75 levels off the truth, the LUT 0.26-0.29, the polynomial 2.5-2.9):
+    measured L1 mean 15.87 (LUT 15.89, polynomial 15.96), colour error 3.98 (LUT 3.58, polynomial 4.31)."""
+    table = demo["table"]
+    l1 = {name: row["L1 mean"] for name, row in table.items()}
+    err = {name: row["colour err"] for name, row in table.items()}
+    lut, poly = _name(table, "lut"), _name(table, "poly")
+    assert abs(l1["self+ec"] - l1[lut]) < 0.01 * l1[lut] and l1["self+ec"] < l1[poly]
+    assert err[lut] < err["self+ec"] < err[poly]
 
 
 def test_calibration_is_accurate(demo):
@@ -114,22 +126,39 @@ def test_everything_is_written_into_out_only(demo):
                                                                            "self_calibration", "compare"}
 
 
-def test_quick_demo_says_why_it_has_no_self_calibrated_method(demo):
-    """At the quick demo's 160x120 the sampling's texture test (a 5x5 window under 8 % relative spread) rejects
-    every surface point in the top third of the image (measured: 0 points; with a 3 px window 179-350 per region
-    pass), so self-calibration refuses with its one-line reason and the demo runs the other methods and says so;
-    the full demo (320x240) has the method (its step is checked on a room it can constrain below)."""
-    skipped = demo["demo"]["calibration"]["self_calibration"]["skipped"]
-    assert "cannot constrain vignetting" in skipped
-    assert f"self-calibrated vignetting: none, {skipped}" in demo["output"]
-    assert not any(n.startswith("self") for n in demo["table"])
-    assert "self" not in demo["demo"]["calibration"]["vignetting_error_levels"]
+def test_quick_demo_has_the_self_calibrated_method(demo):
+    """V self-calibrated from the quick demo's own 15 frames (160x120): its row in the calibration table, its
+    method in the comparison, its folder with the standard error. Measured with window 3 on this room: 1.3-1.75
+    levels (the 5 px window of the first version rejected every point in the top third at 160x120 and the quick
+    demo had no self method)."""
+    err = np.array(demo["demo"]["calibration"]["vignetting_error_levels"]["self"])
+    assert err.shape == (3,) and np.all(err < 3.0), err
+    assert "self+ec" in demo["table"] and "self-calibrated from the room (15 frames)" in demo["output"]
+    record = demo["demo"]["calibration"]["self_calibration"]
+    assert 0 < record["stderr_median_percent"] < 5 and record["frames"] == 15
+    assert (demo["out"] / "calibration" / "self" / "stderr.png").is_file()
+
+
+def test_a_room_that_cannot_constrain_v_is_run_without_the_self_method(tmp_path):
+    """Step 5 on 8 frames at 64x48: self-calibration refuses with its one-line reason, which the demo keeps
+    (and prints) instead of a model."""
+    from mapping.demo import _self_calibrate
+    from mapping.simulation.sequences import simulate_room
+    from radiometry.simulation import CameraSpec, SimulatedCamera
+
+    sim = SimulatedCamera(CameraSpec.preset("xtion", width=64, height=48))
+    seq = simulate_room(tmp_path / "room", camera=sim.spec, seed=2, n_frames=8, progress=False)
+    timings, lines = {}, []
+    model, record = _self_calibrate(tmp_path / "calib", seq, sim, sim.response, progress=False, timings=timings,
+                                    say=lines.append)
+    assert model is None and "cannot constrain vignetting" in record["skipped"]
+    assert lines == [f"self-calibration: skipped, {record['skipped']}"] and timings["self_calibration"] > 0
 
 
 def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
-    """The demo's step 5 on a room that constrains V (160x120, 30 frames, seed 1: measured 1.3-1.4 levels with
-    the true response): V's error against the truth in the calibration table's measure, the stderr recorded,
-    and the model the compare method takes."""
+    """The demo's step 5 on a room that constrains V (160x120, 30 frames, seed 1: measured 0.43 / 0.37 / 0.95
+    levels and exposure median 1.4 % with the true response): V's error against the truth in the calibration
+    table's measure, the stderr recorded, and the model the compare method takes."""
     from mapping.demo import _self_calibrate
     from mapping.simulation.sequences import simulate_room
     from mapping.simulation.trajectory import HandheldMotion
@@ -144,7 +173,7 @@ def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
                                     say=lines.append)
     assert isinstance(model, LUTVignetting) and model.stderr is not None
     err = np.array(record["vignetting_error_levels"])
-    assert err.shape == (3,) and np.all(err < 2.5), err
+    assert err.shape == (3,) and np.all(err < 1.5), err
     assert record["exposure_error_median_percent"] < 2.0
     assert 0 < record["stderr_median_percent"] < 5 and record["frames"] == 30 and timings["self_calibration"] > 0
     assert (tmp_path / "calib" / "self" / "vignetting.npz").is_file() and "self-calibration: V" in lines[0]
