@@ -19,8 +19,8 @@ The sightings go to :func:`radiometry.self_calibration.self_calibrate`.
 
 :func:`run_self_calibration` is ``radiomap self-calibrate`` (and each task of ``radiomap batch self-calibrate``):
 sequence -> poses (ground truth or ICP through :func:`mapping.pipeline.reconstruct`) -> sightings -> solver -> a
-:class:`SelfCalibrationFolder` holding ``vignetting.npz`` (a LUT model with its standard error, readable by ``radiomap reconstruct --vignetting``),
-``exposures.txt`` (``reconstruct``'s format), the figures and the summary.
+:class:`SelfCalibrationFolder` holding ``vignetting.npz`` (a LUT model with its standard error, readable by
+``radiomap reconstruct --vignetting``), ``exposures.txt`` (``reconstruct``'s format), the figures and the summary.
 """
 
 from __future__ import annotations
