@@ -38,16 +38,37 @@ def save_figure(fig, path: str | os.PathLike, *, dpi: int = 100) -> Path:
     return Path(path)
 
 
-def plot_response(ax, response, *, log: bool = False, label: str | None = None, **line_kw: Any) -> list:
+def _channel_lists(meta: dict, key: str, channels: int) -> list[np.ndarray] | None:
+    """``meta[key]`` as one integer array of levels per channel (a 1-list serves every channel); None if absent or
+    malformed (a plot never fails on a hand-edited file)."""
+    lists = meta.get(key)
+    if not isinstance(lists, (list, tuple)) or not lists or not all(isinstance(v, (list, tuple)) for v in lists):
+        return None
+    out = []
+    for c in range(channels):
+        levels = [int(v) for v in lists[min(c, len(lists) - 1)] if isinstance(v, (int, np.integer)) and 0 <= v < 256]
+        out.append(np.asarray(levels, dtype=np.intp))
+    return out
+
+
+def plot_response(ax, response, *, log: bool = False, label: str | None = None, band: bool = True,
+                  **line_kw: Any) -> list:
     """Plot ``f^-1`` (relative irradiance) against intensity 0..255, one line per channel in RGB colours.
 
     ``log=True`` uses a logarithmic irradiance axis (Debevec's ``g = ln f^-1`` up to the axis scale), which
     shows the dark levels. ``label`` prefixes the legend entries (e.g. a method name, to overlay several
-    responses); ``line_kw`` go to ``ax.plot`` (e.g. ``linestyle="--"``). Returns the lines.
+    responses); ``line_kw`` go to ``ax.plot`` (e.g. ``linestyle="--"``). When the response carries its standard
+    error (``meta["inverse_stderr"]``) and ``band`` is True, a band of +-1 standard error is shaded around each
+    line; levels the fit extrapolated rather than estimated from data (``meta["extrapolated_levels"]``) are marked
+    with open circles. Returns the lines.
     """
     table = np.asarray(response.inverse_table)
     n_ch = table.shape[1]
     levels = np.arange(table.shape[0])
+    from radiometry.response import relative_stderr
+
+    se = relative_stderr(response) if band else None
+    extrapolated = _channel_lists(response.meta, "extrapolated_levels", n_ch)
     lines = []
     for c in range(n_ch):
         name = CHANNEL_NAMES[n_ch][c]
@@ -56,6 +77,13 @@ def plot_response(ax, response, *, log: bool = False, label: str | None = None, 
         if log:
             y = np.where(y > 0, y, np.nan)  # level 0 may map to 0, which a log axis cannot show
         lines += ax.plot(levels, y, label=f"{label} {name}" if label else name, **kw)
+        if se is not None:
+            ax.fill_between(levels, y * np.exp(-se[:, c]), y * np.exp(se[:, c]), color=kw["color"], alpha=0.25,
+                            linewidth=0, label="$\\pm$1 standard error" if c == 0 else None)
+        if extrapolated is not None and extrapolated[c].size:
+            k = extrapolated[c]
+            ax.plot(k, y[k], linestyle="none", marker="o", markersize=4, markerfacecolor="none",
+                    markeredgecolor=kw["color"], label="extrapolated (no data)" if c == 0 else None)
     if log:
         ax.set_yscale("log")
     ax.set_xlim(0, 255)

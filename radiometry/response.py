@@ -82,6 +82,23 @@ def repair_monotone(table: np.ndarray, *, min_step: float = 1e-6) -> np.ndarray:
     return out
 
 
+def relative_stderr(response: "CameraResponse", channels: int | None = None) -> np.ndarray | None:
+    """A response's own relative standard error of ``f^-1`` per level (``meta["inverse_stderr"]``, ``(256,)`` or
+    ``(256, C)``, as the Debevec fit records it) as float64 ``(256, channels)`` (default: the response's channel
+    count); None when it carries none or an unusable one (wrong shape, NaN, negative)."""
+    given = response.meta.get("inverse_stderr")
+    if given is None:
+        return None
+    channels = response.channels if channels is None else channels
+    try:
+        arr = np.asarray(given, dtype=np.float64).reshape(LEVELS, -1)
+    except (TypeError, ValueError):
+        return None
+    if arr.shape[1] not in (1, channels) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        return None
+    return np.repeat(arr, channels, axis=1) if arr.shape[1] == 1 else arr
+
+
 @dataclass(frozen=True, eq=False)
 class CameraResponse:
     """Inverse camera response: ``inverse_table[I, c] = f_c^-1(I)``, normalised to 1 at I = 255."""

@@ -233,10 +233,11 @@ def select_samples(values: np.ndarray, times: np.ndarray, *, samples: int = DEFA
 # Debevec & Malik, sparse
 # --------------------------------------------------------------------------------------------------
 def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
-                           levels: tuple[int, int] = (1, 254)) -> dict[str, Any]:
+                           levels: tuple[int, int] = (1, 254), *, stderr: bool = False) -> dict[str, Any]:
     """Solve one channel. ``values`` is ``(P, S)`` uint8 of the sampled pixels.
 
-    Returns ``g`` (256,), ``ln_e`` (S,) and the observations used (image, pixel, level index arrays).
+    Returns ``g`` (256,), ``ln_e`` (S,) and the observations used (image, pixel, level index arrays);
+    ``stderr=True`` adds ``log_stderr`` (:func:`_log_stderr`).
     The unknowns are ordered ``ln E`` first, then ``g`` (without the gauge level), so that factorising the
     sparse normal equations in natural order eliminates the diagonal ``ln E`` block first: the only fill-in
     is the 255 x 255 block of ``g`` and the cost grows linearly with the number of samples.
@@ -284,7 +285,8 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
     ata = ((data.T @ dw) + (smooth.T @ smooth)).tocsc()
     atb = dw.T @ log_t[img_idx]
     try:
-        x = splu(ata, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}).solve(atb)
+        lu = splu(ata, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        x = lu.solve(atb)
     except RuntimeError as exc:  # "Factor is exactly singular"
         raise CalibrationError(f"the least-squares system is singular ({exc}); add overlapping exposures "
                                "or more samples") from None
@@ -292,7 +294,43 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
         raise CalibrationError("the least-squares solve gave non-finite values; add overlapping exposures "
                                "or more samples")
     g = np.insert(x[n_pix:], GAUGE_LEVEL, 0.0)
-    return {"g": g, "ln_e": x[:n_pix], "img": img_idx, "pix": pix_idx, "z": z}
+    out = {"g": g, "ln_e": x[:n_pix], "img": img_idx, "pix": pix_idx, "z": z}
+    if stderr:
+        out["log_stderr"] = _log_stderr(lu, n_pix, g[z] - x[pix_idx] - log_t[img_idx], w, pix_idx, z, n_obs - n_cols)
+    return out
+
+
+def _log_stderr(lu, n_pix: int, residual: np.ndarray, w: np.ndarray, pix: np.ndarray, z: np.ndarray,
+                dof: int) -> np.ndarray:
+    """Standard error of ``g(z) - g(255)`` (= of ``ln f^-1(z)`` normalised to 1 at 255) per level, (256,).
+
+    The sandwich covariance of the solve, ``M^-1 A^T W^2 diag(s^2) W^2 A M^-1`` with ``M`` the factorised normal
+    equations (``lu``; the smoothness rows are a fixed part of the estimator, not random) and ``s^2`` the data
+    rows' residual variance at each level (levels differ: quantisation in ``ln`` grows towards the dark end),
+    inflated by ``observations / dof``; the normalisation at level 255 is propagated with its covariance. It
+    measures the noise of the sampled pixels, not the prior's bias (a rounded knee) nor the factor periodic in
+    ``ln E`` that equal exposure ratios leave undetermined.
+    """
+    import scipy.sparse as sp
+
+    n_g = LEVELS - 1
+    unit = np.zeros((n_pix + n_g, n_g))
+    unit[n_pix + np.arange(n_g), np.arange(n_g)] = 1.0
+    inv = np.asarray(lu.solve(unit)).T  # rows of M^-1 for the g unknowns (M symmetric), (255, n_cols)
+    g_of_level = np.insert(inv[:, n_pix:], GAUGE_LEVEL, 0.0, axis=1)  # d g / d (A^T b) at each level's column
+    per_pixel = inv[:, :n_pix]
+    var_level = (np.bincount(z, weights=residual ** 2, minlength=LEVELS) / np.maximum(np.bincount(z, minlength=LEVELS), 1)
+                 * (residual.size / max(dof, 1)))
+    c = w ** 4 * var_level[z]  # a data row's weight w^2, squared, times its noise variance
+    # sum over rows of c (G_z - G_pix)(G_z - G_pix)^T, grouped by level, by pixel and by (level, pixel)
+    by_level = (g_of_level * np.bincount(z, weights=c, minlength=LEVELS)) @ g_of_level.T
+    by_pixel = (per_pixel * np.bincount(pix, weights=c, minlength=n_pix)) @ per_pixel.T
+    pairs = sp.csr_matrix((c, (z, pix)), shape=(LEVELS, n_pix))
+    cross = g_of_level @ np.asarray(pairs @ per_pixel.T)
+    cov = by_level + by_pixel - cross - cross.T
+    cov = np.insert(np.insert(cov, GAUGE_LEVEL, 0.0, axis=0), GAUGE_LEVEL, 0.0, axis=1)  # g(128) = 0 exactly
+    var = np.diag(cov) + cov[-1, -1] - 2.0 * cov[:, -1]
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float | str = DEFAULT_LAMBDA,
@@ -308,8 +346,11 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
     still estimated (extrapolated) there. ``seed``: sampling order. The result is repaired to strictly
     increasing only if the solve is not (``meta["repaired"]``, ``meta["repaired_levels"]``). ``meta``
-    also records the sampled pixels and observations per channel, the levels never observed and
-    ``fit_rms_levels`` (observed level minus ``f(E_i t_j)`` over the samples, 8-bit levels).
+    also records the sampled pixels and observations per channel, the levels never observed, those outside the
+    observed span (``extrapolated_levels``: their values come from the smoothness term alone), ``inverse_stderr``
+    (per level and channel, the relative standard error of ``f^-1`` from the fit's covariance, see
+    :func:`_log_stderr`: noise only, not the prior's bias) and ``fit_rms_levels`` (observed level minus
+    ``f(E_i t_j)`` over the samples, 8-bit levels).
     """
     auto = isinstance(lam, str) and lam == "auto"
     if not auto and (isinstance(lam, str) or not (np.isfinite(lam) and lam > 0)):
@@ -342,13 +383,15 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         lam, scores = cross_validate_lambda(sampled, log_t, (lo, hi), seed=seed)
     solved = []
     for c, values in enumerate(sampled):
-        sol = _solve_debevec_channel(values, log_t, float(lam), (lo, hi))
+        sol = _solve_debevec_channel(values, log_t, float(lam), (lo, hi), stderr=True)
         g[:, c] = sol["g"]
         solved.append(sol)
-    unobserved = []
+    unobserved, extrapolated = [], []
     for c, sol in enumerate(solved):
         seen = np.bincount(sol["z"], minlength=LEVELS)
         unobserved.append([int(v) for v in np.flatnonzero(seen[1:255] == 0) + 1])  # includes levels outside lo..hi
+        span = np.flatnonzero(seen)
+        extrapolated.append([k for k in range(LEVELS) if k < span[0] or k > span[-1]])
         if len(unobserved[-1]) > 16:
             log.warning("channel %d: %d intensity levels were never observed; their values are extrapolated "
                         "by the smoothness term", c, len(unobserved[-1]))
@@ -358,7 +401,9 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         "images": int(n_img), "times": t.tolist(), "masked": valid is not None,
         "pixels": [int(sol["ln_e"].size) for sol in solved],
         "observations": [int(sol["z"].size) for sol in solved],
-        "unobserved_levels": unobserved,
+        "unobserved_levels": unobserved, "extrapolated_levels": extrapolated,
+        "inverse_stderr": np.stack([sol["log_stderr"] for sol in solved], axis=1).tolist(),
+        "inverse_stderr_source": "debevec: covariance of the weighted least squares (smoothness rows as a prior)",
     }
     if scores is not None:
         meta.update({"lambda_selection": "cross-validation", "lambda_scores": scores})

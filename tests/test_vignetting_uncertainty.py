@@ -213,3 +213,26 @@ def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumula
     np.testing.assert_allclose(model.info["error_budget"]["response"], expected, rtol=0.05)
     assert model.info["error_budget"]["response_source"] == "the response's own standard error"
     assert sweep["model"].info["error_budget"]["response_source"] == "roughness"
+
+
+def test_a_fitted_response_carries_its_stderr_into_the_budget():
+    """A response calibrated by Debevec from brackets (its own renderer) carries ``inverse_stderr``; the sweep's
+    budget propagates it (and says so) instead of the roughness lower bound."""
+    from radiometry.response_fit import fit_response_debevec
+    from response_curves import TIMES, render_brackets, scene
+
+    table = gamma_curve(2.2)
+    response = fit_response_debevec(render_brackets(table, scene(H, W, seed=3), TIMES, seed=3), TIMES)
+    assert response.meta["inverse_stderr_source"].startswith("debevec")
+    truth = vignette_field("asymmetric", W, H)
+    acc = collect_vignetting(render_sweep(table, truth, frames=32, seed=3, full_well=3000.0), response,
+                             progress=False)
+    budget = fit_vignetting(acc, model="lut").info["error_budget"]
+    assert budget["response_source"] == "the response's own standard error"
+    part = np.asarray(budget["response"])
+    # se(f^-1) of this fit is 0.1-0.3 % over the sheet's levels: a few hundredths of a level, never NaN or zero
+    assert np.all(np.isfinite(part)) and np.all(part > 0.005) and np.all(part < 0.5), part
+    rough = fit_vignetting(collect_vignetting(render_sweep(table, truth, frames=32, seed=3, full_well=3000.0),
+                                              CameraResponse(response.inverse_table, {}), progress=False),
+                           model="lut").info["error_budget"]
+    assert rough["response_source"] == "roughness"

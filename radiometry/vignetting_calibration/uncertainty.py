@@ -20,7 +20,8 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
 - ``normalisation``: the uniform error of ``V = 1`` at the centre;
 - ``response``: the response's error propagated, ``dlnV(x) = d ln f^-1(z_x) - d ln f^-1(z_centre)`` at the mean
   level ``z`` each pixel saw, averaged over the levels a pixel's noise spreads its samples. When the response's
-  ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel) that is
+  ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel, as
+  :func:`~radiometry.response_fit.fit_response_debevec` records it) that is
   propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``); else its roughness, the departure of ``ln f^-1`` from a
   local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape
@@ -33,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.response import CameraResponse
+from radiometry.response import CameraResponse, relative_stderr
 
 
 def _blur(a: np.ndarray, sigma: float, *, squared: bool = False) -> np.ndarray:
@@ -97,16 +98,7 @@ def lut_stderr(rel_var: np.ndarray, weights: np.ndarray, ratio: np.ndarray, fine
 def response_log_stderr(response: CameraResponse, channels: int) -> np.ndarray | None:
     """The response's own relative standard error of ``f^-1`` per level and channel (``meta["inverse_stderr"]``,
     ``(256,)`` or ``(256, C)``), float64 ``(256, C)``; None when it carries none (or an unusable one)."""
-    given = response.meta.get("inverse_stderr")
-    if given is None:
-        return None
-    try:
-        arr = np.asarray(given, dtype=np.float64).reshape(256, -1)
-    except (TypeError, ValueError):
-        return None
-    if arr.shape[1] not in (1, channels) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        return None
-    return np.repeat(arr, channels, axis=1) if arr.shape[1] == 1 else arr
+    return relative_stderr(response, channels)
 
 
 def response_log_roughness(response: CameraResponse, channels: int, *, window: int = 9) -> np.ndarray:

@@ -1,0 +1,116 @@
+"""The response's own uncertainty and its extrapolated levels: Debevec's per-level standard error of ``f^-1``
+(checked against the spread of fits to independently re-rendered noise), its file round trip, the levels outside
+the data's span, and both in the response plot.
+
+Brackets come from ``tests/response_curves.py`` (own renderer, photon and read noise, 8-bit), not from radiomap's
+simulator.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from radiometry.plots import plot_response, new_figure
+from radiometry.response import CameraResponse, relative_stderr
+from radiometry.response_fit import fit_response_debevec
+from response_curves import TIMES, gamma_curve, kink_curve, render_brackets, scene
+
+W, H = 160, 120
+
+
+@pytest.fixture(scope="module")
+def repeated_fits():
+    """Six fits of one scene and curve, each to its own noise realisation and pixel sample."""
+    radiance = scene(H, W, seed=0)
+    table = kink_curve()
+    fits = [fit_response_debevec(render_brackets(table, radiance, TIMES, seed=seed), TIMES, seed=seed)
+            for seed in range(6)]
+    return fits
+
+
+def test_debevec_stderr_is_the_size_of_the_fit_to_fit_spread(repeated_fits):
+    """Kink 4x, 160x120: the stated error is the size of the actual spread between fits (a stated error that
+    ignored the shared irradiances, or the level-dependent noise, would be off by a factor 2-40)."""
+    logs = np.log(np.stack([r.inverse_table for r in repeated_fits]))
+    spread = np.std(logs, axis=0, ddof=1)
+    stated = np.mean([relative_stderr(r) for r in repeated_fits], axis=0)
+    assert stated.shape == (256, 3) and np.all(np.isfinite(stated)) and np.all(stated >= 0)
+    sel = slice(10, 241)
+    ratio = np.sqrt(np.mean(stated[sel] ** 2, axis=0) / np.mean(spread[sel] ** 2, axis=0))
+    assert np.all(ratio > 0.6) and np.all(ratio < 2.0), ratio
+    # and level by level, not only on average: the dark end, the middle, the knee and the steep top
+    for band in (slice(5, 40), slice(40, 170), slice(170, 200), slice(200, 245)):
+        ratio = np.sqrt(np.mean(stated[band] ** 2) / np.mean(spread[band] ** 2))
+        assert 0.5 < ratio < 2.5, (band, ratio)
+    assert np.allclose(stated[255], 0.0)  # the normalisation level is 1 by definition
+
+
+def test_debevec_stderr_shrinks_with_less_noise():
+    radiance = scene(H, W, seed=1)
+    noisy = fit_response_debevec(render_brackets(gamma_curve(), radiance, TIMES, seed=1, full_well=2000.0), TIMES)
+    clean = fit_response_debevec(render_brackets(gamma_curve(), radiance, TIMES, seed=1, full_well=50000.0), TIMES)
+    sel = slice(30, 230)
+    assert np.median(relative_stderr(noisy)[sel]) > 1.5 * np.median(relative_stderr(clean)[sel])
+
+
+def test_stderr_and_extrapolated_levels_round_trip_through_the_file(repeated_fits, tmp_path):
+    response = repeated_fits[0]
+    back = CameraResponse.load(response.save(tmp_path / "r.npz"))
+    np.testing.assert_allclose(relative_stderr(back), relative_stderr(response))
+    assert back.meta["extrapolated_levels"] == response.meta["extrapolated_levels"]
+    assert "covariance" in back.meta["inverse_stderr_source"]
+
+
+def test_debevec_marks_the_levels_no_data_reached():
+    radiance = scene(H, W, seed=2)
+    images = render_brackets(gamma_curve(), radiance, TIMES, seed=2)
+    full = fit_response_debevec(images, TIMES)
+    assert full.meta["extrapolated_levels"] == [[0, 255]] * 3  # 0 and 255 carry no data by construction
+    clipped = fit_response_debevec(images, TIMES, levels=(20, 230))
+    expected = list(range(0, 20)) + list(range(231, 256))
+    assert clipped.meta["extrapolated_levels"] == [expected] * 3
+
+
+@pytest.mark.parametrize("bad", [[1.0, 2.0], [[float("nan")] * 3] * 256, [[-0.1] * 3] * 256, "x"])
+def test_an_unusable_stderr_is_ignored(bad):
+    response = CameraResponse(np.repeat(gamma_curve()[:, None], 3, axis=1), {"inverse_stderr": bad})
+    assert relative_stderr(response) is None
+
+
+def test_a_one_channel_stderr_serves_three_channels():
+    response = CameraResponse(gamma_curve(), {"inverse_stderr": np.full(256, 0.01).tolist()})
+    se = relative_stderr(response, 3)
+    assert se.shape == (256, 3) and np.all(se == 0.01)
+
+
+def test_the_plot_shows_the_band_and_the_extrapolated_levels():
+    table = np.repeat(gamma_curve()[:, None], 3, axis=1)
+    se = np.full((256, 3), 0.02)
+    extrapolated = [[0, 250, 251, 252, 253, 254, 255], [0, 255], [0, 255]]
+    response = CameraResponse(table, {"inverse_stderr": se.tolist(), "extrapolated_levels": extrapolated})
+    fig, ax = new_figure()
+    plot_response(ax, response)
+    bands = [c for c in ax.collections if c.get_label() != "_nolegend_" or True]
+    assert len(bands) == 3  # one band per channel
+    band = bands[0].get_paths()[0].vertices
+    at_200 = band[np.isclose(band[:, 0], 200.0), 1]
+    np.testing.assert_allclose(sorted(at_200), [table[200, 0] * np.exp(-0.02), table[200, 0] * np.exp(0.02)],
+                               rtol=1e-9)
+    markers = [line for line in ax.lines if line.get_marker() == "o"]
+    assert [list(m.get_xdata()) for m in markers] == extrapolated
+    np.testing.assert_allclose(markers[0].get_ydata(), table[extrapolated[0], 0])
+    labels = ax.get_legend_handles_labels()[1]
+    assert "extrapolated (no data)" in labels and any("standard error" in t for t in labels)
+
+
+def test_the_plot_without_stderr_or_extrapolation_has_neither():
+    fig, ax = new_figure()
+    plot_response(ax, CameraResponse.gamma(2.2))
+    assert not ax.collections and not [line for line in ax.lines if line.get_marker() == "o"]
+    fig, ax = new_figure()
+    response = CameraResponse(np.repeat(gamma_curve()[:, None], 3, axis=1), {"inverse_stderr": [[0.01] * 3] * 256})
+    plot_response(ax, response, band=False)
+    assert not ax.collections
