@@ -15,9 +15,14 @@ Methods: ``debevec`` (lambda 10, the default), ``debevec`` with lambda chosen by
 gives the largest ``|f^-1 - truth|`` over levels 5..250 and 5..240 in % of the range (R/G/B, both curves
 normalised ``f^-1(255) = 1``) and the fit time. The vignetting part of issue 15 is not here yet.
 
+``--ambiguity`` prints instead, per curve and smoothness prior, the error of the member of the exact-2x ambiguity
+family (``g + q(g mod ln 2)``, ``g = ln f^-1``, ``q`` periodic) that the prior prefers, computed from the true
+curve: what a fit with that prior cannot get below however many pixels it has (:func:`ambiguity_bound`).
+
 Usage::
 
     python scripts/bench_calibration.py [--size 640x480] [--design 2x varied] [--methods ...]
+    python scripts/bench_calibration.py --ambiguity
 """
 
 from __future__ import annotations
@@ -87,6 +92,64 @@ def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int
     return rows
 
 
+#: priors for the exact-2x ambiguity bound: (name, rows, weights by level, robust)
+AMBIGUITY_PRIORS = (
+    ("Debevec's: (ln f^-1)'' squared, hat-weighted", "second", "hat", False),
+    ("(ln f^-1)'' squared, unweighted", "second", "flat", False),
+    ("(ln f^-1)'' absolute (L1), hat-weighted", "second", "hat", True),
+    ("log-log curvature squared, 1/z-weighted", "loglog", "inverse", False),
+    ("log-log curvature absolute (L1)", "loglog", "flat", True),
+)
+
+
+def ambiguity_bound(table: np.ndarray, rows: str, weights: str, robust: bool, *, knots: int = 128,
+                    low: int = 3) -> np.ndarray:
+    """The member of the exact-2x ambiguity family of ``table`` that a prior prefers: the infinite-data limit of a
+    fit whose only choice is the prior's (its error is what no amount of data can remove).
+
+    With every exposure ratio 2, ``g = ln f^-1`` and ``g + q(g mod ln 2)`` (``q`` any periodic function) predict
+    every image alike. ``q`` is a periodic piecewise-linear function on ``knots`` knots; the prior's rows act on
+    ``g`` over levels ``low``..254: ``second`` the second difference, ``loglog`` the change of the elasticity
+    ``(z + 1/2) (g(z+1) - g(z))`` (0 for any gamma curve); ``robust`` minimises absolute values (10 reweighted
+    rounds) instead of squares. Returns the chosen member's table, normalised to 1 at level 255.
+    """
+    g = np.log(table[low:])  # levels low..255
+    phase = np.mod(g / np.log(2.0), 1.0) * knots
+    left = np.floor(phase).astype(int) % knots
+    frac = phase - np.floor(phase)
+    basis = np.zeros((g.size, knots))
+    basis[np.arange(g.size), left] += 1 - frac
+    basis[np.arange(g.size), (left + 1) % knots] += frac
+    z = np.arange(low + 1, 254, dtype=float)  # the rows' centre levels (levels low..254 carry data)
+    diff = np.zeros((z.size, g.size - 1))
+    for i in range(z.size):
+        diff[i, i:i + 3] = (1.0, -2.0, 1.0) if rows == "second" else (z[i] - 0.5, -2 * z[i], z[i] + 0.5)
+    base = {"hat": np.minimum(z, 255 - z), "flat": np.ones_like(z), "inverse": 1.0 / z}[weights]
+    w = base.copy()
+    op, g0 = diff @ basis[:-1], diff @ g[:-1]
+    for _ in range(10 if robust else 1):
+        design = np.vstack([op * w[:, None], 1e-5 * np.eye(knots)])
+        q = np.linalg.lstsq(design, np.concatenate([-g0 * w, np.zeros(knots)]), rcond=None)[0]
+        if robust:  # iteratively reweighted least squares for the absolute values
+            w = base / np.sqrt(np.maximum(np.abs(g0 + op @ q), 1e-6))
+    out = table.copy()
+    out[low:] = np.exp(g + basis @ q)
+    return out / out[-1]
+
+
+def ambiguity_rows() -> list[dict]:
+    """Per curve and prior, :func:`ambiguity_bound`'s max |f^-1 - truth| over levels 5..250 (% of the range)."""
+    from response_curves import curves, max_error_percent
+
+    rows = []
+    for label, kind, weights, robust in AMBIGUITY_PRIORS:
+        row = {"prior (infinite data, exact 2x)": label}
+        for name, table in curves().items():
+            row[name] = float(max_error_percent(ambiguity_bound(table, kind, weights, robust), table)[0])
+        rows.append(row)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
@@ -95,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=list(METHODS),
                         help="methods (default all)")
     parser.add_argument("--seed", type=int, default=0, help="scene and noise seed")
+    parser.add_argument("--ambiguity", action="store_true",
+                        help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
     args = parser.parse_args(argv)
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
@@ -105,6 +170,12 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     from radiometry.tables import format_table
+
+    if args.ambiguity:
+        print("what a prior chooses when the data leave only the exact-2x ambiguity (max err 5..250 [%] of the "
+              "member of the truth's family that it prefers)")
+        print(format_table(ambiguity_rows()))
+        return 0
 
     quiet = logging.getLogger("radiometry")  # repaired / equal-ratio warnings: the table shows them
     level = quiet.level
