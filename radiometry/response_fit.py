@@ -319,8 +319,8 @@ def _log_stderr(lu, n_pix: int, residual: np.ndarray, w: np.ndarray, pix: np.nda
     inv = np.asarray(lu.solve(unit)).T  # rows of M^-1 for the g unknowns (M symmetric), (255, n_cols)
     g_of_level = np.insert(inv[:, n_pix:], GAUGE_LEVEL, 0.0, axis=1)  # d g / d (A^T b) at each level's column
     per_pixel = inv[:, :n_pix]
-    var_level = (np.bincount(z, weights=residual ** 2, minlength=LEVELS) / np.maximum(np.bincount(z, minlength=LEVELS), 1)
-                 * (residual.size / max(dof, 1)))
+    count = np.maximum(np.bincount(z, minlength=LEVELS), 1)
+    var_level = np.bincount(z, weights=residual ** 2, minlength=LEVELS) / count * (residual.size / max(dof, 1))
     c = w ** 4 * var_level[z]  # a data row's weight w^2, squared, times its noise variance
     # sum over rows of c (G_z - G_pix)(G_z - G_pix)^T, grouped by level, by pixel and by (level, pixel)
     by_level = (g_of_level * np.bincount(z, weights=c, minlength=LEVELS)) @ g_of_level.T
