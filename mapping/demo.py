@@ -254,7 +254,7 @@ def _self_calibrate(calib: Path, seq: Path, sim, response, *, progress: bool, ti
                     say: Callable[[str], None]):
     """5. Vignetting self-calibrated from the room sequence (``calibration/self/``): (the LUT model, a record of
     its accuracy: RMS error per channel in 8-bit levels, stderr, exposure error, sightings, seconds, memory);
-    (None, {"skipped": the reason}) when the sequence cannot constrain it (the quick demo at 160x120)."""
+    (None, {"skipped": the reason}) when the sequence cannot constrain it (too few frames or too little motion)."""
     import numpy as np
 
     from mapping.datasets import open_dataset
@@ -289,8 +289,7 @@ def _self_calibrate(calib: Path, seq: Path, sim, response, *, progress: bool, ti
 def _self_text(record: dict[str, Any]) -> str:
     """The report's sentence on the self-calibration (or why there is none)."""
     if "skipped" in record:
-        return (f"Self-calibrated vignetting: none, the room sequence cannot constrain it ({record['skipped']}); "
-                "the full demo at 320x240 can.")
+        return f"Self-calibrated vignetting: none, the room sequence cannot constrain it ({record['skipped']})."
     return ("Self-calibrated vignetting: from the room sequence itself, no white sheet (radiomap self-calibrate: "
             "every surface point seen at many image positions and exposures, with the calibrated response and "
             f"ground-truth poses; {record['sightings']} sightings, median standard error of V "
