@@ -1,6 +1,6 @@
-"""``radiomap batch {reconstruct|compare} LIST -o OUT -- [options]``: one command on many sequences, on Ray or on
-local processes, resumable, with a summary across sequences (``mapping.batch``; a command joins with an entry in
-``mapping.batch.COMMANDS`` and a ``task_arguments`` function in its own CLI module)."""
+"""``radiomap batch {reconstruct|compare|self-calibrate} LIST -o OUT -- [options]``: one command on many sequences,
+on Ray or on local processes, resumable, with a summary across sequences (``mapping.batch``; a command joins with an
+entry in ``mapping.batch.COMMANDS`` and a ``task_arguments`` function in its own CLI module)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ Examples:
 \b
 Run it again to resume: complete results folders are skipped, folders of runs that did not finish (killed,
 failed) are run again. Each task's output is in OUT/logs/<name>.log. Options after -- are those of
-'radiomap COMMAND' (all but SEQUENCE, -o and --force). Batches do not run self-calibrate yet.
+'radiomap COMMAND' (all but SEQUENCE, -o and --force).
 """
 
 #: options of the command that the batch sets itself
@@ -48,7 +48,7 @@ _OWN = {"-o": "-o OUT of batch (each sequence gets OUT/<name>)", "--output": "-o
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(command_name: str, sequence_list: Path, options: tuple[str, ...], output: Path, workers: int | None,
             threads: int | None, engine: str, address: str | None, force: bool, no_progress: bool) -> None:
-    """Run COMMAND (reconstruct or compare) on every sequence folder listed in LIST, one task per sequence, each
+    """Run COMMAND (reconstruct, compare or self-calibrate) on every sequence folder listed in LIST, one task per sequence, each
     result in OUT/<name>/ exactly as 'radiomap COMMAND' writes it."""
     from mapping.batch import (COMMANDS, BatchError, Task, read_sequence_list, run_batch, summary_rows,
                                task_names, write_summary)
