@@ -13,7 +13,11 @@ model, ``f(k V(x) E_map)`` or ``k * level``. The prediction is compared with the
 - ``psnr``: ``10 log10(255^2 / MSE)``, the MSE over every channel value of the valid pixels (pooled: over all
   evaluated frames' valid pixels together, not a mean of per-frame figures);
 - ``l1``: the mean over valid pixels of ``sum_c |predicted - observed|`` in levels, the distance the
-  disagreement histogram bins (so the two read on one scale).
+  disagreement histogram bins (so the two read on one scale);
+- ``psnr_periphery`` and ``psnr_lowpass``: the PSNR over the valid pixels beyond :data:`PERIPHERY` of the
+  half-diagonal, and of local means over :data:`LOWPASS_WINDOW`-square windows. Vignetting is a smooth field
+  strongest in the corners, while the full-resolution PSNR is dominated by fine texture that a voxel map blurs
+  and every method shares; these two show the low-frequency part of the error.
 
 Valid pixels (:func:`valid_pixels`, thresholds in :data:`DEFAULTS`): the render has a surface; the observed
 pixel measures irradiance (every channel in ``[dark, saturated)``, i.e. 5..249 by default); render and frame
@@ -40,6 +44,11 @@ from radiometry.errors import RadiomapError
 HELD_OUT = "held out for evaluation"
 DEFAULTS = {"depth_tolerance": 0.05, "depth_relative": 0.02, "dark": 5, "saturated": 250, "edge_dilation": 2,
             "min_pixels": 200}
+#: the two views of the error that a low-frequency effect such as vignetting shows in (beside the full resolution):
+#: pixels beyond this fraction of the half-diagonal from the image centre, and local means over square windows of
+#: this side (pixels whose window is at least half valid)
+PERIPHERY = 0.7
+LOWPASS_WINDOW = 31
 
 Renderer = Callable[[np.ndarray, np.ndarray, int, int], "tuple[np.ndarray, np.ndarray]"]
 
@@ -80,6 +89,18 @@ class HoldoutFrame:
     reason: str = ""
     sse: float = field(default=0.0, repr=False)    # sum of squared errors over the channel values
     sae: float = field(default=0.0, repr=False)    # sum over pixels of sum_c |error|
+    periphery: tuple[float, int] = field(default=(0.0, 0), repr=False)  # (sse, channel values) beyond PERIPHERY
+    lowpass: tuple[float, int] = field(default=(0.0, 0), repr=False)    # (sse, channel values) of local means
+
+    @property
+    def psnr_periphery(self) -> float:
+        """PSNR (dB) over the valid pixels beyond :data:`PERIPHERY` of the half-diagonal (NaN: none there)."""
+        return _psnr(*self.periphery)
+
+    @property
+    def psnr_lowpass(self) -> float:
+        """PSNR (dB) of :data:`LOWPASS_WINDOW`-square local means of prediction and observation (NaN: none)."""
+        return _psnr(*self.lowpass)
 
     @property
     def evaluated(self) -> bool:
@@ -87,6 +108,7 @@ class HoldoutFrame:
 
     def to_dict(self) -> dict:
         return {"index": self.index, "psnr": self.psnr, "l1": self.l1, "pixels": self.pixels,
+                "psnr_periphery": self.psnr_periphery, "psnr_lowpass": self.psnr_lowpass,
                 "gain": list(self.gain), "reason": self.reason}
 
 
@@ -117,20 +139,32 @@ class HoldoutResult:
         n = self.pixels
         return sum(f.sae for f in self.evaluated) / n if n else math.nan
 
+    @property
+    def psnr_periphery(self) -> float:
+        """Pooled PSNR (dB) over the valid pixels beyond :data:`PERIPHERY` of the half-diagonal."""
+        return _psnr(sum(f.periphery[0] for f in self.evaluated), sum(f.periphery[1] for f in self.evaluated))
+
+    @property
+    def psnr_lowpass(self) -> float:
+        """Pooled PSNR (dB) of :data:`LOWPASS_WINDOW`-square local means (the error a smooth field makes)."""
+        return _psnr(sum(f.lowpass[0] for f in self.evaluated), sum(f.lowpass[1] for f in self.evaluated))
+
     def to_dict(self) -> dict:
-        return {"psnr": self.psnr, "l1": self.l1, "pixels": self.pixels, "frames_held_out": len(self.frames),
+        return {"psnr": self.psnr, "l1": self.l1, "pixels": self.pixels, "psnr_periphery": self.psnr_periphery,
+                "psnr_lowpass": self.psnr_lowpass, "frames_held_out": len(self.frames),
                 "frames_evaluated": len(self.evaluated), "seconds": self.seconds, "settings": dict(self.settings),
                 "per_frame": [f.to_dict() for f in self.frames]}
 
     def csv(self, method: str | None = None) -> str:
         """``holdout.csv``: one row per withheld frame (``method`` first when given, for a comparison)."""
-        head = "index,psnr_db,l1_levels,pixels,gain_r,gain_g,gain_b,reason"
+        head = "index,psnr_db,l1_levels,pixels,gain_r,gain_g,gain_b,psnr_periphery_db,psnr_lowpass_db,reason"
         lines = [("method," if method else "") + head]
         for f in self.frames:
             g = ",".join(f"{v:.6g}" for v in f.gain)
             reason = f.reason.replace('"', "'")
             lines.append((f"{method}," if method else "") +
-                         f"{f.index},{f.psnr:.4f},{f.l1:.4f},{f.pixels},{g},\"{reason}\"")
+                         f"{f.index},{f.psnr:.4f},{f.l1:.4f},{f.pixels},{g},{f.psnr_periphery:.4f},"
+                         f"{f.psnr_lowpass:.4f},\"{reason}\"")
         return "\n".join(lines) + "\n"
 
 
@@ -224,7 +258,34 @@ def _evaluate_frame(frame, pose, render: Renderer, colour_model, min_pixels: int
     record.sae = float(np.abs(err).sum())
     record.psnr = _psnr(record.sse, err.size)
     record.l1 = record.sae / record.pixels
+    outer = valid & (_radius(h, w) > PERIPHERY)
+    diff = np.asarray(predicted, dtype=np.float64)[outer] - rgb[outer].astype(np.float64)
+    record.periphery = (float(np.square(diff).sum()), int(diff.size))
+    record.lowpass = _lowpass_error(np.asarray(predicted, dtype=np.float64), rgb.astype(np.float64), valid)
     return record
+
+
+def _radius(h: int, w: int) -> np.ndarray:
+    """Distance of each pixel centre from the image centre, as a fraction of the half-diagonal, (H, W)."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.hypot(x - (w - 1) / 2, y - (h - 1) / 2) / (0.5 * math.hypot(w, h))
+
+
+def _lowpass_error(predicted: np.ndarray, observed: np.ndarray, valid: np.ndarray) -> tuple[float, int]:
+    """``(sse, channel values)`` of the difference between :data:`LOWPASS_WINDOW`-square means of prediction and
+    observation over the valid pixels, at valid pixels whose window is at least half valid."""
+    import cv2
+
+    k = (LOWPASS_WINDOW, LOWPASS_WINDOW)
+    m = valid.astype(np.float64)
+    count = cv2.boxFilter(m, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    keep = valid & (count >= 0.5 * LOWPASS_WINDOW ** 2)
+    if not keep.any():
+        return 0.0, 0
+    diff = (predicted - observed) * m[..., None]
+    sums = cv2.boxFilter(diff, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    local = sums[keep] / count[keep][:, None]
+    return float(np.square(local).sum()), int(local.size)
 
 
 def backend_renderer(backend) -> Renderer:
@@ -249,5 +310,5 @@ def fit_gain(observed: np.ndarray, rendered: np.ndarray, valid: np.ndarray) -> n
     return gain
 
 
-__all__ = ["DEFAULTS", "HELD_OUT", "HoldoutError", "HoldoutFrame", "HoldoutResult", "Renderer", "backend_renderer",
+__all__ = ["DEFAULTS", "HELD_OUT", "LOWPASS_WINDOW", "PERIPHERY", "HoldoutError", "HoldoutFrame", "HoldoutResult", "Renderer", "backend_renderer",
            "check_holdout_every", "evaluate_holdout", "fit_gain", "is_held_out", "valid_pixels"]

@@ -338,3 +338,61 @@ def test_batch_summary_rows_carry_the_holdout_figures(tmp_path):
     (row,) = reconstruct_rows(tmp_path)
     assert row["holdout PSNR"] == 24.25 and row["holdout L1"] == 30.5 and row["L1 mean"] == 12.5
     assert columns_of([row]).index("holdout PSNR") < columns_of([row]).index("error")
+
+
+def test_periphery_and_lowpass_psnr_see_a_smooth_field_that_texture_hides():
+    """A prediction wrong by a smooth field that darkens the corners (a vignette left uncorrected) plus
+    zero-mean pixel noise: the low-pass PSNR sees only the field, the periphery PSNR the corners, both computed
+    here independently of the module."""
+    from mapping.holdout import LOWPASS_WINDOW, PERIPHERY, HoldoutFrame, HoldoutResult, _evaluate_frame
+
+    h, w = 120, 160
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = np.hypot(x - (w - 1) / 2, y - (h - 1) / 2) / (0.5 * np.hypot(w, h))
+    observed = np.full((h, w, 3), 120, np.uint8)
+    smooth = (-20.0 * r ** 2)[..., None] * np.ones(3)           # the field: 0 at the centre, -20 in the corners
+    noise = np.where(rng.random((h, w, 1)) < 0.5, -6.0, 6.0) * np.ones(3)   # +-6 levels, zero mean per window
+    predicted = observed + smooth + noise
+
+    class Model:
+        def predict_observed(self, colour, rgb, valid):
+            return predicted, np.ones(3)
+
+    class Frame:
+        index, rgb, K = 0, observed, np.eye(3)
+        depth = np.ones((h, w), np.float32)
+
+    def render(pose, K, hh, ww):
+        return np.ones((hh, ww, 3), np.float32), np.ones((hh, ww), np.float32)
+
+    record = _evaluate_frame(Frame(), np.eye(4), render, Model(), 200, dict(
+        depth_tolerance=0.05, depth_relative=0.02, dark=5, saturated=250, edge_dilation=2))
+    err = smooth + noise
+    full = 10 * np.log10(255 ** 2 / np.mean(err ** 2))
+    outer = r > PERIPHERY
+    periphery = 10 * np.log10(255 ** 2 / np.mean(err[outer] ** 2))
+    assert record.psnr == pytest.approx(full, abs=1e-6)
+    assert record.psnr_periphery == pytest.approx(periphery, abs=1e-6) and record.psnr_periphery < record.psnr
+    # local means by an integral image (windows cut by the image border count only their inside; a pixel is kept
+    # when at least half its window is inside): exactly the module's figure
+    half = LOWPASS_WINDOW // 2
+    integral = np.zeros((h + 1, w + 1, 3))
+    integral[1:, 1:] = err.cumsum(0).cumsum(1)
+    y0, y1 = np.clip(np.arange(h) - half, 0, h), np.clip(np.arange(h) + half + 1, 0, h)
+    x0, x1 = np.clip(np.arange(w) - half, 0, w), np.clip(np.arange(w) + half + 1, 0, w)
+    sums = (integral[y1][:, x1] - integral[y0][:, x1] - integral[y1][:, x0] + integral[y0][:, x0])
+    count = (y1 - y0)[:, None] * (x1 - x0)[None, :]
+    keep = count >= 0.5 * LOWPASS_WINDOW ** 2
+    local = sums[keep] / count[keep][:, None]
+    assert record.psnr_lowpass == pytest.approx(10 * np.log10(255 ** 2 / np.mean(local ** 2)), abs=1e-6)
+    # and it is the smooth field's: the noise averages out (within 0.5 dB of the field's own local means)
+    field_sums = (np.pad(smooth, ((1, 0), (1, 0), (0, 0))).cumsum(0).cumsum(1))
+    fs = field_sums[y1][:, x1] - field_sums[y0][:, x1] - field_sums[y1][:, x0] + field_sums[y0][:, x0]
+    field_local = fs[keep] / count[keep][:, None]
+    assert abs(record.psnr_lowpass - 10 * np.log10(255 ** 2 / np.mean(field_local ** 2))) < 0.5
+    assert record.psnr_lowpass > record.psnr + 2
+    pooled = HoldoutResult([record, HoldoutFrame(1, reason="no pose")])
+    assert pooled.psnr_periphery == pytest.approx(record.psnr_periphery)
+    assert pooled.psnr_lowpass == pytest.approx(record.psnr_lowpass)
+    assert "psnr_periphery_db" in pooled.csv() and pooled.to_dict()["psnr_lowpass"] == pooled.psnr_lowpass
