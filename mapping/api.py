@@ -112,21 +112,13 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
     try:
         if folder is not None:
             folder.write_json("config.json", _config_record(config, kwargs))
-        run = reconstruct(**kwargs, output=folder)
-        colour_map = None
-        if config.colour_map is not None:   # as the command: the optimised mesh beside the plain one
-            from mapping.colour_map import colour_map_for_run
-
-            colour_map = colour_map_for_run(run, kwargs["dataset"], kwargs["backend"], kwargs["colour_model"],
-                                            method=config.colour_map, depth_max=config.depth_max,
-                                            folder=None if folder is None else folder.path)
+        run = reconstruct(**kwargs, output=folder, colour_map=config.colour_map)   # as the command
     finally:
         if folder is not None:
             folder.release()  # the lock goes with the call: a later run into OUT (a shell, a notebook) may start
     return Reconstruction(run, config=config, colour_model=kwargs["colour_model"],
                           backend=kwargs["backend"] if folder is None else None,
-                          output=None if folder is None else folder.path, exposure_compensation=compensate,
-                          colour_map=colour_map)
+                          output=None if folder is None else folder.path, exposure_compensation=compensate)
 
 
 def _as_path(value):
@@ -171,15 +163,15 @@ class Reconstruction:
     config:                the :class:`~mapping.factory.ReconstructConfig` it ran with.
     colour_model:          the colour model (``describe()``; with exposure compensation its ``estimator``).
     exposure_compensation: whether exposure compensation ran.
-    colour_map:            the colour-map stage's outcome (:class:`mapping.colour_map.ColourMapOutcome`) with
-                           ``colour_map="rigid"`` or ``"non-rigid"``, else None; ``holdout`` (the run's) is passed on
-                           with the run's attributes when ``holdout_every`` was given.
+
+    Passed on with the run's attributes: ``colour_map``, the colour-map stage's outcome
+    (:class:`mapping.colour_map.ColourMapOutcome`) with ``colour_map="rigid"`` or ``"non-rigid"``, else None, and
+    ``holdout`` when ``holdout_every`` was given.
     """
 
     def __init__(self, run, *, config, colour_model, backend, output: Path | None,
-                 exposure_compensation: bool, colour_map=None) -> None:
+                 exposure_compensation: bool) -> None:
         self.run = run
-        self.colour_map = colour_map
         self.config = config
         self.colour_model = colour_model
         self.output = output

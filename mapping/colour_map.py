@@ -350,7 +350,9 @@ def optimise_colour_map(vertices: np.ndarray, triangles: np.ndarray, colours: np
 @dataclass
 class ColourMapOutcome:
     """What the stage did: the optimisation (None when it could not run), which mesh is kept (``optimised`` or
-    ``plain``) and why, and the held-out figures of both meshes on the check frames."""
+    ``plain``) and why (``reason`` in full, ``brief`` in a few words for a table column: ``check passed``, ``not
+    run``, or the failed checks, e.g. ``PSNR fell, diverged``), the held-out figures of both meshes on the check
+    frames and the stage's time in seconds (:func:`colour_map_for_run`: with the mesh extraction)."""
 
     method: str
     kept: str
@@ -359,6 +361,8 @@ class ColourMapOutcome:
     plain: Any = None          # mapping.holdout.HoldoutResult of the plain mesh
     optimised: Any = None      # ... of the optimised mesh
     result: ColourMapResult | None = None
+    brief: str = ""
+    seconds: float = float("nan")
 
     @property
     def accepted(self) -> bool:
@@ -370,7 +374,8 @@ class ColourMapOutcome:
                                            "frames_evaluated": len(h.evaluated), "frames": len(h.frames)}
         return {"method": self.method, "kept": self.kept, "reason": self.reason, "check_frames": self.check,
                 "holdout_plain": figures(self.plain), "holdout_optimised": figures(self.optimised),
-                "optimisation": None if self.result is None else self.result.describe()}
+                "optimisation": None if self.result is None else self.result.describe(), "brief": self.brief,
+                "seconds": round(self.seconds, 3)}
 
     def summary_line(self) -> str:
         return summary_line(self.to_dict())
@@ -422,12 +427,14 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
                                                                                      min_pixel_ratio))):
         raise ValueError(f"need tolerance_db >= 0, max_pose_change > 0 and max_black, max_unseen, min_pixel_ratio in "
                          f"[0, 1], got {tolerance_db}, {max_pose_change}, {max_black}, {max_unseen}, {min_pixel_ratio}")
+    started = time.perf_counter()
     try:
         result = optimise_colour_map(vertices, triangles, colours, frames, poses, colour_model, method=method,
                                      window=window, iterations=iterations, depth_max=depth_max)
     except (ColourMapError, RuntimeError) as exc:   # Open3D raises RuntimeError on what it cannot handle
         log.warning("colour map (%s) not run: %s; the plain mesh is kept", method, exc)
-        return ColourMapOutcome(method, "plain", f"not run: {exc}", "none")
+        return ColourMapOutcome(method, "plain", f"not run: {exc}", "none", brief="not run",
+                                seconds=time.perf_counter() - started)
     if holdout:
         positions = [int(i) for i, _ in holdout]
         check_poses = [np.asarray(p, dtype=np.float64) for _, p in holdout]
@@ -440,29 +447,32 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
     plain = evaluate_holdout(check_frames, check_poses, MeshRenderer(vertices, triangles, colours), colour_model)
     optimised = evaluate_holdout(check_frames, check_poses,
                                  MeshRenderer(result.vertices, result.triangles, result.colours), colour_model)
-    reasons = []
+    reasons = {}   # brief -> in full
     moved = result.pose_change.get("translation_cm_median", 0.0) / 100
     if moved > max_pose_change:
-        reasons.append(f"the optimiser moved the keyframes by {100 * moved:.1f} cm (median; limit "
-                       f"{100 * max_pose_change:g} cm): it diverged")
+        reasons["diverged"] = (f"the optimiser moved the keyframes by {100 * moved:.1f} cm (median; limit "
+                               f"{100 * max_pose_change:g} cm): it diverged")
     if result.unseen > max_unseen:
-        reasons.append(f"no keyframe saw {100 * result.unseen:.1f} % of the vertices (check the depth range and "
-                       "the poses)")
+        reasons["unseen"] = (f"no keyframe saw {100 * result.unseen:.1f} % of the vertices (check the depth range "
+                             "and the poses)")
     if result.black > max_black:
-        reasons.append(f"{100 * result.black:.1f} % of the vertices went black")
+        reasons["went black"] = f"{100 * result.black:.1f} % of the vertices went black"
     if not plain.pixels:
-        reasons.append("no check frame could be evaluated")
+        reasons["no check frame"] = "no check frame could be evaluated"
     else:
         if optimised.pixels < min_pixel_ratio * plain.pixels:
-            reasons.append(f"the optimised mesh leaves {optimised.pixels} valid check pixels of the plain mesh's "
-                           f"{plain.pixels} (black or missing colour)")
+            reasons["lost pixels"] = (f"the optimised mesh leaves {optimised.pixels} valid check pixels of the plain "
+                                      f"mesh's {plain.pixels} (black or missing colour)")
         if not optimised.psnr >= plain.psnr - tolerance_db:
-            reasons.append(f"held-out PSNR fell by {plain.psnr - optimised.psnr:.2f} dB (limit {tolerance_db:g}; "
-                           "misaligned keyframes)")
+            reasons["PSNR fell"] = (f"held-out PSNR fell by {plain.psnr - optimised.psnr:.2f} dB (limit "
+                                    f"{tolerance_db:g}; misaligned keyframes)")
+    seconds = time.perf_counter() - started
     if reasons:
-        log.warning("colour map (%s) rejected: %s; the plain mesh is kept", method, "; ".join(reasons))
-        return ColourMapOutcome(method, "plain", "rejected: " + "; ".join(reasons), check, plain, optimised, result)
-    return ColourMapOutcome(method, "optimised", "passed the held-out check", check, plain, optimised, result)
+        log.warning("colour map (%s) rejected: %s; the plain mesh is kept", method, "; ".join(reasons.values()))
+        return ColourMapOutcome(method, "plain", "rejected: " + "; ".join(reasons.values()), check, plain, optimised,
+                                result, brief=", ".join(reasons), seconds=seconds)
+    return ColourMapOutcome(method, "optimised", "passed the held-out check", check, plain, optimised, result,
+                            brief="check passed", seconds=seconds)
 
 
 def write_colour_map(folder, outcome: ColourMapOutcome, colour_model, *, normals: np.ndarray | None = None,
@@ -491,9 +501,14 @@ def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, dept
     """The stage after :func:`mapping.pipeline.reconstruct`: the backend's fused surface
     (:func:`mapping.compare.geometry.map_geometry`), the run's poses by dataset position (``run.records``,
     ``run.poses``) and its withheld frames (``run.held_out_poses``, ``--holdout-every``) as the check; written into
-    ``folder`` (a path, or None) by :func:`write_colour_map`. ``options``: :func:`colour_map_stage` keywords."""
+    ``folder`` (a path, or None) by :func:`write_colour_map`. ``options``: :func:`colour_map_stage` keywords. The
+    outcome's ``seconds`` count the mesh extraction, the optimisation and the check (not the writing).
+
+    :func:`mapping.pipeline.reconstruct` runs it (its ``colour_map`` argument) before the results folder is marked
+    complete: a crash or Ctrl-C here leaves the folder marked unfinished."""
     from mapping.compare.geometry import map_geometry
 
+    started = time.perf_counter()
     geometry = map_geometry(backend)
     poses: list[np.ndarray | None] = [None] * len(run.records)
     fused = iter(run.poses)
@@ -503,6 +518,7 @@ def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, dept
     holdout = [(i, p) for i, p in sorted(run.held_out_poses.items()) if p is not None]
     outcome = colour_map_stage(geometry.vertices, geometry.triangles, geometry.colours, dataset, poses, colour_model,
                                method=method, holdout=holdout or None, depth_max=depth_max, **options)
+    outcome.seconds = time.perf_counter() - started
     if folder is not None:
         write_colour_map(folder, outcome, colour_model, normals=geometry.normals, formats=formats)
     return outcome

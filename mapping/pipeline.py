@@ -20,7 +20,10 @@ Per frame (ICP mode), the contract between the parts (:class:`~mapping.fusion.ba
 With ``holdout_every = N`` every N-th frame (:mod:`mapping.holdout`) is tracked (or given its ground-truth pose)
 and then withheld: never rendered for, coloured, fused or measured, and not counted as skipped (one that comes
 before the map exists has no pose: it cannot found the map). After the loop the final map is rendered at the
-withheld frames' poses and judged against them (``RunResult.holdout``).
+withheld frames' poses and judged against them (``RunResult.holdout``). With ``colour_map`` the colour-map stage
+(:func:`mapping.colour_map.colour_map_for_run`) follows, judged by those frames when there are any
+(``RunResult.colour_map``). Only then are the results written and the folder marked complete: a crash or Ctrl-C
+anywhere before leaves it marked unfinished (``RUNNING``, ``metrics.json`` status ``failed`` or ``interrupted``).
 
 One ray cast per frame serves both the histogram (the map before this frame) and the tracking of the next
 frame (the map at the last pose, lacking only the last frame), like Open3D's dense SLAM loop which also
@@ -33,6 +36,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -59,7 +64,8 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                 backend: FusionBackend, tracker=None, poses: str = "icp", initial_pose: np.ndarray | None = None,
                 output=None, refresh_coverage: float = 0.5, max_consecutive_failures: int = 30,
                 progress: bool = True, histogram_label: str | None = None,
-                write_mesh: bool = True, holdout_every: int | None = None) -> RunResult:
+                write_mesh: bool = True, holdout_every: int | None = None, colour_map: str | None = None,
+                colour_map_options: Mapping[str, Any] | None = None) -> RunResult:
     """Track (or take ground-truth poses), correct, fuse and measure colour disagreement over a sequence.
 
     dataset:       an :class:`~mapping.datasets.base.RGBDDataset` (frame range and stride applied).
@@ -76,6 +82,11 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     write_mesh:    export the map's mesh into ``output``.
     holdout_every: None (fuse every frame) or N in ``2 .. len(dataset) - 1``: withhold every N-th frame from fusion and
                    judge the final map by them (:func:`mapping.holdout.evaluate_holdout`; ``holdout.csv``).
+    colour_map:    None, ``rigid`` or ``non-rigid``: after the loop (and the held-out evaluation) optimise the map's
+                   colours (:func:`mapping.colour_map.colour_map_for_run`; ``mesh_colourmap.*`` and ``colour_map.json``
+                   in ``output``, the outcome in ``RunResult.colour_map``, its line in ``summary.txt``), before the
+                   folder is marked complete.
+    colour_map_options: keywords of :func:`~mapping.colour_map.colour_map_for_run` (``formats``, ``iterations``, ...).
     """
     if poses not in POSE_SOURCES:
         raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
@@ -84,6 +95,11 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     if not 0 <= refresh_coverage <= 1:
         raise ValueError(f"refresh_coverage must be in [0, 1], got {refresh_coverage}")
     holdout_every = 0 if holdout_every is None else check_holdout_every(holdout_every, len(dataset))
+    if colour_map is not None:   # a wrong name fails before the run, not after it
+        from mapping.colour_map import OPTIMISERS
+        from radiometry.registry import validate_name
+
+        colour_map = validate_name(colour_map, OPTIMISERS, "colour-map method")
     colour_model = colour_model or RawIntensity()
     loop = _Loop(dataset, colour_model, backend, tracker, poses, initial_pose, refresh_coverage,
                  max_consecutive_failures, histogram_label or colour_model.name, holdout_every)
@@ -104,15 +120,28 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         run = loop.result(status)
         if status != "complete" and output is not None:
             write_partial(run, backend, output)
-    run.map_stats = backend_stats(backend)
-    run.ate = _ate(run, dataset, poses)
-    if holdout_every:
-        positions = sorted(run.held_out_poses)
-        run.holdout = evaluate_holdout(_Frames(dataset, positions), [run.held_out_poses[i] for i in positions],
-                                       backend_renderer(backend), colour_model)
-        run.holdout.settings["every"] = holdout_every
-    if output is not None:
-        write_results(run, dataset, colour_model, backend, tracker, output, write_mesh=write_mesh)
+    try:   # the rest of the run: until write_results completes the folder, a failure leaves it unfinished
+        run.map_stats = backend_stats(backend)
+        run.ate = _ate(run, dataset, poses)
+        if holdout_every:
+            positions = sorted(run.held_out_poses)
+            run.holdout = evaluate_holdout(_Frames(dataset, positions), [run.held_out_poses[i] for i in positions],
+                                           backend_renderer(backend), colour_model)
+            run.holdout.settings["every"] = holdout_every
+        if colour_map is not None:
+            from mapping.colour_map import colour_map_for_run
+
+            run.colour_map = colour_map_for_run(run, dataset, backend, colour_model, method=colour_map,
+                                                depth_max=backend.depth_max,
+                                                folder=None if output is None else output.path,
+                                                **dict(colour_map_options or {}))
+        if output is not None:
+            write_results(run, dataset, colour_model, backend, tracker, output, write_mesh=write_mesh)
+    except BaseException as exc:
+        run.status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        if output is not None:
+            write_partial(run, backend, output)
+        raise
     return run
 
 

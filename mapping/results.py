@@ -9,6 +9,7 @@ import resource
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +53,7 @@ class RunResult:
     depth_beyond_range: float = 0.0     # fraction of the valid depth pixels at or beyond the backend's depth_max
     held_out_poses: dict[int, np.ndarray | None] = field(default_factory=dict)  # position -> pose, withheld frames
     holdout: HoldoutResult | None = None  # the final map judged by the withheld frames (mapping.holdout)
+    colour_map: Any = None              # mapping.colour_map.ColourMapOutcome of the colour-map stage, if it ran
 
     @property
     def frames(self) -> int:
@@ -170,6 +172,9 @@ def describe_run(dataset, colour_model, backend, tracker) -> dict:
 
 
 def write_results(run: RunResult, dataset, colour_model, backend, tracker, output, *, write_mesh: bool) -> None:
+    """Every result file of a finished run into ``output`` (a :class:`~mapping.export.ResultsFolder`), then mark it
+    complete: the last step of :func:`mapping.pipeline.reconstruct` (after the held-out evaluation and the colour-map
+    stage, whose files are already in place; its line ends ``summary.txt``)."""
     from mapping.plots import save_histogram_figure
 
     files = {}
@@ -192,7 +197,10 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()
     metrics["files"] = {k: Path(v).name for k, v in files.items()}
-    output.write_text("summary.txt", format_table([run.summary_row()]) + "\n")
+    summary = format_table([run.summary_row()]) + "\n"
+    if run.colour_map is not None:
+        summary += run.colour_map.summary_line() + "\n"
+    output.write_text("summary.txt", summary)
     output.write_json("metrics.json", metrics)
     output.complete()
 

@@ -118,6 +118,7 @@ def test_stage_sharpens_blurred_colours_on_the_wall(wall):
     outcome = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), method="rigid",
                                iterations=20, holdout=holdout, depth_max=3.0, window=3)
     assert outcome.kept == "optimised", outcome.reason
+    assert outcome.brief == "check passed" and outcome.seconds >= outcome.result.seconds  # + the check
     r = outcome.result
     before = np.abs(plain[seen] - truth[seen]).mean()
     after = np.abs(r.colours[seen] - truth[seen]).mean()
@@ -193,6 +194,7 @@ def test_unseen_output_is_rejected(wall):
                                holdout=[(7, poses[7])], depth_max=1.0)
     assert outcome.kept == "plain"
     assert "no keyframe saw 100.0 % of the vertices" in outcome.reason
+    assert "unseen" in outcome.brief.split(", ")
     assert outcome.result.unseen == 1.0
 
 
@@ -209,6 +211,7 @@ def test_black_output_is_rejected(wall):
                                holdout=[(3, poses[3]), (8, poses[8])], depth_max=3.0)
     assert outcome.kept == "plain"
     assert "of the vertices went black" in outcome.reason
+    assert "went black" in outcome.brief.split(", ")
     assert outcome.result.black > 0.3            # all the keyframes see (the mesh is larger than the views)
 
 
@@ -223,7 +226,7 @@ def test_misaligned_keyframes_are_rejected(wall):
     outcome = colour_map_stage(vertices, triangles, truth, frames, wrong, RawIntensity(), iterations=0,
                                holdout=[(3, poses[3]), (8, poses[8])], depth_max=3.0)
     assert outcome.kept == "plain"
-    assert "PSNR fell" in outcome.reason
+    assert "PSNR fell" in outcome.reason and outcome.brief.split(", ")[-1] == "PSNR fell"
     assert outcome.plain.psnr > outcome.optimised.psnr + 3
 
 
@@ -234,7 +237,7 @@ def test_too_few_keyframes_keep_the_plain_mesh(wall):
     fused = [poses[0]] + [None] * (len(poses) - 1)
     outcome = colour_map_stage(vertices, triangles, blurred(vertices), frames, fused, RawIntensity())
     assert outcome.kept == "plain" and outcome.result is None
-    assert "at least 2 keyframes" in outcome.reason
+    assert "at least 2 keyframes" in outcome.reason and outcome.brief == "not run"
 
 
 # ------------------------------------------------------------------ display <-> map units
@@ -396,6 +399,81 @@ def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
         assert (out / method / "mesh_colourmap.ply").is_file() == (doc["kept"] == "optimised")
 
 
+# ------------------------------------------------------------------ the stage is part of the run
+def test_ctrl_c_in_the_stage_leaves_the_folder_unfinished(tmp_path, monkeypatch):
+    """The stage runs before the results folder is marked complete (mapping.pipeline.reconstruct): Ctrl-C in the
+    optimiser leaves RUNNING, status "interrupted" and no colour-map files nor summary; a second run is refused
+    without --force and completes the folder with it."""
+    import json
+
+    import mapping
+    import mapping.colour_map as cm
+    from mapping.export import is_complete
+    from mapping.simulation import sample_sequence
+    from radiometry.errors import OutputError
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cm, "optimise_colour_map", interrupted)
+    seq, out = sample_sequence("room"), tmp_path / "run"
+    options = dict(poses="gt", frames=slice(0, 10), voxel_size=0.04, depth_max=5.0, holdout_every=5,
+                   colour_map="rigid", progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        mapping.reconstruct_sequence(seq, out, **options)
+    assert (out / "RUNNING").is_file() and not is_complete(out)
+    assert json.loads((out / "metrics.json").read_text())["status"] == "interrupted"
+    assert not any((out / name).exists() for name in ("colour_map.json", "mesh_colourmap.ply", "summary.txt"))
+    with pytest.raises(OutputError, match="--force"):
+        mapping.reconstruct_sequence(seq, out, **options)
+    monkeypatch.undo()
+    monkeypatch.setitem(cm.ITERATIONS, "rigid", 5)
+    result = mapping.reconstruct_sequence(seq, out, force=True, **options)
+    assert is_complete(out) and not (out / "RUNNING").exists()
+    doc = json.loads((out / "colour_map.json").read_text())
+    assert doc["kept"] == result.colour_map.kept and doc["optimisation"]["iterations"] == 5
+    assert doc["check_frames"] == "2 frames withheld from fusion" and doc["seconds"] > 0
+    assert (out / "summary.txt").read_text().splitlines()[-1] == result.colour_map.summary_line()
+    assert (out / "mesh_colourmap.ply").is_file() == result.colour_map.accepted
+
+
+def test_a_crash_in_the_stage_of_compare_leaves_that_method_unfinished(tmp_path, monkeypatch):
+    """``radiomap compare --colour-map``: the stage crashing in the second method leaves the first method's folder
+    complete with its colour map, the second's and the comparison's unfinished; ``--force`` then completes both."""
+    import json
+
+    import mapping.colour_map as cm
+    from mapping.export import is_complete
+    from mapping.simulation import sample_sequence
+
+    real, calls = cm.colour_map_for_run, []
+
+    def second_crashes(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("a bug in the stage")
+        return real(*args, **kwargs)
+    monkeypatch.setattr(cm, "colour_map_for_run", second_crashes)
+    monkeypatch.setitem(cm.ITERATIONS, "rigid", 5)
+    seq = sample_sequence("room")
+    out = tmp_path / "cmp"
+    args = ["compare", str(seq), "-r", str(seq / "truth" / "response.npz"), "--methods", "none,response", "--poses",
+            "gt", "--frames", "0:10", "--voxel-size", "0.04", "--depth-max", "5", "--views", "0", "--no-glb",
+            "--colour-map", "rigid", "--no-progress", "-o", str(out)]
+    with pytest.raises(ZeroDivisionError):
+        _cli(*args)
+    assert is_complete(out / "none") and (out / "none" / "colour_map.json").is_file()
+    assert not is_complete(out / "response") and (out / "response" / "RUNNING").is_file()
+    assert json.loads((out / "response" / "metrics.json").read_text())["status"] == "failed"
+    assert not (out / "response" / "colour_map.json").exists()
+    assert (out / "RUNNING").is_file() and not (out / "compare.json").exists()
+    monkeypatch.setattr(cm, "colour_map_for_run", real)
+    res = _cli(*args, "--force")
+    assert res.exit_code == 0, res.output
+    assert not (out / "RUNNING").exists() and (out / "compare.json").is_file()
+    for method in ("none", "response"):
+        assert is_complete(out / method) and (out / method / "colour_map.json").is_file()
+
+
 def test_keyframes_moved_too_far_are_rejected(wall):
     """The pose guard: keyframes 1 cm off, pulled back by the optimiser by millimetres; with a limit below that
     the stage calls it divergence and keeps the plain mesh (its default, 10 cm, lets it through)."""
@@ -410,6 +488,7 @@ def test_keyframes_moved_too_far_are_rejected(wall):
     moved = strict.result.pose_change["translation_cm_median"]
     assert 0.05 < moved < 10
     assert strict.kept == "plain" and f"moved the keyframes by {moved:.1f} cm (median; limit 0.05 cm)" in strict.reason
+    assert strict.brief.split(", ")[0] == "diverged"
     assert colour_map_stage(vertices, triangles, blurred(vertices), frames, wrong, RawIntensity(), **kwargs).accepted
 
 

@@ -100,6 +100,13 @@ def test_one_mesh_per_method_and_a_table_with_every_method(gt_run):
     text = (out / "compare.txt").read_text()
     assert all(name in text for name in ("none", "poly", "lut", "L1 mean", "colour err"))
     assert not (out / "RUNNING").exists()
+    # without the colour-map stage (or withheld frames) the table has its default columns only
+    from mapping.compare.results import TABLE_COLUMNS
+
+    assert gt_run.columns == TABLE_COLUMNS and doc["columns"] == TABLE_COLUMNS
+    assert text.splitlines()[0].split() == " ".join(TABLE_COLUMNS).split()
+    assert all("colour_map" not in m for m in doc["methods"])
+    assert "Colour map" not in Path(gt_run.files["report"]).read_text()
 
 
 def test_measured_ordering_with_the_true_camera(gt_run):
@@ -201,6 +208,60 @@ def test_renders_show_the_maps_from_the_same_viewpoints(gt_run, room):
         assert np.abs(colours["lut", row][m] - colours["none", row][m]).mean() > 3.0
     # a different viewpoint gives a different picture (the check above would notice a wrong pose)
     assert (masks["none", 0] != masks["none", 1]).mean() > 0.02
+
+
+def test_colour_map_outcome_in_the_table_json_and_report(room, models, tmp_path, monkeypatch):
+    """``colour_map``: per method the stage's check (held-out PSNR and L1 of the plain and the optimised mesh), the
+    mesh kept and why, and the stage's seconds, in compare.csv/.txt/.json and a report section. The figures are the
+    stage's own (its colour_map.json), and the plain mesh's agree with the method's written mesh rendered again at
+    the withheld frames."""
+    import mapping.colour_map as cm
+    from mapping.compare.results import COLOUR_MAP_COLUMNS, HOLDOUT_COLUMNS, TABLE_COLUMNS
+    from mapping.datasets import open_dataset
+    from mapping.export import read_mesh_colours
+    from mapping.holdout import evaluate_holdout
+
+    monkeypatch.setitem(cm.ITERATIONS, "rigid", 10)
+    seq, _ = room
+    response, _, lut = models
+    dataset = open_dataset(seq)
+    out = tmp_path / "cm"
+    result = compare(dataset, make_methods(response, vignetting_lut=lut, names=["none", "lut"]), output=out,
+                     poses="gt", voxel_size=0.04, views=0, progress=False, holdout_every=4, colour_map="rigid",
+                     mesh_formats=("ply",))
+    assert result.columns == TABLE_COLUMNS[:-1] + HOLDOUT_COLUMNS + COLOUR_MAP_COLUMNS + ["seconds"]
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["columns"] == result.columns
+    with open(out / "compare.csv", newline="") as fh:
+        csv_rows = list(csv.DictReader(fh))
+    lines = (out / "compare.txt").read_text().splitlines()
+    assert lines[0].split() == " ".join(result.columns).split()
+    report = Path(result.files["report"]).read_text()
+    report = report.split(">Colour map</h2>", 1)[1].split("<h2", 1)[0]   # the stage's section
+    figures = {"cm plain PSNR": ("holdout_plain", "psnr"), "cm plain L1": ("holdout_plain", "l1"),
+               "cm opt PSNR": ("holdout_optimised", "psnr"), "cm opt L1": ("holdout_optimised", "l1")}
+    for r, row, csv_row in zip(result.results, doc["table"], csv_rows):
+        stage = json.loads((r.folder / "colour_map.json").read_text())
+        assert stage["check_frames"] == "2 frames withheld from fusion" and stage["optimisation"]["iterations"] == 10
+        assert doc["methods"][result.names.index(r.method.name)]["colour_map"] == stage
+        for column, (which, key) in figures.items():
+            assert np.isfinite(row[column]) and row[column] == pytest.approx(stage[which][key])
+            assert float(csv_row[column]) == pytest.approx(stage[which][key], abs=1e-4)
+        assert row["cm kept"] == csv_row["cm kept"] == stage["kept"] and row["cm why"] == stage["brief"] != ""
+        assert row["cm seconds"] == pytest.approx(stage["seconds"], abs=1e-3) and row["cm seconds"] > 0
+        line = next(line for line in lines[2:] if line.split()[0] == r.method.name)
+        for column in COLOUR_MAP_COLUMNS:
+            value = row[column]
+            cell = f"{round(value, 2):.4g}" if isinstance(value, float) else value
+            assert cell in line and cell in report
+        # the plain mesh as written (mesh_colours.npz), rendered again at the withheld frames
+        mesh = read_mesh_colours(r.folder / "mesh_colours.npz")
+        positions = sorted(r.run.held_out_poses)
+        again = evaluate_holdout([dataset[i] for i in positions], [r.run.held_out_poses[i] for i in positions],
+                                 cm.MeshRenderer(mesh["vertices"], mesh["triangles"], mesh["colours"]), r.colour_model)
+        assert row["cm plain PSNR"] == pytest.approx(again.psnr, abs=1e-3)
+        assert row["cm plain L1"] == pytest.approx(again.l1, abs=1e-3)
+    check_report(result.files["report"])
 
 
 def test_an_existing_comparison_is_not_overwritten_without_force(gt_run, room, models):

@@ -48,14 +48,11 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
     try:
-        run = reconstruct(**kwargs, output=folder)
+        # with --colour-map the optimised mesh beside the plain one, before the folder is complete (mapping.colour_map)
+        run = reconstruct(**kwargs, output=folder, colour_map=config.colour_map)
         summary = format_table([run.summary_row()]) + "\n" + settings
-        if config.colour_map is not None:   # the optimised mesh beside the plain one (mapping.colour_map)
-            from mapping.colour_map import colour_map_for_run
-
-            summary += "\n" + colour_map_for_run(run, kwargs["dataset"], kwargs["backend"], kwargs["colour_model"],
-                                                 method=config.colour_map, depth_max=config.depth_max,
-                                                 folder=folder.path).summary_line()
+        if run.colour_map is not None:
+            summary += "\n" + run.colour_map.summary_line()
         folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
     finally:
         folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
@@ -109,11 +106,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
         if holdout_every is not None:
             lines.append(f"holdout: 1 frame in {holdout_every} withheld from fusion; PSNR (dB) and L1 (levels, summed "
                          "over R, G, B) of each final map rendered at them, exposure fitted per frame (holdout.csv)")
-        if colour_map is not None:
-            from mapping.colour_map import summary_line
-
-            lines += [f"{r.method.name}: " + summary_line(json.loads((r.folder / "colour_map.json").read_text()))
-                      for r in result.results]
+        lines += [f"{r.method.name}: " + r.run.colour_map.summary_line() for r in result.results
+                  if r.run.colour_map is not None]
         return "\n".join(lines + [settings]) + "\n"
 
     # config.json and summary.txt are written by compare() in its locked folder: they belong to the run

@@ -12,6 +12,9 @@ Layout (``OUT``)::
                                                  trajectory, metrics, mesh.ply, mesh_colours.npz)
     OUT/holdout.csv                              with ``holdout_every``: every method's figures per withheld frame
                                                  (:mod:`mapping.holdout`; its pooled PSNR and L1 are table columns)
+    OUT/<method>/colour_map.json, mesh_colourmap.*   with ``colour_map``: the colour-map stage of each method
+                                                 (:mod:`mapping.colour_map`); its check and choice are table columns
+                                                 (:data:`COLOUR_MAP_COLUMNS`) and a section of the report
     OUT/config.json, summary.txt                 the CLI's options and printed summary (``config``, ``summary``)
     OUT/.radiomap-files.json                     the files and method folders the comparison wrote: the next
                                                  ``force`` run removes them (:class:`ComparisonFolder`)
@@ -35,6 +38,10 @@ from radiometry.tables import format_table
 TABLE_COLUMNS = ["method", "description", "frames fused", "pairs", "L1 mean", "L1 median", "L1 p90",
                  "colour err", "colour err p90", "seconds"]
 HOLDOUT_COLUMNS = ["holdout frames", "holdout PSNR", "holdout L1"]   # with held-out frames, before "seconds"
+#: with the colour-map stage, before "seconds" (after the held-out columns): its check's held-out PSNR (dB) and L1
+#: (levels) of the plain and the optimised mesh, the mesh kept (``optimised`` or ``plain``) and why in brief
+#: (:attr:`mapping.colour_map.ColourMapOutcome.brief`) and the stage's seconds ("seconds" then excludes them)
+COLOUR_MAP_COLUMNS = ["cm plain PSNR", "cm plain L1", "cm opt PSNR", "cm opt L1", "cm kept", "cm why", "cm seconds"]
 MARKER = "compare.json"
 
 
@@ -61,7 +68,18 @@ class MethodResult:
                 "colour err p90": math.nan if err is None else err.p90,
                 **({} if holdout is None else {"holdout frames": len(holdout.evaluated), "holdout PSNR": holdout.psnr,
                                                "holdout L1": holdout.l1}),
+                **({} if self.run.colour_map is None else colour_map_row(self.run.colour_map)),
                 "seconds": self.seconds}
+
+
+def colour_map_row(outcome) -> dict[str, Any]:
+    """The :data:`COLOUR_MAP_COLUMNS` of a method's colour-map stage (a
+    :class:`mapping.colour_map.ColourMapOutcome`; NaN figures when it did not run)."""
+    def figure(h, name: str) -> float:
+        return math.nan if h is None else float(getattr(h, name))
+    return {"cm plain PSNR": figure(outcome.plain, "psnr"), "cm plain L1": figure(outcome.plain, "l1"),
+            "cm opt PSNR": figure(outcome.optimised, "psnr"), "cm opt L1": figure(outcome.optimised, "l1"),
+            "cm kept": outcome.kept, "cm why": outcome.brief, "cm seconds": outcome.seconds}
 
 
 @dataclass
@@ -95,10 +113,13 @@ class CompareResult:
     @property
     def columns(self) -> list[str]:
         """The table's columns: :data:`TABLE_COLUMNS`, with :data:`HOLDOUT_COLUMNS` before "seconds" when the runs
-        withheld frames."""
-        if not any(r.run.holdout is not None for r in self.results):
-            return list(TABLE_COLUMNS)
-        return TABLE_COLUMNS[:-1] + HOLDOUT_COLUMNS + TABLE_COLUMNS[-1:]
+        withheld frames and :data:`COLOUR_MAP_COLUMNS` after them when the colour-map stage ran."""
+        extra = []
+        if any(r.run.holdout is not None for r in self.results):
+            extra += HOLDOUT_COLUMNS
+        if any(r.run.colour_map is not None for r in self.results):
+            extra += COLOUR_MAP_COLUMNS
+        return TABLE_COLUMNS[:-1] + extra + TABLE_COLUMNS[-1:]
 
     def table_text(self) -> str:
         rows = []

@@ -101,8 +101,10 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                       judged by them (:mod:`mapping.holdout`: PSNR and L1 columns, ``holdout.csv``); with ICP poses
                       the first method tracks the withheld frames too and every method judges at those poses.
     colour_map:       None, ``rigid`` or ``non-rigid``: each method's mesh also colour-map optimised, a variant of
-                      the method (:func:`mapping.colour_map.colour_map_for_run`: ``mesh_colourmap.*`` and
-                      ``colour_map.json`` in the method's folder, judged by the withheld frames when there are any).
+                      the method (:func:`mapping.colour_map.colour_map_for_run`, run by
+                      :func:`mapping.pipeline.reconstruct` before the method's folder is complete: ``mesh_colourmap.*``
+                      and ``colour_map.json`` in it, judged by the withheld frames when there are any); its outcome
+                      in the table (:data:`~mapping.compare.results.COLOUR_MAP_COLUMNS`) and the report.
     """
     from mapping._open3d import o3d
     from mapping.factory import make_backend, make_tracker
@@ -158,25 +160,23 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     fusion = make_backend(backend, voxel_size=voxel_size, depth_max=depth_max,
                                           **dict(backend_options or {}))
                     track = poses == "icp" and fixed is None
-                    view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed, on_frame=bar.update)
+                    view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed,
+                                      on_frame=_ticks(bar, reads))
                     folder = folders.enter_context(top.subfolder(method.name))
                     t0 = time.perf_counter()
                     tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
                                       poses="icp" if track else "gt", output=folder, progress=False,
-                                      histogram_label=method.label, write_mesh=False, holdout_every=holdout_every)
-                    seconds = time.perf_counter() - t0
+                                      histogram_label=method.label, write_mesh=False, holdout_every=holdout_every,
+                                      colour_map=colour_map, colour_map_options={"formats": tuple(mesh_formats)})
+                    # the method's time without the colour-map stage's (a column of its own)
+                    seconds = time.perf_counter() - t0 - (0.0 if run.colour_map is None else run.colour_map.seconds)
                     if track:
                         fixed = _poses_by_frame(run, n)
                         ate = run.ate
                     results.append(_method_result(method, run, folder.path, fusion, colour_model, seconds,
                                                   backend=backend, scene=scene, display_response=display_response,
                                                   max_distance=max(3 * voxel_size, 0.03), mesh_formats=mesh_formats))
-                    if colour_map is not None:
-                        from mapping.colour_map import colour_map_for_run
-
-                        colour_map_for_run(run, dataset, fusion, colour_model, method=colour_map, depth_max=depth_max,
-                                           folder=folder.path, formats=mesh_formats)
                     del fusion
         finally:
             bar.close()
@@ -228,6 +228,18 @@ def _method_result(method: Method, run, folder: Path, fusion, colour_model, seco
                        "geometry": {"kind": geometry.kind, "vertices": len(geometry),
                                     "triangles": int(geometry.triangles.shape[0])}})
     return result
+
+
+def _ticks(bar, reads: int) -> Callable[[], None]:
+    """``bar.update`` for a method's first ``reads`` frame reads (its share of the comparison's bar): the frames the
+    colour-map stage reads again are not counted."""
+    left = [reads]
+
+    def tick() -> None:
+        if left[0] > 0:
+            left[0] -= 1
+            bar.update()
+    return tick
 
 
 def _colour_model(method: Method, height: int, width: int, brightness: str):
