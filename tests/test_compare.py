@@ -527,3 +527,32 @@ def test_cli_compare_warns_when_the_range_cuts_the_scene(room, models, tmp_path,
     assert (far > 0.2) == warned
     line = f"warning: {100 * far:.0f} % of the valid depth lies beyond --depth-max {depth_max} m"
     assert (line in res.stderr) == warned and "warning" not in res.stdout
+
+
+def test_cli_compare_self_calibrated_beside_the_white_paper_lut(room, models, tmp_path):
+    """--vignetting-self runs the self-calibrated V as its own method beside the white-paper LUT; given the same V
+    both fuse identically; a polynomial passed as --vignetting-self and self+ec without it are one-line errors."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+
+    seq, _ = room
+    response, poly, lut = models
+    response.save(tmp_path / "crf.npz")
+    lut.save(tmp_path / "lut.npz")
+    poly.save(tmp_path / "poly.npz")
+    base = ["compare", str(seq), "--response", str(tmp_path / "crf.npz"), "--poses", "gt", "--frames", "0:4",
+            "--voxel-size", "0.02", "--views", "0", "--no-glb", "--no-progress"]
+    res = CliRunner().invoke(cli, base + ["-o", str(tmp_path / "out"), "--vignetting-lut", str(tmp_path / "lut.npz"),
+                                          "--vignetting-self", str(tmp_path / "lut.npz"), "--methods",
+                                          "lut+ec,self+ec"])
+    assert res.exit_code == 0, res.output
+    table = {row["method"]: row for row in json.loads((tmp_path / "out" / "compare.json").read_text())["table"]}
+    assert set(table) == {"lut+ec", "self+ec"}
+    assert table["self+ec"]["L1 mean"] == table["lut+ec"]["L1 mean"] and table["self+ec"]["pairs"] > 0
+    res = CliRunner().invoke(cli, base + ["-o", str(tmp_path / "bad"), "--vignetting-self", str(tmp_path / "poly.npz"),
+                                          "--methods", "self"])
+    assert res.exit_code != 0 and "--vignetting-self" in res.output and "poly.npz" in res.output
+    res = CliRunner().invoke(cli, base + ["-o", str(tmp_path / "bad"), "--methods", "none,self+ec"])
+    assert res.exit_code == 2 and "--vignetting-self" in res.output
+    assert not (tmp_path / "bad").exists()

@@ -72,7 +72,7 @@ class MethodChoiceError(ValueError):
 
 
 def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_lut: Path | None,
-                    vignetting_poly: Path | None, methods: list[str] | None, exposure_compensation: bool,
+                    vignetting_poly: Path | None, vignetting_self: Path | None = None, methods: list[str] | None, exposure_compensation: bool,
                     backend: str, poses: str, frames: slice | None, voxel_size: float, depth_max: float,
                     brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
                     views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
@@ -93,7 +93,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
     method_list = compare_methods(response, vignetting_lut=vignetting_lut, vignetting_poly=vignetting_poly,
-                                  exposure_compensation=exposure_compensation, methods=methods)
+                                  vignetting_self=vignetting_self, exposure_compensation=exposure_compensation,
+                                  methods=methods)
     scene = _scene_of(dataset, notify)
 
     def summary(result) -> str:
@@ -122,7 +123,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
 
 
 def compare_methods(response: Path, *, vignetting_lut: Path | None, vignetting_poly: Path | None,
-                    exposure_compensation: bool, methods: list[str] | None) -> list:
+                    exposure_compensation: bool, methods: list[str] | None,
+                    vignetting_self: Path | None = None) -> list:
     """The :class:`mapping.compare.Method` list of a comparison from the model files (MethodChoiceError when a
     method's model is missing or of the wrong kind)."""
     from mapping.compare import load_method_vignetting, make_methods
@@ -131,8 +133,9 @@ def compare_methods(response: Path, *, vignetting_lut: Path | None, vignetting_p
     resp = load_response(response)
     lut = load_method_vignetting(vignetting_lut, "lut") if vignetting_lut is not None else None
     poly = load_method_vignetting(vignetting_poly, "poly") if vignetting_poly is not None else None
+    own = load_method_vignetting(vignetting_self, "self") if vignetting_self is not None else None
     try:
-        return make_methods(resp, vignetting_poly=poly, vignetting_lut=lut,
+        return make_methods(resp, vignetting_poly=poly, vignetting_lut=lut, vignetting_self=own,
                             exposure_compensation=exposure_compensation, names=methods)
     except ValueError as exc:
         raise MethodChoiceError(str(exc)) from None

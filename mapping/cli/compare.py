@@ -56,6 +56,9 @@ def _methods(ctx, param, value):
               help="LUT vignetting model (radiomap .npz, radical .vgn, DSO vignette.png, or a V array .npy).")
 @click.option("--vignetting-poly", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Polynomial vignetting model (radiomap .npz, radical .vgn).")
+@click.option("--vignetting-self", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Vignetting self-calibrated from a sequence (the vignetting.npz of 'radiomap self-calibrate'): "
+                   "the methods self and self+ec, beside a white-paper LUT.")
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the comparison (created).")
 @fusion_options
@@ -64,7 +67,7 @@ def _methods(ctx, param, value):
                    "--response is on; here it adds methods).")
 @click.option("--methods", callback=_methods, default=None, metavar="LIST",
               help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
-                   "response, poly, lut, and response+ec, poly+ec, lut+ec.")
+                   "response, poly, lut, self, and response+ec, poly+ec, lut+ec, self+ec.")
 @click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
               help="Ground-truth poses, or ICP tracked once and reused by every method (reconstruct's default).")
 @click.option("--tracker", type=click.Choice(list(TRACKERS)), default="icp", show_default=True,
@@ -89,7 +92,8 @@ def _methods(ctx, param, value):
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None, output: Path,
+def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None,
+            vignetting_self: Path | None, output: Path,
             backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, tracker: str,
             frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
             intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
@@ -120,7 +124,7 @@ def task_arguments(ctx: click.Context) -> dict:
     if methods is not None and p["exposure_compensation"] and \
             not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
         raise click.UsageError("--methods lists the methods itself (add e.g. lut+ec); drop --exposure-compensation")
-    models = {k: p[k] for k in ("response", "vignetting_lut", "vignetting_poly")}
+    models = {k: p[k] for k in ("response", "vignetting_lut", "vignetting_poly", "vignetting_self")}
     try:
         method_list = compare_methods(**models, exposure_compensation=p["exposure_compensation"], methods=methods)
     except MethodChoiceError as exc:

@@ -34,7 +34,7 @@ LABELS = {"none": "no correction", "response": "response only", "poly": "polynom
           "lut": "LUT vignetting", "self": "self-calibrated vignetting"}
 #: how a method's missing model is supplied (the error names it)
 MODEL_SOURCES = {"poly": "--vignetting-poly", "lut": "--vignetting-lut",
-                 "self": "vignetting_self: the vignetting.npz that 'radiomap self-calibrate' writes"}
+                 "self": "--vignetting-self: the vignetting.npz that 'radiomap self-calibrate' writes"}
 BRIGHTNESS = ("mean", "calibrated")
 
 
@@ -121,7 +121,7 @@ def _check_model_kind(base: str, model: VignettingModel) -> None:
     problem = _kind_mismatch(base, model)
     if problem is not None:
         source = model.info.get("source") if isinstance(getattr(model, "info", None), dict) else None
-        where = "vignetting_self" if base == "self" else f"--vignetting-{base}"
+        where = f"--vignetting-{base}"
         raise ValueError(f"{where} holds {problem[0]}{f' ({source})' if source else ''}, {problem[1]}")
 
 
@@ -142,13 +142,13 @@ def _kind_mismatch(base: str, model: VignettingModel) -> tuple[str, str] | None:
 
 
 def load_method_vignetting(path: str | Path, base: str) -> VignettingModel:
-    """The vignetting model file of the method ``base`` (``poly`` or ``lut``; ``--vignetting-poly/-lut``): a file
-    :func:`radiometry.api.read_vignetting` reads (a V array ``.npy`` is a LUT). A model of the other kind
-    is a :class:`~radiometry.errors.CalibrationFileError` naming the file and the fix."""
+    """The vignetting model file of the method ``base`` (``poly``, ``lut`` or ``self``; ``--vignetting-poly/-lut/
+    -self``): a file :func:`radiometry.api.read_vignetting` reads (a V array ``.npy`` is a LUT). A model of the
+    other kind is a :class:`~radiometry.errors.CalibrationFileError` naming the file and the fix."""
     from radiometry.api import read_vignetting
 
-    if base not in ("poly", "lut"):
-        raise ValueError(f"base must be 'poly' or 'lut', got {base!r}")
+    if base not in ("poly", "lut", "self"):
+        raise ValueError(f"base must be 'poly', 'lut' or 'self', got {base!r}")
     model = read_vignetting(path)
     problem = _kind_mismatch(base, model)
     if problem is not None:
