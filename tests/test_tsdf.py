@@ -189,6 +189,8 @@ def test_block_list_follows_the_hash_map(storage):
     """The block list behind the colour kernel's table (coordinates and buffer slots) is kept up to date frame by
     frame as blocks are added, is dropped when the hash map grows (which moves every block), and always equals
     the hash map's own: on a room swept fast enough to add blocks every frame, from a 4-block hash map."""
+    from mapping._open3d import o3d
+
     ds, _ = box_room_sequence(n_frames=10, width=160, height=120, step=0.1, turn_deg=8)
     backend = TSDFBackend(voxel_size=0.01, depth_max=5.0, block_count=4, colour_storage=storage)
     kept = dropped = 0
@@ -204,11 +206,26 @@ def test_block_list_follows_the_hash_map(storage):
             dropped += 1
         elif backend.frames_integrated > 1:
             assert len(backend._blocks_known[1]) == hashmap.size()      # complete without reading the hash map
+            assert backend._blocks_known[2] == hashmap.capacity()
             kept += 1
         keys, slots = backend._known_blocks()
         truth = hashmap.active_buf_indices().numpy()
         assert dict(zip(map(tuple, keys), slots)) == dict(zip(map(tuple, hashmap.key_tensor().numpy()[truth]), truth))
     assert kept >= 3 and dropped >= 2
+    # Open3D's hash map also grows (moving every block) when asked to activate blocks it holds, if their count
+    # plus its size exceeds its capacity, as Open3D's integrate does after ours (float storage): same size, new
+    # slots. The list must follow.
+    hashmap = backend.grid.hashmap()
+    old = dict(zip(map(tuple, backend._known_blocks()[0]), backend._known_blocks()[1]))
+    capacity = hashmap.capacity()
+    present = hashmap.key_tensor().numpy()[hashmap.active_buf_indices().numpy()]
+    hashmap.activate(o3d.core.Tensor(np.tile(present, (capacity // len(present) + 1, 1))))
+    assert hashmap.capacity() > capacity and hashmap.size() == len(present)
+    keys, slots = backend._known_blocks()
+    truth = hashmap.active_buf_indices().numpy()
+    truth = dict(zip(map(tuple, hashmap.key_tensor().numpy()[truth]), truth))
+    assert len(truth) == len(old) and truth != old                       # same blocks, moved
+    assert dict(zip(map(tuple, keys), slots)) == truth
 
 
 @pytest.mark.parametrize("surface, max_bias_mm", [("open3d", None), ("debias", 1.5), ("refine", 1.0)])

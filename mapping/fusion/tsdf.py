@@ -240,7 +240,7 @@ class TSDFBackend:
         self._last_blocks = None          # block coordinates of the last fused frame (for render())
         self.ray_casts = 0
         self.fragment_capacity = 0        # fragments Open3D's range-map buffer is known to hold (module doc)
-        self._blocks_known = None         # (coordinates, slots) of the grid's blocks (_known_blocks)
+        self._blocks_known = None         # (coordinates, slots, capacity) of the grid's blocks (_known_blocks)
 
     def _integration_intrinsics(self, K: np.ndarray) -> np.ndarray:
         """Open3D's integration kernel looks a voxel up at pixel ``int(u)`` (truncation) while every other
@@ -356,13 +356,19 @@ class TSDFBackend:
 
     def _known_blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """Coordinates (N, 3) and buffer slots (N,) of every block in the grid: the list :meth:`_activate` keeps,
-        read afresh from the hash map (~1.5 ms for 16,000 blocks) only when it does not hold every block (the
-        first time, and after the hash map grew, which moves the blocks)."""
+        read afresh from the hash map (~1.5 ms for 16,000 blocks) only when it does not hold every block or was
+        made at another capacity: the first time, and after the hash map grew, which moves every block. Open3D's
+        hash map grows whenever its size plus the number of keys it is asked to activate exceeds its capacity,
+        even if every key is present: Open3D's integrate (float storage) can move the blocks after
+        :meth:`_activate`."""
         hashmap = self.grid.hashmap()
-        if self._blocks_known is None or len(self._blocks_known[1]) != hashmap.size():
+        capacity = hashmap.capacity()
+        if self._blocks_known is None or len(self._blocks_known[1]) != hashmap.size() \
+                or self._blocks_known[2] != capacity:
             slots = hashmap.active_buf_indices().numpy().astype(np.int32)
-            self._blocks_known = (np.ascontiguousarray(hashmap.key_tensor().numpy()[slots], np.int32), slots)
-        return self._blocks_known
+            self._blocks_known = (np.ascontiguousarray(hashmap.key_tensor().numpy()[slots], np.int32), slots,
+                                  capacity)
+        return self._blocks_known[:2]
 
     def _activate(self, blocks) -> None:
         """Add the frame's blocks to the hash map (as integration does; new blocks are zero) and note the new ones
@@ -370,14 +376,14 @@ class TSDFBackend:
         hashmap = self.grid.hashmap()
         capacity = hashmap.capacity()
         slots, new = hashmap.activate(blocks)
-        if hashmap.capacity() != capacity:
+        if hashmap.capacity() != capacity or self._blocks_known is None or self._blocks_known[2] != capacity:
             self._blocks_known = None
-        elif self._blocks_known is not None:
+        else:
             new = new.numpy()
             if new.any():
-                keys, known = self._blocks_known
+                keys, known, _ = self._blocks_known
                 self._blocks_known = (np.concatenate([keys, blocks.numpy()[new].astype(np.int32)]),
-                                      np.concatenate([known, slots.numpy()[new].astype(np.int32)]))
+                                      np.concatenate([known, slots.numpy()[new].astype(np.int32)]), capacity)
 
     def _refine(self, table, K: np.ndarray, pose: np.ndarray, depth: np.ndarray, vertex: np.ndarray) -> int:
         """Move each rendered point to the zero crossing of the trilinear TSDF along its ray (the block table of
