@@ -191,7 +191,7 @@ def test_self_method_takes_the_self_calibrated_lut():
     with pytest.raises(ValueError, match="needs the self vignetting model .*radiomap self-calibrate"):
         make_methods(resp, vignetting_lut=lut, names=["self"])
     poly = PolynomialVignetting([0.0, 0.0, 0.0], [7.5, 5.5], (16, 12))
-    with pytest.raises(ValueError, match="vignetting_self holds a polynomial .* --vignetting-poly"):
+    with pytest.raises(ValueError, match="--vignetting-self holds a polynomial .* --vignetting-poly"):
         make_methods(resp, vignetting_self=poly, names=["self"])
 
 
