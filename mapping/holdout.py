@@ -310,5 +310,6 @@ def fit_gain(observed: np.ndarray, rendered: np.ndarray, valid: np.ndarray) -> n
     return gain
 
 
-__all__ = ["DEFAULTS", "HELD_OUT", "LOWPASS_WINDOW", "PERIPHERY", "HoldoutError", "HoldoutFrame", "HoldoutResult", "Renderer", "backend_renderer",
-           "check_holdout_every", "evaluate_holdout", "fit_gain", "is_held_out", "valid_pixels"]
+__all__ = ["DEFAULTS", "HELD_OUT", "LOWPASS_WINDOW", "PERIPHERY", "HoldoutError", "HoldoutFrame", "HoldoutResult",
+           "Renderer", "backend_renderer", "check_holdout_every", "evaluate_holdout", "fit_gain", "is_held_out",
+           "valid_pixels"]

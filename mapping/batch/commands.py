@@ -72,12 +72,12 @@ class MethodChoiceError(ValueError):
 
 
 def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_lut: Path | None,
-                    vignetting_poly: Path | None, vignetting_self: Path | None = None, methods: list[str] | None, exposure_compensation: bool,
-                    backend: str, poses: str, frames: slice | None, voxel_size: float, depth_max: float,
-                    brightness: str, depth_scale: float | None, intrinsics: str | None, format: str | None,
-                    views: int, render_width: int, glb: bool, force: bool, progress: bool, manifest: dict,
-                    settings: str, notify: Callable[[str], None] = log.warning, holdout_every: int | None = None,
-                    tracker: str = "icp", colour_map: str | None = None):
+                    vignetting_poly: Path | None, vignetting_self: Path | None = None, methods: list[str] | None,
+                    exposure_compensation: bool, backend: str, poses: str, frames: slice | None, voxel_size: float,
+                    depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
+                    format: str | None, views: int, render_width: int, glb: bool, force: bool, progress: bool,
+                    manifest: dict, settings: str, notify: Callable[[str], None] = log.warning,
+                    holdout_every: int | None = None, tracker: str = "icp", colour_map: str | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
