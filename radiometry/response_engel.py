@@ -89,10 +89,12 @@ def equal_ratios(times: np.ndarray, *, tolerance: float = 0.02) -> float | None:
     """The common ratio of consecutive distinct exposure times if they are all equal within ``tolerance``
     (relative), else None."""
     distinct = np.unique(np.asarray(times, dtype=np.float64))
-    if distinct.size < 3:
-        return float(distinct[-1] / distinct[0]) if distinct.size == 2 else None
+    if distinct.size < 2:
+        return None
     with np.errstate(invalid="ignore", divide="ignore"):  # bad times (<= 0, NaN): the fitter refuses them by name
         ratios = distinct[1:] / distinct[:-1]
+        if distinct.size == 2:
+            return float(ratios[0])
         spread = np.abs(np.log(ratios / ratios.mean()))
     if np.all(spread <= tolerance):
         return float(ratios.mean())

@@ -253,11 +253,13 @@ def _stack(n=3, shape=(20, 30)):
     (_stack(3), [1.0, 0.0, 2.0], ValueError, "positive finite seconds"),
     (_stack(3), [1.0, -2.0, 4.0], ValueError, "positive finite seconds"),
     (_stack(3), [1.0, np.nan, 4.0], ValueError, "positive finite seconds"),
+    (_stack(2), [0.0, 1.0], ValueError, "positive finite seconds"),
     (_stack(3), [1.0, 1.0, 1.0], ValueError, "two different exposure times"),
     ([im.astype(np.float32) for im in _stack(3)], [1.0, 2.0, 4.0], TypeError, "must be uint8"),
     ([np.zeros((20, 30, 4), np.uint8)] * 3, [1.0, 2.0, 4.0], ValueError, r"\(H, W, 3\) RGB"),
     (_stack(3), [4.0, 2.0, 1.0], ValueError, "inverted"),
 ])
+@pytest.mark.filterwarnings("error::RuntimeWarning")   # refused by name, without NumPy warnings first
 def test_bad_inputs_name_the_parameter(method, images, times, error, match):
     with pytest.raises(error, match=match):
         fit_response(images, times, method=method)
