@@ -94,6 +94,20 @@ class ColourModel(Protocol):
         of level 255, whether the map's colours are divided by a per-frame exposure)``."""
         ...
 
+    def display_exposure(self) -> np.ndarray | None:
+        """The exposure ``k`` (3,) at which :meth:`display_for_export` shows irradiance (``f(E k)``), or None when
+        the map holds raw levels (display is the identity)."""
+        ...
+
+    def from_display(self, levels: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`display_for_export`: display levels ``(..., 3)`` -> map units, float32."""
+        ...
+
+    def frame_exposures(self) -> dict[int, np.ndarray] | None:
+        """Each fused frame's exposure (3,) as the run estimated it, by frame index (fallback frames left out),
+        or None when the model divides by no estimated per-frame exposure."""
+        ...
+
 
 class RawIntensity:
     """No correction: the map averages intensity levels (0..255 as float32); display is the identity."""
@@ -117,6 +131,15 @@ class RawIntensity:
 
     def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
         return np.asarray(rgb).astype(np.float32), 255.0, False
+
+    def display_exposure(self) -> None:
+        return None
+
+    def from_display(self, levels: np.ndarray) -> np.ndarray:
+        return np.asarray(levels, dtype=np.float32)
+
+    def frame_exposures(self) -> None:
+        return None
 
     def describe(self) -> dict:
         return {"name": self.name, "map_units": "intensity levels 0..255", "display": "identity"}
@@ -254,6 +277,16 @@ class IrradianceColour:
     def unexposed(self, rgb: np.ndarray) -> tuple[np.ndarray, float, bool]:
         white = float(np.mean(self.response.channel_tables(3)[-1]))
         return self.irradiance(rgb), white, self.exposure is not None
+
+    def display_exposure(self) -> np.ndarray:
+        return np.full(3, self.reference_exposure, dtype=np.float64)
+
+    def from_display(self, levels: np.ndarray) -> np.ndarray:
+        return (self.response.inverse(np.asarray(levels, dtype=np.float32)) / np.float32(self.reference_exposure)
+                ).astype(np.float32)
+
+    def frame_exposures(self) -> None:
+        return None
 
     def display_l1(self, map_colour: np.ndarray, sample_colour: np.ndarray) -> np.ndarray:
         """Display-unit L1 distances of (N, 3) map-unit pairs, fused (no temporaries)."""

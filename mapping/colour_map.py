@@ -14,8 +14,8 @@ of the keyframes that see it. It works on 8-bit images, so this stage feeds it i
 - without a response (``none``, raw intensities), the raw frames.
 
 The optimised vertex colours come back in those display levels and are converted to map units through the
-inverse of the same display (:func:`display_inverse`: ``f^-1(d) / k_ref`` per channel; the identity for raw
-intensities), so the optimised mesh is rendered, compared and exported exactly as the plain one.
+inverse of the same display (:meth:`mapping.colour.ColourModel.from_display`: ``f^-1(d) / k_ref`` per channel; the
+identity for raw intensities), so the optimised mesh is rendered, compared and exported exactly as the plain one.
 
 Keyframes (:func:`select_keyframes`): the fused frames are cut into consecutive windows of ``window`` frames
 (default 5) and the sharpest frame of each window is kept (largest variance of the Laplacian of its grey image;
@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -133,56 +133,14 @@ class MeshRenderer:
 
 
 # ------------------------------------------------------------------ display levels <-> map units
-def _irradiance(colour_model):
-    from mapping.compare.colour_error import irradiance_model
-
-    return irradiance_model(colour_model)
-
-
-def export_exposure(colour_model) -> np.ndarray | None:
-    """The exposure ``k`` (3,) at which ``colour_model.display_for_export()`` shows irradiance (``f(E k)``), or
-    None for raw intensities (display is the identity)."""
-    base = _irradiance(colour_model)
-    if base is None:
-        return None
-    if hasattr(colour_model, "export_reference_k"):   # exposure compensation: the sequence's median, say
-        return np.asarray(colour_model.export_reference_k(), dtype=np.float64).reshape(-1) * np.ones(3)
-    return np.full(3, base.reference_exposure, dtype=np.float64)
-
-
-def display_inverse(colour_model) -> Callable[[np.ndarray], np.ndarray]:
-    """Display levels ``(..., 3)`` (of ``display_for_export``) -> map units: ``f^-1(d) / k_ref`` per channel, or
-    the identity for raw intensities."""
-    base = _irradiance(colour_model)
-    if base is None:
-        return lambda levels: np.asarray(levels, dtype=np.float32)
-    k = export_exposure(colour_model).astype(np.float32)
-
-    def inverse(levels: np.ndarray) -> np.ndarray:
-        return base.response.inverse(np.asarray(levels, dtype=np.float32)) / k
-
-    return inverse
-
-
-def frame_exposures(colour_model) -> dict[int, np.ndarray] | None:
-    """Each frame's exposure (3,) as the run's exposure compensation estimated it, by frame index (fallback
-    frames left out), or None when the model divides by no per-frame exposure."""
-    estimator = getattr(colour_model, "estimator", None)
-    if estimator is None:
-        return None
-    return {int(r.index): np.asarray(r.k, dtype=np.float64).reshape(-1) * np.ones(3)
-            for r in estimator.records if r.source != "fallback"}
-
-
 def display_frame(frame, colour_model, exposure: np.ndarray | None = None) -> np.ndarray:
     """A frame as the optimiser sees it, uint8 (H, W, 3): the raw frame for raw intensities, else its corrected
     irradiance ``f^-1(I) / V / k`` through the export display (exposure and vignetting removed)."""
-    base = _irradiance(colour_model)
-    if base is None:
+    if colour_model.display_exposure() is None:
         return np.ascontiguousarray(frame.rgb, dtype=np.uint8)
-    E = base.irradiance(frame.rgb)
+    E = colour_model.unexposed(frame.rgb)[0]
     if exposure is not None:
-        E /= np.asarray(exposure, dtype=np.float32).reshape(1, 1, -1)
+        E = E / np.asarray(exposure, dtype=np.float32).reshape(1, 1, -1)
     shown = colour_model.display_for_export()(E)
     return np.ascontiguousarray(np.clip(np.rint(np.nan_to_num(shown)), 0, 255).astype(np.uint8))
 
@@ -282,7 +240,7 @@ def optimise_colour_map(vertices: np.ndarray, triangles: np.ndarray, colours: np
     if not len(vertices) or not len(triangles):
         raise ColourMapError("the map has no mesh to optimise the colours of (nothing fused often enough)")
     fused = [i for i, p in enumerate(poses) if p is not None]
-    exposures = frame_exposures(colour_model)
+    exposures = colour_model.frame_exposures()
     if exposures is not None:
         fused = [i for i in fused if int(frames[i].index) in exposures]
     chosen = list(keyframes) if keyframes is not None else select_keyframes(fused, frames, window=window)
@@ -336,7 +294,7 @@ def optimise_colour_map(vertices: np.ndarray, triangles: np.ndarray, colours: np
     unseen = ~np.any(display > 0, axis=1)          # knn 0: Open3D leaves exactly 0 where no keyframe looked
     display[unseen] = plain_display[unseen]
     black = np.all(display < 2.0, axis=1) & ~np.all(plain_display < 2.0, axis=1)
-    result_colours = display_inverse(colour_model)(display).astype(np.float32)
+    result_colours = colour_model.from_display(display).astype(np.float32)
     result_colours[unseen] = colours[unseen]
     return ColourMapResult(method=method, vertices=vertices, triangles=triangles.astype(np.int32),
                            colours=result_colours, display=display,
@@ -525,6 +483,6 @@ def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, dept
 
 
 __all__ = ["ColourMapError", "ColourMapOutcome", "ColourMapResult", "ITERATIONS", "MeshRenderer", "OPTIMISERS",
-           "check_positions", "colour_map_for_run", "colour_map_stage", "display_frame", "display_inverse",
-           "export_exposure", "frame_exposures", "optimise_colour_map", "select_keyframes", "sharpness",
+           "check_positions", "colour_map_for_run", "colour_map_stage", "display_frame",
+           "optimise_colour_map", "select_keyframes", "sharpness",
            "summary_line", "write_colour_map"]

@@ -243,7 +243,6 @@ def test_too_few_keyframes_keep_the_plain_mesh(wall):
 # ------------------------------------------------------------------ display <-> map units
 def test_display_inverse_undoes_the_export_display():
     from mapping.colour import IrradianceColour
-    from mapping.colour_map import display_inverse
     from mapping.exposure_compensation import CompensatedColour
     from radiometry.response import CameraResponse
 
@@ -251,9 +250,9 @@ def test_display_inverse_undoes_the_export_display():
     for model in (IrradianceColour(CameraResponse.gamma(2.2), reference_exposure=1.3),
                   CompensatedColour(IrradianceColour(CameraResponse.gamma(2.2)), export_reference=[0.8, 1.0, 1.2])):
         shown = model.display_for_export()(E)
-        np.testing.assert_allclose(display_inverse(model)(shown), E, rtol=2e-3)
+        np.testing.assert_allclose(model.from_display(shown), E, rtol=2e-3)
     levels = np.array([[3.0, 100.0, 250.0]], np.float32)
-    np.testing.assert_array_equal(display_inverse(RawIntensity())(levels), levels)
+    np.testing.assert_array_equal(RawIntensity().from_display(levels), levels)
 
 
 def test_bad_options_are_one_line_errors(wall):

@@ -19,7 +19,7 @@ One job per module:
 - :mod:`~mapping.compare.run`: :func:`compare` itself (identical poses, :class:`FixedPoses`).
 """
 
-from mapping.compare.colour_error import ColourError, colour_error, irradiance_model, linear_colours
+from mapping.compare.colour_error import ColourError, colour_error, linear_colours
 from mapping.compare.geometry import MapGeometry, map_geometry, surfel_discs
 from mapping.compare.methods import (BASE_METHODS, BRIGHTNESS, DEFAULT_METHODS, EC_SUFFIX, METHOD_NAMES, Method,
                                      equal_brightness, load_method_vignetting, make_methods)
@@ -28,5 +28,5 @@ from mapping.compare.run import FixedPoses, compare
 
 __all__ = ["BASE_METHODS", "BRIGHTNESS", "ColourError", "CompareResult", "ComparisonFolder", "DEFAULT_METHODS",
            "EC_SUFFIX", "FixedPoses", "MapGeometry", "Method", "METHOD_NAMES", "MethodResult", "TABLE_COLUMNS",
-           "colour_error", "compare", "equal_brightness", "irradiance_model", "linear_colours",
+           "colour_error", "compare", "equal_brightness", "linear_colours",
            "load_method_vignetting", "make_methods", "map_geometry", "surfel_discs"]

@@ -17,19 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from mapping.colour import FastForward, IrradianceColour
+from mapping.colour import FastForward
 from mapping.compare.geometry import MapGeometry
 from radiometry.response import CameraResponse
-
-
-def irradiance_model(colour_model) -> IrradianceColour | None:
-    """The :class:`~mapping.colour.IrradianceColour` behind a colour model (itself, or the one an exposure-
-    compensating wrapper holds as ``base``); None for raw intensities."""
-    if isinstance(colour_model, IrradianceColour):
-        return colour_model
-    base = getattr(colour_model, "base", None)
-    return base if isinstance(base, IrradianceColour) else None
-
 
 
 @dataclass
@@ -51,7 +41,7 @@ class ColourError:
 def linear_colours(colours: np.ndarray, colour_model, display_response: CameraResponse | None) -> np.ndarray | None:
     """Map colours in units linear in radiance: irradiance as is; averaged intensities through ``f^-1`` of
     ``display_response`` (None when raw intensities cannot be linearised without a response)."""
-    if irradiance_model(colour_model) is not None:
+    if colour_model.display_exposure() is not None:
         return np.asarray(colours, np.float32)
     if display_response is None:
         return None
@@ -68,7 +58,7 @@ def colour_error(geometry: MapGeometry, colour_model, scene, *, display_response
     lin = linear_colours(geometry.colours, colour_model, display_response)
     if lin is None:
         return None
-    to_display = colour_model.to_display if irradiance_model(colour_model) is not None else FastForward(display_response)
+    to_display = colour_model.to_display if colour_model.display_exposure() is not None else FastForward(display_response)
     truth = scene.radiance_at(geometry.vertices, geometry.normals, max_distance=max_distance)
     ok = np.all(np.isfinite(truth), axis=1) & np.all(np.isfinite(lin), axis=1)
     ok &= np.all(truth > 0, axis=1) & np.all(lin > 0, axis=1)

@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from mapping.compare.colour_error import irradiance_model
 from mapping.compare.methods import EC_SUFFIX
 from mapping.compare.results import MARKER, CompareResult, colour_map_row
 from mapping.export import display_colours_uint8
@@ -211,7 +210,8 @@ def _render_views(result: CompareResult, dataset, scene, *, views: int, render_w
 def _truth_reference(result: CompareResult):
     """(colour model, per-channel scale) used to display the true radiance: the LUT run's if there is one,
     else the run with the smallest colour error."""
-    candidates = [r for r in result.results if r.colour_error is not None and irradiance_model(r.colour_model) is not None]
+    candidates = [r for r in result.results
+                  if r.colour_error is not None and r.colour_model.display_exposure() is not None]
     if not candidates:
         return None
     lut = [r for r in candidates if r.method.name.removesuffix(EC_SUFFIX) == "lut"]

@@ -116,6 +116,19 @@ class CompensatedColour:
         colour, white, exposed = self.base.unexposed(rgb)
         return colour, white, exposed or self.compensate
 
+    def display_exposure(self) -> np.ndarray:
+        return np.asarray(self.export_reference_k(), dtype=np.float64).reshape(-1) * np.ones(3)
+
+    def from_display(self, levels: np.ndarray) -> np.ndarray:
+        k = self.display_exposure().astype(np.float32)
+        return (self.base.response.inverse(np.asarray(levels, dtype=np.float32)) / k).astype(np.float32)
+
+    def frame_exposures(self) -> dict[int, np.ndarray] | None:
+        if self.estimator is None:
+            return None
+        return {int(r.index): np.asarray(r.k, dtype=np.float64).reshape(-1) * np.ones(3)
+                for r in self.estimator.records if r.source != "fallback"}
+
     def export_reference_k(self) -> np.ndarray:
         """The export reference exposure (3,) relative to the first frame (resolved from the estimates)."""
         if self.estimator is None:
