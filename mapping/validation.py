@@ -324,10 +324,19 @@ def config_options(config) -> dict:
     return {k: getattr(config, k) for k in names if hasattr(config, k)}
 
 
+def check_colour_map(colour_map: str | None, backend: str) -> None:
+    """The colour-map stage optimises a mesh's colours: ValueError (one line naming the options) unless the
+    backend is the TSDF, whose surface is a mesh (the surfel backend's discs are not)."""
+    if colour_map is not None and backend != "tsdf":
+        raise ValueError(f"--colour-map applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
+                         f"{backend}; drop --colour-map or use --backend tsdf")
+
+
 def check_config(config) -> None:
     """The options of a :class:`~mapping.factory.ReconstructConfig` that need no data: fusion options, depth
-    scale, exposure factors."""
+    scale, exposure factors, the colour-map stage's backend."""
     check_fusion(**config_options(config))
+    check_colour_map(config.colour_map, config.backend)
     check_depth_scale(getattr(config, "depth_scale", None))
     if isinstance(getattr(config, "reference_exposure", None), (int, float)):
         check_exposure_factor(config.reference_exposure, "reference_exposure")

@@ -514,3 +514,21 @@ def test_study_script_on_a_tiny_room(tmp_path):
     for d in ("room gt", "room noisy"):
         assert plain[d, "lut+ec"]["colour err"] < plain[d, "none"]["colour err"]
         assert plain[d, "lut+ec"]["hist L1"] < plain[d, "none"]["hist L1"]
+
+
+def test_the_library_refuses_the_colour_map_on_surfels_too(tmp_path):
+    """The TSDF-only rule is the library's (mapping.validation.check_colour_map), so reconstruct_sequence and
+    compare() refuse surfels before anything is written, as the commands do."""
+    import mapping
+    from mapping.compare import compare, make_methods
+    from mapping.datasets import open_dataset
+    from mapping.simulation import sample_sequence
+
+    seq = sample_sequence("room")
+    with pytest.raises(ValueError, match="--colour-map applies to --backend tsdf only"):
+        mapping.reconstruct_sequence(seq, tmp_path / "a", backend="surfel", colour_map="rigid", poses="gt",
+                                     progress=False)
+    with pytest.raises(ValueError, match="--colour-map applies to --backend tsdf only"):
+        compare(open_dataset(seq, frames=slice(0, 3)), make_methods(None, names=["none"]), output=tmp_path / "b",
+                backend="surfel", colour_map="rigid", progress=False)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -138,9 +138,12 @@ def task_arguments(ctx: click.Context) -> dict:
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
                                    else ("exposure compensation", None, f"{ec}, as --methods lists"),
                                    ("glb", "glb", "on" if p["glb"] else "off")])
-    if p["colour_map"] is not None and p["backend"] != "tsdf":
-        raise click.BadParameter(f"applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
-                                 f"{p['backend']}; drop --colour-map or use --backend tsdf", param_hint="--colour-map")
+    from mapping.validation import check_colour_map
+
+    try:   # the library's check (mapping.validation), shown as a usage error before anything is read
+        check_colour_map(p["colour_map"], p["backend"])
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
     options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "tracker", "frames", "voxel_size",
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
                                  "render_width", "glb", "holdout_every", "colour_map", "force")}

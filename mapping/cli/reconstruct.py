@@ -131,9 +131,12 @@ def task_arguments(ctx: click.Context) -> dict:
             not drop_replayed(ctx, "tracker", "icp", f"--poses {p['poses']}"):
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
-    if p["colour_map"] is not None and backend != "tsdf":
-        raise click.BadParameter(f"applies to --backend tsdf only (it optimises a mesh's colours), got --backend "
-                                 f"{backend}; drop --colour-map or use --backend tsdf", param_hint="--colour-map")
+    from mapping.validation import check_colour_map
+
+    try:   # the library's check (mapping.validation), shown as a usage error before anything is read
+        check_colour_map(p["colour_map"], backend)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
                    poses=p["poses"], tracker=p["tracker"], voxel_size=p["voxel_size"],
                    frames=p["frames"] or slice(None), depth_scale=p["depth_scale"], intrinsics=p["intrinsics"],

@@ -110,7 +110,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     from mapping.factory import make_backend, make_tracker
     from mapping.holdout import check_holdout_every
     from mapping.pipeline import POSE_SOURCES, reconstruct
-    from mapping.validation import check_run
+    from mapping.validation import check_colour_map, check_run
     from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.progress import progress_bar
 
@@ -122,6 +122,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
         raise ValueError(f"method names must be unique, got {names}")
     if poses not in POSE_SOURCES:
         raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
+    check_colour_map(colour_map, backend)
     if brightness not in BRIGHTNESS:
         raise ValueError(f"brightness must be one of {', '.join(BRIGHTNESS)}, got {brightness!r}")
     if not (isinstance(voxel_size, (int, float)) and math.isfinite(voxel_size) and voxel_size > 0):
