@@ -79,8 +79,9 @@ SMOOTH_SIGMA_PX = (0.0, MAX_SMOOTH_SIGMA)  # LUT denoising (radiometry.vignettin
 MIN_FUSED_FRAMES = MIN_USED_FRAMES
 MIN_FUSED_FRACTION = MIN_USED_FRACTION
 
-#: bytes of one TSDF voxel (tsdf, weight: float32; colour: 3 x float32), as mapping.fusion.tsdf
-TSDF_BYTES_PER_VOXEL = 4 + 4 + 12
+#: bytes of one TSDF voxel of the default grid (tsdf: float32; weight and 3 colours: uint16), as
+#: mapping.fusion.tsdf.COLOUR_STORAGE["uint16"] (the float32 storage, a backend option, takes 20)
+TSDF_BYTES_PER_VOXEL = 4 + 2 + 6
 #: bytes of one surfel (position, normal, colour: 3 x float32; radius, confidence: float32; 2 x int32)
 SURFEL_BYTES = 13 * 4
 #: Open3D's hash map and the surfel arrays double their capacity when full: up to 2x the used memory

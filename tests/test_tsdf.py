@@ -456,3 +456,11 @@ def test_tiny_views_render(height, width):
     view = backend.render_for_frame(np.full((height, width), 1.5, np.float32), Ks, np.eye(4))
     assert view.depth.shape == (height, width) and backend.ray_casts == 2 and capacity > 0
     assert backend.fragment_capacity == capacity
+
+
+def test_the_memory_estimate_counts_the_default_grid():
+    """The memory pre-check (mapping.validation) counts the bytes of the grid the backend makes by default."""
+    from mapping.fusion.tsdf import COLOUR_STORAGE, TSDFBackend
+    from mapping.validation import TSDF_BYTES_PER_VOXEL
+
+    assert TSDF_BYTES_PER_VOXEL == COLOUR_STORAGE[TSDFBackend(voxel_size=0.02).colour_storage]
