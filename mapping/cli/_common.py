@@ -336,7 +336,26 @@ def fusion_options(f):
     return f
 
 
+def evaluation_options(f):
+    """--holdout-every and --colour-map: what reconstruct and compare do with a map after fusion."""
+    from mapping.colour_map import OPTIMISERS
+
+    options = [
+        click.option("--holdout-every", type=int, default=None, metavar="N",
+                     help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the "
+                          "map rendered at their poses (holdout.csv, metrics.json)."),
+        click.option("--colour-map", type=click.Choice(list(OPTIMISERS)), default=None,
+                     help="After fusion, optimise the mesh colours (in compare each method's) on the corrected frames "
+                          "(Zhou & Koltun, Open3D): mesh_colourmap.ply beside mesh.ply if the held-out check keeps "
+                          "it (colour_map.json)."),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
-           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "fusion_options",
+           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
+           "fusion_options",
            "load_replay_config", "positive", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
            "warn_far_depth"]

@@ -48,8 +48,8 @@ _OWN = {"-o": "-o OUT of batch (each sequence gets OUT/<name>)", "--output": "-o
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(command_name: str, sequence_list: Path, options: tuple[str, ...], output: Path, workers: int | None,
             threads: int | None, engine: str, address: str | None, force: bool, no_progress: bool) -> None:
-    """Run COMMAND (reconstruct, compare or self-calibrate) on every sequence folder listed in LIST, one task per sequence, each
-    result in OUT/<name>/ exactly as 'radiomap COMMAND' writes it."""
+    """Run COMMAND (reconstruct, compare or self-calibrate) on every sequence folder listed in LIST, one task per
+    sequence, each result in OUT/<name>/ exactly as 'radiomap COMMAND' writes it."""
     from mapping.batch import (COMMANDS, BatchError, Task, read_sequence_list, run_batch, summary_rows,
                                task_names, write_summary)
     from mapping.batch.report import columns_of

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, fusion_options, replay_manifest,
-                                 sequence_options, settings_line, warn_far_depth)
+from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, fusion_options,
+                                 replay_manifest, sequence_options, settings_line, warn_far_depth)
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -83,12 +83,7 @@ def _methods(ctx, param, value):
               help="Width of each render in pixels.")
 @click.option("--glb/--no-glb", default=True, show_default=True,
               help="Also write each mesh as binary glTF (mesh.glb) for web viewers, as reconstruct does.")
-@click.option("--holdout-every", type=int, default=None, metavar="N",
-              help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
-                   "rendered at their poses (holdout.csv, metrics.json).")
-@click.option("--colour-map", type=click.Choice(["rigid", "non-rigid"]), default=None,
-              help="After fusion, optimise each method's mesh colours on its corrected frames (Zhou & Koltun, "
-                   "Open3D): mesh_colourmap.ply beside its mesh.ply if the held-out check keeps it (colour_map.json).")
+@evaluation_options
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -148,5 +143,6 @@ def task_arguments(ctx: click.Context) -> dict:
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
                                  "render_width", "glb", "holdout_every", "colour_map", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
-            "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"], "manifest": replay_manifest(ctx, files=("intrinsics",)),
+            "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
+            "manifest": replay_manifest(ctx, files=("intrinsics",)),
             "settings": settings}

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, fusion_options,
-                                 positive, replay_manifest, sequence_options, settings_line, warn_far_depth)
+from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
+                                 fusion_options, positive, replay_manifest, sequence_options, settings_line,
+                                 warn_far_depth)
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -74,12 +75,7 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--mesh-exposure", default=None, callback=_mesh_exposure, metavar="median|first|K|R,G,B",
               help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
                    "median (of the sequence's estimates; the default), first, a number or r,g,b.")
-@click.option("--holdout-every", type=int, default=None, metavar="N",
-              help="Withhold every N-th frame from fusion and judge the final map by them: PSNR and L1 of the map "
-                   "rendered at their poses (holdout.csv, metrics.json).")
-@click.option("--colour-map", type=click.Choice(["rigid", "non-rigid"]), default=None,
-              help="After fusion, optimise the mesh colours on the corrected frames (Zhou & Koltun, Open3D) and "
-                   "write mesh_colourmap.ply beside mesh.ply if the held-out check keeps it (colour_map.json).")
+@evaluation_options
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
