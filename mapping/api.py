@@ -112,7 +112,7 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
     try:
         if folder is not None:
             folder.write_json("config.json", _config_record(config, kwargs))
-        run = reconstruct(**kwargs, output=folder, colour_map=config.colour_map)   # as the command
+        run = reconstruct(**kwargs, output=folder)   # as the command
     finally:
         if folder is not None:
             folder.release()  # the lock goes with the call: a later run into OUT (a shell, a notebook) may start

@@ -139,7 +139,8 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     tracker = make_tracker(config.tracker, depth_max=config.depth_max, motion_model=config.motion_model) \
         if config.poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
-            "poses": config.poses, "progress": config.progress, "holdout_every": config.holdout_every}
+            "poses": config.poses, "progress": config.progress, "holdout_every": config.holdout_every,
+            "colour_map": config.colour_map}
 
 
 __all__ = ["BACKENDS", "TRACKERS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]

@@ -49,7 +49,7 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     folder.write_json("config.json", record)
     try:
         # with --colour-map the optimised mesh beside the plain one, before the folder is complete (mapping.colour_map)
-        run = reconstruct(**kwargs, output=folder, colour_map=config.colour_map)
+        run = reconstruct(**kwargs, output=folder)
         summary = format_table([run.summary_row()]) + "\n" + settings
         if run.colour_map is not None:
             summary += "\n" + run.colour_map.summary_line()
