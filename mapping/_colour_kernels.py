@@ -10,7 +10,9 @@ then linear interpolation inside the segment (``inv_slope = 1 / (t_{j+1} - t_j)`
 
 from __future__ import annotations
 
-from numba import njit
+from numba import njit, prange
+
+import mapping._numba_threads  # noqa: F401  (the threading layer, before any parallel kernel runs)
 
 
 @njit(cache=True, nogil=True)
@@ -39,23 +41,20 @@ def forward(x, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cov
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def l1(a, b, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cover - compiled
     """``out[i] = sum_c |level(a[i, c]) - level(b[i, c])|``: the display-unit L1 distance of two (N, C)
-    irradiance arrays, in one pass over each channel."""
+    irradiance arrays. Rows in parallel (each row's sum in the same channel order as a serial pass: the
+    result does not depend on the number of threads)."""
     nb = starts.shape[0] - 1
-    n = a.shape[0]
-    for i in range(n):
+    for i in prange(a.shape[0]):
         out[i] = 0.0
-    for c in range(a.shape[1]):
-        t0 = tables[0, c]
-        tmax = tables[255, c]
-        low = lo[c]
-        iw = inv_width[c]
-        for i in range(n):
+        for c in range(a.shape[1]):
+            t0 = tables[0, c]
+            tmax = tables[255, c]
             e = a[i, c]
             if e > t0 and e < tmax:
-                k = int((e - low) * iw)
+                k = int((e - lo[c]) * inv_width[c])
                 if k > nb:
                     k = nb
                 j = starts[k, c]
@@ -68,7 +67,7 @@ def l1(a, b, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cover
                 la = 0.0
             e = b[i, c]
             if e > t0 and e < tmax:
-                k = int((e - low) * iw)
+                k = int((e - lo[c]) * inv_width[c])
                 if k > nb:
                     k = nb
                 j = starts[k, c]

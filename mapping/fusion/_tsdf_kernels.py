@@ -2,23 +2,10 @@
 
 from __future__ import annotations
 
-import os
-
-import numba
 import numpy as np
 from numba import njit, prange
 
-# The one parallel kernel here (surface_colour) needs a threading layer. Numba tries TBB first, and the TBB that
-# Open3D loads is older than Numba accepts: a NumbaWarning on stderr in every run, then the workqueue layer, which
-# is not thread-safe. OpenMP is thread-safe and ships with Numba's wheels; a layer the user chose
-# (NUMBA_THREADING_LAYER) is kept, and so is Numba's default where its OpenMP layer cannot load (no libgomp).
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    try:
-        from numba.np.ufunc import omppool  # noqa: F401
-    except ImportError:
-        pass
-    else:
-        numba.config.THREADING_LAYER = "omp"
+import mapping._numba_threads  # noqa: F401  (the threading layer, before any parallel kernel runs)
 
 
 @njit(cache=True, nogil=True)
