@@ -200,6 +200,31 @@ def test_fast_forward_matches_the_response(response):
     np.testing.assert_allclose(half(E), response.forward(E * 0.5), atol=2e-4)
 
 
+def test_display_l1_does_not_depend_on_the_number_of_threads():
+    """The histogram's L1 kernel runs rows in parallel; each row sums its channels in one order, so one thread and
+    every thread give the same float32 bits (and the same as the serial forward look-ups summed in that order)."""
+    import numba
+
+    ff = FastForward(CameraResponse.gamma(2.2), reference_exposure=1.3)
+    rng = np.random.default_rng(3)
+    a = (rng.random((50_001, 3)) * 1.2).astype(np.float32)
+    b = (a * rng.uniform(0.9, 1.1, a.shape)).astype(np.float32)
+    a[::97, 0], b[::89, 1], b[::83, 2] = np.nan, 5.0, -1.0
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = ff.l1(a, b)
+    finally:
+        numba.set_num_threads(threads)
+    every = ff.l1(a, b)
+    assert one.dtype == np.float32 and np.array_equal(one, every)
+    la, lb = ff(a).astype(np.float64), ff(b).astype(np.float64)
+    serial = np.zeros(len(a), np.float32)
+    for c in range(3):  # out[i] += |la - lb| channel by channel, in float32 as the kernel stores it
+        serial = (serial.astype(np.float64) + np.abs(la[:, c] - lb[:, c])).astype(np.float32)
+    np.testing.assert_allclose(every, serial, atol=1e-4)
+
+
 def test_colour_models():
     response = CameraResponse.gamma(2.2)
     rgb = np.random.default_rng(1).integers(0, 256, (6, 8, 3)).astype(np.uint8)
