@@ -489,6 +489,39 @@ def frames_dataset(frames, K, rgb_override=None):
                                    f.depth.astype(np.float32), K, f.pose) for f in frames], name="simulated-ae-awb")
 
 
+def test_a_frame_without_usable_pixels_does_not_become_the_anchor():
+    """A black (lens cap) or blown-out first frame anchors nothing: it falls back, its colour is not fused, and the
+    first frame with enough usable pixels becomes the anchor; the frames after it are estimated against it."""
+    est = ExposureEstimator(GAMMA)
+    first = plane_frame(0, pose_at(), [1, 1, 1])
+    black = RGBDFrame(0, first.timestamp, np.zeros_like(first.rgb), first.depth, first.K, first.pose)
+    white = plane_frame(1, pose_at(0.02), [20, 20, 20])
+    for frame in (black, white):
+        np.testing.assert_array_equal(est(frame, None, None), [1, 1, 1])
+        assert est.last.source == "fallback" and not est.last.fuse_colour
+        assert est.last.reason.startswith("no anchor yet: 0 usable pixels (need 200)")
+    est(plane_frame(2, pose_at(0.04), [1, 1, 1]), None, None)
+    assert est.last.source == "reference" and est.last.fuse_colour and "first frame with enough" in est.last.reason
+    k = est(plane_frame(3, pose_at(0.06), [0.8, 0.7, 0.9]), None, None)   # frame to frame against the anchor
+    assert est.last.source == "frame"
+    np.testing.assert_allclose(k, [0.8, 0.7, 0.9], rtol=0.02)
+
+
+def test_a_black_first_frame_does_not_stop_a_compensated_run(ae_awb_sequence):
+    from mapping.colour import IrradianceColour
+
+    seq = ae_awb_sequence
+    frames = list(seq["frames"][:8])
+    f0 = frames[0]
+    frames[0] = type(f0)(**{**f0.__dict__, "rgb": np.zeros_like(f0.rgb)})
+    model = CompensatedColour(IrradianceColour(seq["camera"].response, seq["camera"].vignetting))
+    run, _ = _run(frames_dataset(frames, seq["K"]), model)
+    assert run.fused == 7 and [r.fused for r in run.records] == [False] + [True] * 7
+    records = model.estimator.records
+    assert records[0].source == "fallback" and records[1].source == "reference"
+    assert [r.source for r in records[2:]] == ["map"] * 6
+
+
 @pytest.fixture(scope="module")
 def ae_awb_sequence():
     """50 frames of the simulated room (Xtion-like camera: S-shaped CRF differing per channel, strong vignetting,

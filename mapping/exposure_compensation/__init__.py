@@ -40,7 +40,9 @@ interpolation is linear in it; the same depth and intensity filters), giving
 depth (the first frames, the camera entering unmapped space) and recorded as a cross-check otherwise
 (``ExposureRecord.disagreement``: the largest per-channel relative difference of the two estimates).
 
-*Robustness.* A frame whose estimate has fewer than ``min_correspondences`` usable pixels in a channel,
+*Robustness.* The anchor (k = 1) is the first frame with at least ``min_correspondences`` usable pixels: a
+black or blown-out first frame falls back (not fused) instead of anchoring a map no later frame could be
+compared with. A frame whose estimate has fewer than ``min_correspondences`` usable pixels in a channel,
 or jumps by more than ``max_jump`` (or less than ``1 / max_jump``) against the last accepted estimate in
 any channel, FALLS BACK: its ``k`` is the last accepted one, it is counted
 (:attr:`ExposureEstimator.fallbacks`) and, by default (``fuse_fallback=False``), its colour is not fused

@@ -234,8 +234,16 @@ class ExposureEstimator:
         record = ExposureRecord(int(frame.index), float(frame.timestamp), np.ones(3), "reference")
 
         if self._k_accepted is None:
-            # the anchor: the first frame defines the units of the map
-            record.reason = "first frame: the anchor (k = 1)"
+            # the anchor: the first frame with enough usable pixels defines the units of the map; a black, blown
+            # out or empty first frame would anchor nothing, and every later frame would then fall back
+            usable = int(np.count_nonzero(obs.usable))
+            if usable < self.min_correspondences:
+                record.source, record.fuse_colour = "fallback", False
+                record.reason = (f"no anchor yet: {usable} usable pixels (need {self.min_correspondences}); the first "
+                                 "frame with enough becomes the anchor (k = 1)")
+                return self._store(record)
+            record.reason = "first frame: the anchor (k = 1)" if not self.records else \
+                f"the anchor (k = 1): the first frame with enough usable pixels ({usable})"
             self._accept(record, np.ones(3), obs)
             return self._store(record)
 
