@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import resource
 from collections import Counter
 from dataclasses import dataclass, field
@@ -119,10 +120,11 @@ class RunResult:
 
 
 def reason_kind(reason: str) -> str:
-    for i, ch in enumerate(reason):
-        if ch.isdigit():
-            return reason[:i].strip() or reason
-    return reason
+    """The kind of a skip reason, for counting: the text before its first number or parenthesis ("fitness",
+    "too few valid depth pixels"), so that frames skipped for one cause count together."""
+    match = re.search(r"\d| \(", reason)
+    kind = reason[:match.start()] if match else reason
+    return kind.rstrip(" :") or reason
 
 
 def peak_rss_mb() -> float:

@@ -306,11 +306,11 @@ class FrameToModelTracker:
         invalid_t = (view.depth <= 0) | ((n[..., 0] == 0) & (n[..., 1] == 0) & (n[..., 2] == 0))
         n_target = invalid_t.size - int(np.count_nonzero(invalid_t))
         if n_target < self.min_view_pixels:
-            return TrackingResult(init, False, f"the map shows only {n_target} pixels from here"), None, 0
+            return TrackingResult(init, False, f"too little of the map in view ({n_target} pixels)"), None, 0
         valid_s = (depth > self.depth_min) & (depth < self.depth_max)
         n_source = int(np.count_nonzero(valid_s))
         if n_source < self.min_view_pixels:
-            return TrackingResult(init, False, f"the frame has only {n_source} valid depth pixels"), None, 0
+            return TrackingResult(init, False, f"too few valid depth pixels ({n_source})"), None, 0
         return None, invalid_t, n_source
 
     def _track(self, depth, K, view, view_pose, init, colour) -> TrackingResult:

@@ -74,7 +74,7 @@ def test_tracker_tracks_and_rejects(box):
     # no model to track against, and a frame without depth
     assert "no model view" in tracker.track(f1.depth, f1.K, None, f0.pose).reason
     empty = ModelView(depth=np.zeros_like(view.depth), colour=view.colour, vertex=view.vertex, normal=view.normal)
-    assert "shows only 0 pixels" in tracker.track(f1.depth, f1.K, empty, f0.pose).reason
+    assert "too little of the map in view (0 pixels)" in tracker.track(f1.depth, f1.K, empty, f0.pose).reason
     assert "valid depth pixels" in tracker.track(np.zeros_like(f1.depth), f1.K, view, f0.pose).reason
 
 

@@ -153,7 +153,7 @@ def test_empty_or_missing_views_fail_cleanly(cls):
     tracker.start(np.eye(4))
     empty = ModelView(np.zeros((H, W), np.float32), np.zeros((H, W, 3), np.float32),
                       np.zeros((H, W, 3), np.float32), np.zeros((H, W, 3), np.float32))
-    for view, reason in ((None, "no model view"), (empty, "the map shows only 0 pixels")):
+    for view, reason in ((None, "no model view"), (empty, "too little of the map in view (0 pixels)")):
         result = tracker.track(frame.depth, K, view, np.eye(4), colour=colour)
         assert not result.ok and reason in result.reason
         np.testing.assert_array_equal(result.pose, np.eye(4))   # the prediction, nothing fused from it
