@@ -10,8 +10,11 @@ pcalib when ``../shared/data`` is present. Each is rendered into 12 exposures of
 - ``varied``: the same times, each moved by a random factor 2^(-0.35..0.35) (fixed seed), so that the
   exposure ratios are not all equal.
 
-Methods: ``debevec`` (lambda 10, the default), ``debevec`` with lambda chosen by cross-validation
-(``lam="auto"``), ``engel``, OpenCV's ``CalibrateDebevec`` and ``CalibrateRobertson``. For each the table
+Methods: ``debevec`` (lambda 10), ``debevec`` with lambda chosen by cross-validation (``lam="auto"``), ``engel``
+(the eigen solver), ``engel-prior`` (Engel's energy with the log-log curvature prior, weight 1), ``loglog``
+(:func:`radiometry.response_loglog.fit_response_loglog`: Debevec's data term over all pixels with the log-log
+curvature prior), ``auto`` (the default: what :func:`radiometry.response_fit.fit_response` picks), OpenCV's
+``CalibrateDebevec`` and ``CalibrateRobertson``. For each the table
 gives the largest ``|f^-1 - truth|`` over levels 5..250 and 5..240 in % of the range (R/G/B, both curves
 normalised ``f^-1(255) = 1``) and the fit time. The vignetting part of issue 15 is not here yet.
 
@@ -39,10 +42,14 @@ for path in (REPO, REPO / "tests"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
+#: label -> (a method of fit_response, or "module:function", keyword arguments)
 METHODS = {
     "debevec": ("debevec", {}),
     "debevec-cv": ("debevec", {"lam": "auto"}),
     "engel": ("engel", {}),
+    "engel-prior": ("engel", {"prior": 1.0}),
+    "loglog": ("radiometry.response_loglog:fit_response_loglog", {}),
+    "auto": ("auto", {}),
     "opencv-debevec": ("opencv-debevec", {}),
     "robertson": ("robertson", {}),
 }
@@ -58,8 +65,19 @@ def design_times(design: str) -> np.ndarray:
     return TIMES * 2.0 ** jitter
 
 
-def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int = 0) -> list[dict]:
+def _fitter(method: str):
+    """``fit_response`` with ``method``, or the function ``module:function`` names."""
+    if ":" in method:
+        import importlib
+
+        module, name = method.split(":")
+        return getattr(importlib.import_module(module), name)
     from radiometry.response_fit import fit_response
+
+    return lambda images, times, **kwargs: fit_response(images, times, method=method, **kwargs)
+
+
+def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int = 0) -> list[dict]:
     from response_curves import curves, max_error_percent, render_brackets, scene
 
     width, height = size
@@ -72,14 +90,16 @@ def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int
             for label in methods:
                 method, kwargs = METHODS[label]
                 start = time.perf_counter()
-                response = fit_response(images, times, method=method, **kwargs)
+                response = _fitter(method)(images, times, **kwargs)
                 seconds = time.perf_counter() - start
                 meta = response.meta
                 note = ""
                 if label == "debevec-cv":
                     note = f"lambda {meta['lambda']:g}"
-                elif label == "engel":
-                    note = f"{max(meta['iterations'])} rounds"
+                elif label.startswith("engel"):
+                    note = f"{meta['solver']}, {max(meta['iterations'])} rounds"
+                elif label == "auto":
+                    note = meta["method"]
                 elif meta.get("repaired"):
                     note = "repaired"
                 e250 = max_error_percent(response.inverse_table, table, (5, 250))
