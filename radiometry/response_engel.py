@@ -335,7 +335,7 @@ def fit_response_engel(images: Sequence[np.ndarray], times: Sequence[float], *, 
     if equal:
         log.warning("the exposure times are all %.3gx apart: the response is then determined only up to a factor "
                     "periodic in ln E, and the Engel fit can be several %% off; use times whose ratios differ, "
-                    "or --method debevec", equal)
+                    "or --method loglog (the default, auto)", equal)
     n_img, h, w, n_ch = stack.shape
     valid = _check_mask(mask, (h, w))
     valid_flat = None if valid is None else valid.ravel()

@@ -162,11 +162,42 @@ def _solve_channel(pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int, 
     pooled = [[int(lv[k]) for k in block] for block in blocks]
     ln_e_num = np.bincount(pix, weights=_HAT[z] * (np.log(u[z]) - log_t[img]), minlength=n_pix)
     ln_e = ln_e_num / np.bincount(pix, weights=_HAT[z], minlength=n_pix)
-    return {"u": u, "observed": observed, "counts": counts, "pooled": pooled, "ln_e": ln_e}
+    stderr = _log_stderr(system, pix, img, z, n_pix, log_t, lv, np.log(u[z]) - ln_e[pix] - log_t[img])
+    return {"u": u, "observed": observed, "counts": counts, "pooled": pooled, "ln_e": ln_e, "log_stderr": stderr}
+
+
+def _log_stderr(system: np.ndarray, pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int,
+                log_t: np.ndarray, lv: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """Standard error of ``g(z) - g(top observed level)`` at every level, (256,): the sandwich covariance
+    ``S^-1 (sum_i s_i s_i^T / W^2) S^-1`` of the final linear system ``S`` (data, prior and smoothness; the ties of
+    the monotone solve are ignored), with ``s_i = sum_j w_ij r_ij e_(z_ij)`` the score of pixel ``i`` from its
+    residuals (pixels are independent, their observations need not be) and ``W`` the sum of weights. It measures
+    the noise of the pixels, not the prior's bias nor the factor periodic in ``ln E`` that equal exposure ratios
+    leave undetermined. Unobserved levels inside the observed span are interpolated, those outside hold the
+    nearest observed level's value (the extrapolation's own error is not in it)."""
+    import scipy.sparse as sp
+
+    column = np.full(LEVELS, -1, dtype=np.intp)
+    column[lv] = np.arange(lv.size)
+    w = _HAT[z]
+    scores = sp.csr_matrix((w * residual, (pix, column[z])), shape=(n_pix, lv.size))
+    meat = (scores.T @ scores).toarray()[:-1, :-1] / float(w.sum()) ** 2
+    out = np.zeros(LEVELS)
+    if lv.size > 1:
+        try:
+            inv = np.linalg.inv(system[:-1, :-1])
+        except np.linalg.LinAlgError:
+            return out
+        var = np.einsum("ij,jk,ik->i", inv, meat, inv)
+        se = np.zeros(lv.size)
+        se[:-1] = np.sqrt(np.maximum(var, 0.0))
+        out = np.interp(np.arange(LEVELS), lv, se)
+    return out
 
 
 def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float = DEFAULT_LAM,
-                        smooth: float = DEFAULT_SMOOTH, pixels: int | None = DEFAULT_PIXELS, mask: np.ndarray | None = None,
+                        smooth: float = DEFAULT_SMOOTH, pixels: int | None = DEFAULT_PIXELS,
+                        mask: np.ndarray | None = None,
                         levels: tuple[int, int] = (1, 254), seed: int = 0) -> CameraResponse:
     """Debevec's data term over all pixels with the log-log curvature prior (see the module docstring).
 
@@ -224,6 +255,8 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
         "monotonicity": "the energy's minimum over non-decreasing g when the free minimum is not increasing",
         "repaired": False, "ties_separated": not strict,
         "fit_rms_levels": math.sqrt(sq / n_obs),
+        "inverse_stderr": np.stack([s["log_stderr"] for s in per_channel], axis=1).tolist(),
+        "inverse_stderr_source": "loglog: sandwich covariance of the final linear system over pixels (noise only)",
     }
     response = CameraResponse(table / table[-1], meta)
     response.meta["fit_seconds"] = time.perf_counter() - start

@@ -18,6 +18,9 @@ curvature prior), ``auto`` (the default: what :func:`radiometry.response_fit.fit
 gives the largest ``|f^-1 - truth|`` over levels 5..250 and 5..240 in % of the range (R/G/B, both curves
 normalised ``f^-1(255) = 1``) and the fit time. The vignetting part of issue 15 is not here yet.
 
+``--curves break`` runs the curves built to break the priors instead (``tests/response_curves.py``'s
+``break_curves``: knees and a flat stretch in the dark octaves, a shoulder, linear, gamma 3, sRGB).
+
 ``--ambiguity`` prints instead, per curve and smoothness prior, the error of the member of the exact-2x ambiguity
 family (``g + q(g mod ln 2)``, ``g = ln f^-1``, ``q`` periodic) that the prior prefers, computed from the true
 curve: what a fit with that prior cannot get below however many pixels it has (:func:`ambiguity_bound`).
@@ -48,7 +51,7 @@ METHODS = {
     "debevec-cv": ("debevec", {"lam": "auto"}),
     "engel": ("engel", {}),
     "engel-prior": ("engel", {"prior": 1.0}),
-    "loglog": ("radiometry.response_loglog:fit_response_loglog", {}),
+    "loglog": ("loglog", {}),
     "auto": ("auto", {}),
     "opencv-debevec": ("opencv-debevec", {}),
     "robertson": ("robertson", {}),
@@ -77,15 +80,17 @@ def _fitter(method: str):
     return lambda images, times, **kwargs: fit_response(images, times, method=method, **kwargs)
 
 
-def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int = 0) -> list[dict]:
-    from response_curves import curves, max_error_percent, render_brackets, scene
+def run(size: tuple[int, int], designs: list[str], methods: list[str], seed: int = 0,
+        curve_set: str = "test") -> list[dict]:
+    from response_curves import break_curves, curves, max_error_percent, render_brackets, scene
 
     width, height = size
     radiance = scene(height, width, seed=seed)
     rows = []
+    tables = curves() if curve_set == "test" else break_curves()
     for design in designs:
         times = design_times(design)
-        for name, table in curves().items():
+        for name, table in tables.items():
             images = render_brackets(table, radiance, times, seed=seed)
             for label in methods:
                 method, kwargs = METHODS[label]
@@ -178,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=list(METHODS),
                         help="methods (default all)")
     parser.add_argument("--seed", type=int, default=0, help="scene and noise seed")
+    parser.add_argument("--curves", choices=("test", "break"), default="test",
+                        help="test: the test set (gamma, S, two kinks, EuRoC); break: curves built to break the "
+                             "priors (dark kink and flat, shoulder, mid kink, linear, gamma 3, sRGB)")
     parser.add_argument("--ambiguity", action="store_true",
                         help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
     args = parser.parse_args(argv)
@@ -201,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     try:
-        rows = run((width, height), args.design, args.methods, seed=args.seed)
+        rows = run((width, height), args.design, args.methods, seed=args.seed, curve_set=args.curves)
     finally:
         quiet.setLevel(level)  # main() may run inside another program (the tests): leave its logging as it was
     print(f"response calibration vs truth ({width}x{height}, 12 exposures, OpenCV {cv2.__version__})")

@@ -84,6 +84,30 @@ def euroc_curve() -> np.ndarray | None:
     return read_pcalib(EUROC_PCALIB) if EUROC_PCALIB.is_file() else None
 
 
+def dark_flat_curve() -> np.ndarray:
+    """Near-flat (a tenth of the slope) over levels 40..55 of a 1.5 power curve: a flat stretch where an octave
+    spans few levels."""
+    base = np.diff(U ** 1.5, prepend=0.0)
+    return _from_slopes(base * np.where((LEVELS >= 40) & (LEVELS <= 55), 0.1, 1.0))
+
+
+def srgb_curve() -> np.ndarray:
+    """The sRGB decoding (IEC 61966-2-1): linear below level ~10, then a 2.4 power."""
+    return np.where(U <= 0.04045, U / 12.92, ((U + 0.055) / 1.055) ** 2.4)
+
+
+def break_curves() -> dict[str, np.ndarray]:
+    """Curves built to break the response fits' priors (not tuned on): knees in the dark octaves, where the
+    equal-ratio ambiguity's period spans few levels, a flat dark stretch, a shoulder, a linear and a steep
+    gamma curve, sRGB."""
+    out = {"dark-kink-4x@60": kink_curve(knee=60, factor=4.0), "dark-flat-40-55": dark_flat_curve(),
+           "shoulder-0.25x@200": kink_curve(knee=200, factor=0.25), "mid-kink-3x@120": kink_curve(120, 3.0),
+           "linear": U.copy(), "gamma-3": gamma_curve(3.0), "srgb": srgb_curve()}
+    for name, table in out.items():
+        assert table.shape == (256,) and np.all(np.diff(table) > 0) and table[-1] == 1.0, name
+    return out
+
+
 def curves(include_euroc: bool = True) -> dict[str, np.ndarray]:
     """The test set: name -> ``(256,)`` inverse response (EuRoC only when ../shared/data is present)."""
     out = {"gamma-2.2": gamma_curve(2.2), "s-curve": s_curve(), "kink-4x": kink_curve(),

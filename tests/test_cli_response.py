@@ -51,19 +51,20 @@ def test_response_on_the_sample(tmp_path):
     out = tmp_path / "out" / "crf.npz"
     result = invoke(SAMPLE, "-o", out)
     assert result.exit_code == 0, result.output
-    for word in ("method", "debevec", "channels", "images", "samples", "fit RMS", "monotone", "time", "wrote"):
+    for word in ("method loglog (auto: every exposure ratio is 4x", "channels", "images", "samples", "fit RMS",
+                 "monotone", "time", "wrote"):
         assert word in result.output
     response = CameraResponse.load(out)
     truth = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
-    assert response.channels == 3 and response.meta["method"] == "debevec"
-    # measured: 0.39% of the range (levels 5..250, normalised f^-1(255) = 1)
+    assert response.channels == 3 and response.meta["method"] == "loglog"
+    # measured: 0.33% of the range (levels 5..250, normalised f^-1(255) = 1; Debevec 0.39 %)
     levels = np.arange(5, 251)
     assert np.abs(response.inverse_table[levels] - truth.inverse_table[levels]).max() < 0.01
-    assert response.meta["prediction_rms_levels"] < 1.5  # measured 0.94 (the true response: 0.77)
+    assert response.meta["prediction_rms_levels"] < 1.2  # measured 0.78 (the true response: 0.77, Debevec 0.94)
     png = out.with_suffix(".png").read_bytes()
     assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 10_000
     record = json.loads(out.with_suffix(".json").read_text())
-    assert record["command"] == "response" and record["summary"]["method"] == "debevec"
+    assert record["command"] == "response" and record["summary"]["method"] == "loglog"
     assert record["response"]["images_used"] == [f"exposure_{k}.png" for k in range(5)]
 
 
@@ -71,11 +72,12 @@ def test_overwrite_needs_force(tmp_path):
     out = tmp_path / "crf.npz"
     assert invoke(SAMPLE, "-o", out, "--samples", "10").exit_code == 0
     first = out.read_bytes()
+    assert CameraResponse.load(out).meta["samples_per_level"] == 10  # --samples: Debevec
     line = one_line_error(invoke(SAMPLE, "-o", out))
     assert line == f"radiomap: error: {out} exists; pass --force to overwrite it or choose another name"
     assert out.read_bytes() == first
     assert invoke(SAMPLE, "-o", out, "--force").exit_code == 0
-    assert out.read_bytes() != first and CameraResponse.load(out).meta["samples_per_level"] == 50
+    assert out.read_bytes() != first and CameraResponse.load(out).meta["method"] == "loglog"
 
 
 @pytest.mark.parametrize("suffix, method, extra, channels", [
@@ -128,10 +130,12 @@ def test_other_known_errors(tmp_path, sample_copy):
     (["--method", "robertson", "--lambda", "3"], "apply to debevec and opencv-debevec, not robertson"),
     (["--method", "opencv-debevec", "--mask-blue"], "--mask-blue needs --method debevec"),
     (["--channel", "R"], "--channel applies to a .txt"),
-    (["--method", "svd"], "'svd' is not one of 'auto', 'debevec', 'engel', 'opencv-debevec', 'robertson'"),
+    (["--method", "svd"], "'svd' is not one of 'auto', 'debevec', 'engel', 'loglog', 'opencv-debevec', 'robertson'"),
     (["--method", "engel", "--lambda", "3"], "apply to debevec and opencv-debevec, not engel"),
     (["--method", "engel", "--samples", "30"], "apply to debevec and opencv-debevec, not engel"),
     (["--method", "opencv-debevec", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),
+    (["--method", "loglog", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),
+    (["--method", "loglog", "--samples", "30"], "--samples applies to debevec and opencv-debevec; loglog uses all"),
     (["--lambda", "abc"], "'abc' is not a valid float"),
     (["--lambda", "-1"], "-1.0 is not in the range x>0"),
     (["--samples", "0"], "0 is not in the range x>=1"),
@@ -140,6 +144,15 @@ def test_other_known_errors(tmp_path, sample_copy):
 def test_usage_errors(tmp_path, args, message):
     result = invoke(SAMPLE, "-o", tmp_path / "crf.npz", *args)
     assert result.exit_code == 2 and message in result.output
+
+
+def test_loglog_takes_its_prior_weight_from_lambda(tmp_path):
+    out = tmp_path / "crf.npz"
+    result = invoke(SAMPLE, "-o", out, "--method", "loglog", "--lambda", "0.5", "--mask-blue")
+    assert result.exit_code == 0, result.output
+    meta = CameraResponse.load(out).meta
+    assert meta["method"] == "loglog" and meta["lambda"] == 0.5 and meta["masked"] is True
+    assert "chosen_by" not in meta and np.asarray(meta["inverse_stderr"]).shape == (256, 3)
 
 
 def test_mask_blue_is_reported(tmp_path):
@@ -151,7 +164,7 @@ def test_console_entry_point(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mapping.cli", "response", str(SAMPLE), "-o",
                           str(tmp_path / "crf.crf")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert "debevec" in out.stdout and (tmp_path / "crf.crf").is_file()
+    assert "method loglog" in out.stdout and (tmp_path / "crf.crf").is_file()
 
 
 def test_plot_response_is_axis_first(tmp_path):

@@ -52,18 +52,23 @@ def test_engel_keeps_the_knee_that_debevec_rounds(radiance):
     engel = max_error_percent(fit_response(images, VARIED_TIMES, method="engel").inverse_table, truth).max()
     debevec = max_error_percent(fit_response(images, VARIED_TIMES, method="debevec").inverse_table, truth).max()
     assert engel < 0.6 * debevec, (engel, debevec)  # measured 0.82 vs 1.76
-    chosen = fit_response(images, VARIED_TIMES)       # the default, auto: Engel, since the ratios differ
-    assert chosen.meta["method"] == "engel" and "ratios differ" in chosen.meta["chosen_by"]
-    np.testing.assert_array_equal(chosen.inverse_table, fit_response(images, VARIED_TIMES, method="engel").inverse_table)
+    chosen = fit_response(images, VARIED_TIMES)       # the default, auto: loglog, which keeps the knee too
+    assert chosen.meta["method"] == "loglog" and "varied exposure ratios" in chosen.meta["chosen_by"]
+    assert "the log-log fit" in chosen.meta["chosen_by"]
+    assert max_error_percent(chosen.inverse_table, truth).max() < 0.6 * debevec  # measured 0.73
 
 
-def test_auto_takes_debevec_for_equal_ratios_or_its_options():
+def test_auto_takes_loglog_unless_debevecs_options_are_given():
     small = scene(40, 60)
     images = render_brackets(kink_curve(), small, TIMES)
     response = fit_response(images, TIMES)
-    assert response.meta["method"] == "debevec" and "every exposure ratio is 2x" in response.meta["chosen_by"]
+    assert response.meta["method"] == "loglog" and "every exposure ratio is 2x" in response.meta["chosen_by"]
+    np.testing.assert_array_equal(response.inverse_table, fit_response(images, TIMES, method="loglog").inverse_table)
     varied = render_brackets(kink_curve(), small, VARIED_TIMES)
-    assert fit_response(varied, VARIED_TIMES, lam=5).meta["method"] == "debevec"
+    assert fit_response(varied, VARIED_TIMES).meta["method"] == "loglog"
+    for option in ({"lam": 5}, {"samples": 20}):
+        chosen = fit_response(varied, VARIED_TIMES, **option)
+        assert chosen.meta["method"] == "debevec" and "lambda or samples given" in chosen.meta["chosen_by"]
 
 
 def test_equal_ratios_are_detected_and_warned(radiance, caplog):

@@ -98,15 +98,16 @@ LEVELS_CHECKED = np.arange(5, 251)
 
 # measured max errors (% of range, levels 5..250): gamma 1ch 0.44, 3ch 0.45; s-curve 1ch 0.73, 3ch 0.47
 # (over 6 other noise/scene seeds: at most 0.78)
+@pytest.mark.parametrize("method, expected", [("debevec", "debevec"), ("auto", "loglog")])
 @pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("crf", ["gamma", "s-curve"])
-def test_debevec_recovers_known_response(synthetic, crf, channels):
+def test_debevec_recovers_known_response(synthetic, crf, channels, method, expected):
     images, truth = synthetic(crf, channels)
-    response = fit_response(images, TIMES)
+    response = fit_response(images, TIMES, method=method)
     table = response.inverse_table
     assert table.shape == (256, channels) and table.dtype == np.float64
     assert np.all(np.diff(table, axis=0) > 0) and table[-1].tolist() == [1.0] * channels
-    assert response.meta["method"] == "debevec" and response.meta["repaired"] is False
+    assert response.meta["method"] == expected and response.meta["repaired"] is False
     assert response.meta["unobserved_levels"] == [[]] * channels
     err = np.abs(table[LEVELS_CHECKED] - truth[LEVELS_CHECKED]).max(axis=0)
     assert np.all(err < 0.01), f"max |f^-1 - truth| per channel: {err}"
@@ -287,7 +288,7 @@ def test_integer_images_in_range_are_accepted():
 
 def test_bad_options():
     images = _stack(3)
-    with pytest.raises(ValueError, match="method must be one of auto, debevec, engel, opencv-debevec, robertson, "
+    with pytest.raises(ValueError, match="method must be one of auto, debevec, engel, loglog, opencv-debevec, robertson, "
                                          "got 'svd'"):
         fit_response(images, [1, 2, 4], method="svd")
     with pytest.raises(TypeError, match="unexpected keyword argument 'lam'"):

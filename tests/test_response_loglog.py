@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from response_curves import TIMES, curves, kink_curve, max_error_percent, render_brackets, scene
+from response_curves import TIMES, break_curves, curves, kink_curve, max_error_percent, render_brackets, scene
 
 from radiometry.response_fit import fit_response
 from radiometry.response_loglog import fit_response_loglog, prior_rows
@@ -51,6 +51,29 @@ def test_varied_ratios_are_within_one_percent_too(radiance):
     response = fit_response_loglog(images, VARIED_TIMES)
     assert response.meta["equal_ratios"] is None
     assert np.all(max_error_percent(response.inverse_table, truth) <= 1.0)
+
+
+@pytest.fixture(scope="module")
+def break_radiance():
+    return scene(240, 320, seed=3)
+
+
+#: measured, 320x240, scene and noise seed 3 (640x480 seed 7 in README): varied 0.50 / 0.84 / 0.52 / 0.36 / 0.30
+#: / 0.45 / 0.26; exact 2x 1.53 / 2.20 / 0.64 / 0.55 / 0.37 / 0.54 / 0.33 (order of break_curves)
+BREAK_2X_LIMIT = {"dark-kink-4x@60": 2.0, "dark-flat-40-55": 2.8}
+
+
+@pytest.mark.parametrize("name", list(break_curves()))
+def test_curves_built_to_break_the_prior(break_radiance, name):
+    """Curves the weights were not chosen on. Varied ratios: within 1 % each. Exact 2x: within 1 % except where a
+    kink or flat stretch lies in the darkest octaves (a few levels an octave), where the prior that suppresses the
+    periodic ambiguity also flattens the real feature: the known failure, bounded here so that it cannot grow."""
+    truth = break_curves()[name]
+    varied = fit_response(render_brackets(truth, break_radiance, VARIED_TIMES, seed=3), VARIED_TIMES)
+    assert varied.meta["method"] == "loglog"
+    assert max_error_percent(varied.inverse_table, truth).max() <= 1.0
+    exact = fit_response(render_brackets(truth, break_radiance, TIMES, seed=3), TIMES)
+    assert max_error_percent(exact.inverse_table, truth).max() <= BREAK_2X_LIMIT.get(name, 1.0)
 
 
 def test_a_gamma_curve_costs_the_prior_nothing():

@@ -9,7 +9,7 @@ import click
 
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
 #: the names of radiometry.response_fit.FITTERS (listed here so that --help imports no NumPy)
-RESPONSE_METHODS = ("auto", "debevec", "engel", "opencv-debevec", "robertson")
+RESPONSE_METHODS = ("auto", "debevec", "engel", "loglog", "opencv-debevec", "robertson")
 
 
 class LambdaType(click.ParamType):
@@ -25,7 +25,8 @@ class LambdaType(click.ParamType):
 EPILOG = """\b
 Examples:
   radiomap response data_samples/brackets -o out/crf.npz
-      Debevec & Malik on the embedded sample (times from data_samples/brackets/times.txt)
+      the default fit (log-log curvature prior) on the embedded sample (times from
+      data_samples/brackets/times.txt)
   radiomap response ../shared/data/brackets/memorial_debevec1997 --mask-blue -o memorial.crf
       the memorial stack without its blue border fill, saved for radical
   radiomap response brackets/ --times times.txt --method robertson -o pcalib.txt
@@ -53,16 +54,18 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Response file: .npz (radiomap), .crf (radical) or .txt (DSO/TUM pcalib, one channel).")
 @click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default="auto",
-              show_default=True, help="auto: Engel's maximum likelihood when the exposure ratios differ, our "
-                                      "sparse Debevec & Malik when they are all equal (or --lambda/--samples is "
-                                      "given); or one of them, or OpenCV's Debevec / Robertson.")
+              show_default=True, help="auto: loglog (Debevec's data term over all pixels with a log-log curvature "
+                                      "prior: the most accurate on our test set of curves), or debevec when "
+                                      "--lambda/--samples is given; or debevec, engel, loglog, or OpenCV's "
+                                      "Debevec / Robertson.")
 @click.option("--lambda", "lam", type=LambdaType(), default=None,
               help="Smoothness weight (debevec: per level of data, default 10, or 'auto': chosen by "
-                   "cross-validation on held-out pixels; opencv-debevec: OpenCV's lambda, default 10).")
+                   "cross-validation on held-out pixels; loglog: the prior's weight, default 0.1; "
+                   "opencv-debevec: OpenCV's lambda, default 10).")
 @click.option("--samples", type=click.IntRange(min=1), default=None,
               help="debevec: observations per intensity level (default 50); opencv-debevec: pixel locations (70).")
 @click.option("--mask-blue", is_flag=True,
-              help="Ignore pure-blue fill (registered stacks such as memorial); debevec and engel.")
+              help="Ignore pure-blue fill (registered stacks such as memorial); auto, debevec, engel and loglog.")
 @click.option("--channel", type=click.Choice(["mean", "R", "G", "B"], case_sensitive=False), default=None,
               help="For a .txt (pcalib, one channel) OUTPUT of colour images: the channel to write [default: "
                    "mean, with a warning].")
@@ -114,12 +117,15 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     kwargs = {}
     if method in ("robertson", "engel") and (lam is not None or samples is not None):
         raise click.UsageError(f"--lambda and --samples apply to debevec and opencv-debevec, not {method}")
+    if method == "loglog" and samples is not None:
+        raise click.UsageError("--samples applies to debevec and opencv-debevec; loglog uses all pixels")
     if lam == "auto" and method not in ("debevec", "auto"):
         raise click.UsageError("--lambda auto (cross-validation) needs --method debevec")
     if channel is not None and suffix != ".txt":
         raise click.UsageError("--channel applies to a .txt (pcalib) output only")
-    if mask_blue and method not in ("auto", "debevec", "engel"):
-        raise click.UsageError("--mask-blue needs --method debevec or engel (OpenCV's methods take no mask)")
+    if mask_blue and method not in ("auto", "debevec", "engel", "loglog"):
+        raise click.UsageError("--mask-blue needs --method debevec, engel or loglog (OpenCV's methods take no "
+                               "mask)")
     if lam is not None:
         kwargs["lam"] = lam
     if samples is not None:
@@ -155,7 +161,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     plot_path = output.with_suffix(".png")
     repaired = meta.get("repaired_levels")
     monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
-    if method in ("debevec", "engel"):
+    if method in ("debevec", "engel", "loglog"):
         sampled = "/".join(str(p) for p in meta["pixels"]) + " px"
     elif method == "opencv-debevec":
         sampled = f"{meta['samples']} px"
