@@ -16,7 +16,12 @@ Methods: ``debevec`` (lambda 10), ``debevec`` with lambda chosen by cross-valida
 curvature prior), ``auto`` (the default: what :func:`radiometry.response_fit.fit_response` picks), OpenCV's
 ``CalibrateDebevec`` and ``CalibrateRobertson``. For each the table
 gives the largest ``|f^-1 - truth|`` over levels 5..250 and 5..240 in % of the range (R/G/B, both curves
-normalised ``f^-1(255) = 1``) and the fit time. The vignetting part of issue 15 is not here yet.
+normalised ``f^-1(255) = 1``) and the fit time.
+
+``--end-to-end`` runs instead, per curve and vignette (EuRoC DSO vignette, two lensfun profiles, the asymmetric
+preset) and per response method (ours and OpenCV's), the response's error and the vignetting LUT calibrated with
+that response against the truth, in one table (:mod:`bench_vignetting`; its options follow, e.g.
+``--end-to-end --design 2x``).
 
 ``--curves break`` runs the curves built to break the priors instead (``tests/response_curves.py``'s
 ``break_curves``: knees and a flat stretch in the dark octaves, a shoulder, linear, gamma 3, sRGB).
@@ -186,8 +191,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--curves", choices=("test", "break"), default="test",
                         help="test: the test set (gamma, S, two kinks, EuRoC); break: curves built to break the "
                              "priors (dark kink and flat, shoulder, mid kink, linear, gamma 3, sRGB)")
+    parser.add_argument("--end-to-end", action="store_true",
+                        help="instead: response and vignetting LUT end to end per curve x vignette x method "
+                             "(scripts/bench_vignetting.py; its options follow)")
     parser.add_argument("--ambiguity", action="store_true",
                         help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
+    if argv is None:
+        argv = sys.argv[1:]
+    if "--end-to-end" in argv:  # the response and the LUT calibrated with it, per curve x vignette x method
+        if str(Path(__file__).resolve().parent) not in sys.path:
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import bench_vignetting
+
+        return bench_vignetting.main([a for a in argv if a != "--end-to-end"])
     args = parser.parse_args(argv)
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))

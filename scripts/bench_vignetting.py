@@ -12,12 +12,13 @@ shifted), two lensfun profiles, radiomap's ``asymmetric`` preset; curves: the Eu
 Measure: RMS over all pixels, per channel, in 8-bit levels, of a flat field imaged at level 200 where ``V = 1``,
 predicted through the calibrated ``V`` vs the true one, both through the true response (``strict``: a uniform
 error of the normalisation counts; the issue's goal is <= 0.5). ``budget`` is the error the calibration expects of
-itself (``info["error_budget"]["total"]``), ``response part`` the RMS between the LUT with the calibrated response
+itself (``info["error_budget"]["total"]``), ``response err`` the response's own max ``|f^-1 - truth|`` over
+levels 5..250 (% of the range), ``response part`` the RMS between the LUT with the calibrated response
 and the LUT with the true one (what the response's error costs).
 
 Usage::
 
-    python scripts/bench_vignetting.py [--design varied] [--methods debevec engel] [-n 64] [--out FILE]
+    python scripts/bench_vignetting.py [--design varied] [--methods auto debevec opencv-debevec] [-n 64] [--out FILE]
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def run(vignettes: list[str], curve_names: list[str], methods: list[str], design
     from radiometry.response import CameraResponse
     from radiometry.response_fit import fit_response
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
-    from response_curves import TIMES, curves, render_brackets, scene
+    from response_curves import TIMES, curves, max_error_percent, render_brackets, scene
     from vignetting_sweeps import bracket_times, default_size, flat_rms_vs_truth, render_sweep, vignette_field
 
     tables = curves()
@@ -75,7 +76,9 @@ def run(vignettes: list[str], curve_names: list[str], methods: list[str], design
                 strict = flat_rms_vs_truth(est, truth, table)
                 budget = model.info["error_budget"]["total"]
                 part = flat_rms_vs_truth(est, luts["truth"], table) if label != "truth" else np.zeros(3)
+                response_error = max_error_percent(responses[label].inverse_table, table, (5, 250))
                 rows.append({"vignette": vname, "curve": cname, "response": label,
+                             "response err 5..250 [%] R/G/B": "/".join(f"{v:.2f}" for v in response_error),
                              "LUT RMS [levels] R/G/B": "/".join(f"{v:.2f}" for v in strict),
                              "worst": float(strict.max()),
                              "response part R/G/B": "/".join(f"{v:.2f}" for v in part),
@@ -90,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--design", choices=("2x", "varied"), default="varied")
-    parser.add_argument("--methods", nargs="+", default=["debevec", "engel"])
+    parser.add_argument("--methods", nargs="+", default=["auto", "debevec", "engel", "opencv-debevec", "robertson"],
+                        help="response methods (fit_response names; default: ours and OpenCV's)")
     parser.add_argument("--vignettes", nargs="+", choices=VIGNETTES, default=list(VIGNETTES))
     parser.add_argument("--curves", nargs="+", choices=CURVES, default=list(CURVES))
     parser.add_argument("-n", "--num-frames", type=int, default=64, help="frames of each sweep")
