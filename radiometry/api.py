@@ -85,8 +85,8 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
               ``name seconds``), or a list of RGB uint8 images.
     times:    with a folder, another times file (default: the folder's); with images, their exposure times
               in seconds (required).
-    method:   ``auto`` (Engel when the exposure ratios differ, else Debevec; the default), ``debevec`` (sparse
-              Debevec & Malik), ``engel``, ``opencv-debevec`` or ``robertson``.
+    method:   ``auto`` (the log-log fit; Debevec with ``samples`` or ``lam="auto"``; the default), ``loglog``,
+              ``debevec`` (sparse Debevec & Malik), ``engel``, ``opencv-debevec`` or ``robertson``.
     options:  the method's keywords (``lam``, ``samples``, ``mask``, ...; see
               :func:`radiometry.response_fit.fit_response`).
 

@@ -84,8 +84,8 @@ def repair_monotone(table: np.ndarray, *, min_step: float = 1e-6) -> np.ndarray:
 
 def relative_stderr(response: "CameraResponse", channels: int | None = None) -> np.ndarray | None:
     """A response's own relative standard error of ``f^-1`` per level (``meta["inverse_stderr"]``, ``(256,)`` or
-    ``(256, C)``, as the Debevec fit records it) as float64 ``(256, channels)`` (default: the response's channel
-    count); None when it carries none or an unusable one (wrong shape, NaN, negative)."""
+    ``(256, C)``, as the Debevec and loglog fits record it) as float64 ``(256, channels)`` (default: the
+    response's channel count); None when it carries none or an unusable one (wrong shape, NaN, negative)."""
     given = response.meta.get("inverse_stderr")
     if given is None:
         return None

@@ -446,19 +446,24 @@ def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kw
     """The log-log fit (:func:`radiometry.response_loglog.fit_response_loglog`), the most accurate over the test set
     of curves (``scripts/bench_calibration.py``, 640x480, max ``|f^-1 - truth|`` over levels 5..250, worst channel:
     at most 0.82 % of the range with exactly 2x brackets and 0.73 % with varied ratios, against Debevec's 1.59 % /
-    1.67 % and Engel's 6.15 % / 0.82 %); Debevec & Malik when Debevec's ``lam``/``samples`` are given.
-    ``meta["chosen_by"]`` says why."""
+    1.67 % and Engel's 6.15 % / 0.82 %); Debevec & Malik when Debevec's own options are given (``samples``, or
+    ``lam="auto"``: its cross-validation). A numeric ``lam`` is refused: it means the smoothness for Debevec
+    (default 10) and the prior's weight for loglog (0.1), so name the method. ``meta["chosen_by"]`` says why."""
     from radiometry.response_engel import equal_ratios
 
+    kwargs = {k: v for k, v in kwargs.items() if not (k in ("lam", "samples") and v is None)}
     ratio = equal_ratios(np.asarray(times, dtype=np.float64))
-    if "lam" in kwargs or "samples" in kwargs:
-        method, why = "debevec", "auto: Debevec's lambda or samples given"
+    if "samples" in kwargs or (isinstance(kwargs.get("lam"), str) and kwargs["lam"] == "auto"):
+        method, why = "debevec", "auto: Debevec's samples or lambda 'auto' given"
+    elif "lam" in kwargs:
+        raise ValueError(f"lam={kwargs['lam']!r} with method 'auto' is ambiguous: give method='loglog' (the "
+                         "prior's weight, default 0.1) or method='debevec' (the smoothness, default 10), or "
+                         "lam='auto' for Debevec with cross-validation")
     elif ratio is not None:
-        method, why = "loglog", (f"auto: every exposure ratio is {ratio:.3g}x, which leaves a factor periodic in "
-                                 "ln E undetermined; the log-log curvature prior fixes it closest to the truth")
+        method, why = "loglog", (f"auto: the log-log fit; every exposure ratio is {ratio:.3g}x, which leaves a "
+                                 "factor periodic in ln E that its prior chooses")
     else:
-        method, why = "loglog", ("auto: the log-log fit, within 0.75 % of the range on the test set with varied "
-                                 "exposure ratios (Engel 0.82 %)")
+        method, why = "loglog", "auto: the log-log fit"
     response = FITTERS[method](images, times, **kwargs)
     response.meta["chosen_by"] = why
     return response

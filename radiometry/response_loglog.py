@@ -1,4 +1,4 @@
-"""Response calibration for brackets at one exposure ratio: Debevec's data term over all pixels with a log-log
+"""The default response calibration (any exposure design): Debevec's data term over all pixels with a log-log
 curvature prior.
 
 Why a separate fit. With every exposure ratio equal (the usual bracket at exactly 2x steps) the images fix
@@ -148,6 +148,7 @@ def _solve_channel(pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int, 
         rows = prior_rows(lv)
         m_obs = m_obs + lam * (rows.T @ rows)
     system = m_obs
+    curvature = m_obs  # the energy's Hessian at the solution (Huber: 1 inside its threshold, 0 beyond)
     if smooth > 0 and lv.size > 2:  # Huber on the hat-weighted second differences, by reweighting
         second = _second_differences(lv.size)
         hat = _HAT[lv[1:-1]]
@@ -156,25 +157,27 @@ def _solve_channel(pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int, 
             robust = np.minimum(1.0, SMOOTH_DELTA / np.maximum(np.abs(second @ g), 1e-300))
             system = m_obs + smooth * (second.T * (hat * robust)) @ second
             g = _solve_increasing(system, b_obs, constrained=False)[0]
+        inside = (np.abs(second @ g) <= SMOOTH_DELTA).astype(np.float64)
+        curvature = m_obs + smooth * (second.T * (hat * inside)) @ second
     g, blocks = _solve_increasing(system, b_obs)
     u = np.zeros(LEVELS)
     u[lv] = np.exp(g)
     pooled = [[int(lv[k]) for k in block] for block in blocks]
     ln_e_num = np.bincount(pix, weights=_HAT[z] * (np.log(u[z]) - log_t[img]), minlength=n_pix)
     ln_e = ln_e_num / np.bincount(pix, weights=_HAT[z], minlength=n_pix)
-    stderr = _log_stderr(system, pix, img, z, n_pix, log_t, lv, np.log(u[z]) - ln_e[pix] - log_t[img])
-    return {"u": u, "observed": observed, "counts": counts, "pooled": pooled, "ln_e": ln_e, "log_stderr": stderr}
+    cov = _log_covariance(curvature, pix, z, n_pix, lv, np.log(u[z]) - ln_e[pix] - log_t[img])
+    return {"u": u, "observed": observed, "counts": counts, "pooled": pooled, "ln_e": ln_e, "log_cov": cov}
 
 
-def _log_stderr(system: np.ndarray, pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int,
-                log_t: np.ndarray, lv: np.ndarray, residual: np.ndarray) -> np.ndarray:
-    """Standard error of ``g(z) - g(top observed level)`` at every level, (256,): the sandwich covariance
-    ``S^-1 (sum_i s_i s_i^T / W^2) S^-1`` of the final linear system ``S`` (data, prior and smoothness; the ties of
-    the monotone solve are ignored), with ``s_i = sum_j w_ij r_ij e_(z_ij)`` the score of pixel ``i`` from its
-    residuals (pixels are independent, their observations need not be) and ``W`` the sum of weights. It measures
-    the noise of the pixels, not the prior's bias nor the factor periodic in ``ln E`` that equal exposure ratios
-    leave undetermined. Unobserved levels inside the observed span are interpolated, those outside hold the
-    nearest observed level's value (the extrapolation's own error is not in it)."""
+def _log_covariance(curvature: np.ndarray, pix: np.ndarray, z: np.ndarray, n_pix: int, lv: np.ndarray,
+                    residual: np.ndarray) -> np.ndarray:
+    """Covariance of ``g`` at the observed levels ``lv`` relative to the top one (its row and column are 0):
+    the sandwich ``H^-1 (sum_i s_i s_i^T / W^2) H^-1`` with ``H`` the energy's Hessian at the solution (data,
+    prior, the smoothness rows inside the Huber threshold; the ties of the monotone solve are ignored),
+    ``s_i = sum_j w_ij r_ij e_(z_ij)`` the score of pixel ``i`` from its residuals (pixels are independent, their
+    observations need not be; the eliminated irradiance drops out since ``sum_j w_ij r_ij = 0``) and ``W`` the sum
+    of weights. It measures the noise of the pixels, not the prior's bias nor the factor periodic in ``ln E`` that
+    equal exposure ratios leave undetermined."""
     import scipy.sparse as sp
 
     column = np.full(LEVELS, -1, dtype=np.intp)
@@ -182,17 +185,36 @@ def _log_stderr(system: np.ndarray, pix: np.ndarray, img: np.ndarray, z: np.ndar
     w = _HAT[z]
     scores = sp.csr_matrix((w * residual, (pix, column[z])), shape=(n_pix, lv.size))
     meat = (scores.T @ scores).toarray()[:-1, :-1] / float(w.sum()) ** 2
-    out = np.zeros(LEVELS)
+    cov = np.zeros((lv.size, lv.size))
     if lv.size > 1:
         try:
-            inv = np.linalg.inv(system[:-1, :-1])
+            inv = np.linalg.inv(curvature[:-1, :-1])
         except np.linalg.LinAlgError:
-            return out
-        var = np.einsum("ij,jk,ik->i", inv, meat, inv)
-        se = np.zeros(lv.size)
-        se[:-1] = np.sqrt(np.maximum(var, 0.0))
-        out = np.interp(np.arange(LEVELS), lv, se)
-    return out
+            return cov
+        cov[:-1, :-1] = inv @ meat @ inv
+    return cov
+
+
+def _normalised_log_stderr(cov: np.ndarray, u: np.ndarray, observed: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Standard error of ``ln(table[z] / table[255])`` at every level, (256,): ``cov`` (of ``g`` at the observed
+    levels) carried through the completion of the table (interpolation, the extrapolation's line fits, the
+    normalisation at 255, usually extrapolated) by its Jacobian, taken by finite differences."""
+    lv = np.flatnonzero(observed)
+    base, _ = _complete(u, observed, counts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ref = np.log(base) - np.log(base[-1])
+    eps = 1e-6
+    jac = np.zeros((LEVELS, lv.size))
+    for i, level in enumerate(lv):
+        moved = u.copy()
+        moved[level] *= math.exp(eps)
+        table, _ = _complete(moved, observed, counts)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jac[:, i] = (np.log(table) - np.log(table[-1]) - ref) / eps
+    with np.errstate(invalid="ignore"):
+        var = np.einsum("ij,jk,ik->i", jac, cov, jac)
+    var[~np.isfinite(var)] = 0.0  # level 0 (f^-1 = 0: no relative error)
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float = DEFAULT_LAM,
@@ -229,6 +251,7 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
                                            None if pixels is None else int(pixels), valid_flat, rng)
         sol = _solve_channel(pix, img, z, n_pix, log_t, float(lam), float(smooth))
         table, extrapolated = _complete(sol["u"], sol["observed"], sol["counts"])
+        sol["log_stderr"] = _normalised_log_stderr(sol["log_cov"], sol["u"], sol["observed"], sol["counts"])
         tables.append(table)
         # fit residual in 8-bit levels: observed level vs f(E_i t_j), in the units of the completed table
         pred = np.interp(np.exp(sol["ln_e"][pix] + log_t[img]) / table[-1], table / table[-1], _LEVELS_F)

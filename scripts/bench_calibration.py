@@ -23,7 +23,7 @@ preset) and per response method (ours and OpenCV's), the response's error and th
 that response against the truth, in one table (:mod:`bench_vignetting`; its options follow, e.g.
 ``--end-to-end --design 2x``).
 
-``--curves break`` runs the curves built to break the priors instead (``tests/response_curves.py``'s
+``--curve-set break`` runs the curves built to break the priors instead (``tests/response_curves.py``'s
 ``break_curves``: knees and a flat stretch in the dark octaves, a shoulder, linear, gamma 3, sRGB).
 
 ``--ambiguity`` prints instead, per curve and smoothness prior, the error of the member of the exact-2x ambiguity
@@ -180,15 +180,46 @@ def ambiguity_rows() -> list[dict]:
     return rows
 
 
+def _end_to_end(args: argparse.Namespace, rest: list[str], *, explicit_methods: bool) -> int:
+    """``--end-to-end``: :mod:`bench_vignetting` once per design, with this command's ``--seed`` and, when given,
+    the ``--methods`` that are :func:`radiometry.response_fit.fit_response` methods; ``rest`` (its own options,
+    e.g. ``--vignettes``, ``-n``, ``--out``) goes through. With two designs, ``--out FILE`` gets the design in its
+    name."""
+    from radiometry.response_fit import METHODS as FIT_METHODS
+
+    scripts = str(Path(__file__).resolve().parent)
+    if scripts not in sys.path:
+        sys.path.insert(0, scripts)
+    import bench_vignetting
+
+    extra = ["--seed", str(args.seed)]
+    if explicit_methods:
+        chosen = [m for m in args.methods if m in FIT_METHODS]
+        if not chosen:
+            print(f"bench_calibration: --end-to-end needs --methods among {', '.join(FIT_METHODS)}")
+            return 2
+        extra += ["--methods", *chosen]
+    status = 0
+    for design in args.design:
+        own = list(rest)
+        if "--out" in own and len(args.design) > 1:
+            at = own.index("--out") + 1
+            if at < len(own):
+                out = Path(own[at])
+                own[at] = str(out.with_name(f"{out.stem}_{design}{out.suffix}"))
+        status = max(status, bench_vignetting.main(["--design", design, *extra, *own]))
+    return status
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
     parser.add_argument("--design", nargs="+", choices=("2x", "varied"), default=["2x", "varied"],
                         help="exposure designs (default both)")
     parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=list(METHODS),
                         help="methods (default all)")
     parser.add_argument("--seed", type=int, default=0, help="scene and noise seed")
-    parser.add_argument("--curves", choices=("test", "break"), default="test",
+    parser.add_argument("--curve-set", choices=("test", "break"), default="test",
                         help="test: the test set (gamma, S, two kinks, EuRoC); break: curves built to break the "
                              "priors (dark kink and flat, shoulder, mid kink, linear, gamma 3, sRGB)")
     parser.add_argument("--end-to-end", action="store_true",
@@ -196,15 +227,11 @@ def main(argv: list[str] | None = None) -> int:
                              "(scripts/bench_vignetting.py; its options follow)")
     parser.add_argument("--ambiguity", action="store_true",
                         help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
-    if argv is None:
-        argv = sys.argv[1:]
-    if "--end-to-end" in argv:  # the response and the LUT calibrated with it, per curve x vignette x method
-        if str(Path(__file__).resolve().parent) not in sys.path:
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-        import bench_vignetting
-
-        return bench_vignetting.main([a for a in argv if a != "--end-to-end"])
-    args = parser.parse_args(argv)
+    args, rest = parser.parse_known_args(argv)
+    if args.end_to_end:  # the response and the LUT calibrated with it, per curve x vignette x method
+        return _end_to_end(args, rest, explicit_methods="--methods" in (sys.argv[1:] if argv is None else argv))
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
@@ -225,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     try:
-        rows = run((width, height), args.design, args.methods, seed=args.seed, curve_set=args.curves)
+        rows = run((width, height), args.design, args.methods, seed=args.seed, curve_set=args.curve_set)
     finally:
         quiet.setLevel(level)  # main() may run inside another program (the tests): leave its logging as it was
     print(f"response calibration vs truth ({width}x{height}, 12 exposures, OpenCV {cv2.__version__})")

@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-n", "--num-frames", type=int, default=64, help="frames of each sweep")
     parser.add_argument("--bracket-size", default="320x240", help="WxH of the bracket images")
     parser.add_argument("--out", type=Path, default=None, help="also write the table (text) here")
+    parser.add_argument("--seed", type=int, default=0, help="scene, noise and sweep seed")
     args = parser.parse_args(argv)
     if not shared_available():
         print("bench_vignetting: ../shared/data (EuRoC vignette, lensfun) is absent; nothing to measure")
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     from radiometry.tables import format_table
 
     bw, bh = (int(v) for v in args.bracket_size.lower().split("x"))
-    rows = run(args.vignettes, args.curves, args.methods, args.design, args.num_frames, (bw, bh))
+    rows = run(args.vignettes, args.curves, args.methods, args.design, args.num_frames, (bw, bh), seed=args.seed)
     shown = [{k: (f"{v:.1f}" if k == "time [s]" else v) for k, v in row.items() if k != "worst"} for row in rows]
     text = format_table(shown)
     print(f"\nvignetting LUT end to end ({args.design} brackets {bw}x{bh}, {args.num_frames}-frame sweeps): flat field at "

@@ -51,8 +51,8 @@ def test_response_on_the_sample(tmp_path):
     out = tmp_path / "out" / "crf.npz"
     result = invoke(SAMPLE, "-o", out)
     assert result.exit_code == 0, result.output
-    for word in ("method loglog (auto: every exposure ratio is 4x", "channels", "images", "samples", "fit RMS",
-                 "monotone", "time", "wrote"):
+    for word in ("method loglog (auto: the log-log fit; every exposure ratio is 4x", "channels", "images",
+                 "samples", "fit RMS", "monotone", "time", "wrote"):
         assert word in result.output
     response = CameraResponse.load(out)
     truth = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
@@ -127,12 +127,14 @@ def test_other_known_errors(tmp_path, sample_copy):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--method", "robertson", "--lambda", "3"], "apply to debevec and opencv-debevec, not robertson"),
+    (["--method", "robertson", "--lambda", "3"], "apply to debevec, loglog (--lambda only) and opencv-debevec, not "
+                                                 "robertson"),
+    (["--lambda", "3"], "--lambda N with --method auto is ambiguous: give --method loglog"),
     (["--method", "opencv-debevec", "--mask-blue"], "--mask-blue needs --method debevec"),
     (["--channel", "R"], "--channel applies to a .txt"),
     (["--method", "svd"], "'svd' is not one of 'auto', 'debevec', 'engel', 'loglog', 'opencv-debevec', 'robertson'"),
-    (["--method", "engel", "--lambda", "3"], "apply to debevec and opencv-debevec, not engel"),
-    (["--method", "engel", "--samples", "30"], "apply to debevec and opencv-debevec, not engel"),
+    (["--method", "engel", "--lambda", "3"], "and opencv-debevec, not engel"),
+    (["--method", "engel", "--samples", "30"], "and opencv-debevec, not engel"),
     (["--method", "opencv-debevec", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),
     (["--method", "loglog", "--lambda", "auto"], "--lambda auto (cross-validation) needs --method debevec"),
     (["--method", "loglog", "--samples", "30"], "--samples applies to debevec and opencv-debevec; loglog uses all"),
@@ -153,6 +155,11 @@ def test_loglog_takes_its_prior_weight_from_lambda(tmp_path):
     meta = CameraResponse.load(out).meta
     assert meta["method"] == "loglog" and meta["lambda"] == 0.5 and meta["masked"] is True
     assert "chosen_by" not in meta and np.asarray(meta["inverse_stderr"]).shape == (256, 3)
+    default = tmp_path / "default.npz"
+    assert invoke(SAMPLE, "-o", default, "--method", "loglog").exit_code == 0
+    other = CameraResponse.load(default)
+    assert other.meta["lambda"] == 0.1  # the weight reached the fit: the curves differ
+    assert np.abs(other.inverse_table - CameraResponse.load(out).inverse_table).max() > 1e-4
 
 
 def test_mask_blue_is_reported(tmp_path):

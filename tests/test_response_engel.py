@@ -53,8 +53,7 @@ def test_engel_keeps_the_knee_that_debevec_rounds(radiance):
     debevec = max_error_percent(fit_response(images, VARIED_TIMES, method="debevec").inverse_table, truth).max()
     assert engel < 0.6 * debevec, (engel, debevec)  # measured 0.82 vs 1.76
     chosen = fit_response(images, VARIED_TIMES)       # the default, auto: loglog, which keeps the knee too
-    assert chosen.meta["method"] == "loglog" and "varied exposure ratios" in chosen.meta["chosen_by"]
-    assert "the log-log fit" in chosen.meta["chosen_by"]
+    assert chosen.meta["method"] == "loglog" and chosen.meta["chosen_by"] == "auto: the log-log fit"
     assert max_error_percent(chosen.inverse_table, truth).max() < 0.6 * debevec  # measured 0.73
 
 
@@ -66,9 +65,12 @@ def test_auto_takes_loglog_unless_debevecs_options_are_given():
     np.testing.assert_array_equal(response.inverse_table, fit_response(images, TIMES, method="loglog").inverse_table)
     varied = render_brackets(kink_curve(), small, VARIED_TIMES)
     assert fit_response(varied, VARIED_TIMES).meta["method"] == "loglog"
-    for option in ({"lam": 5}, {"samples": 20}):
+    for option in ({"lam": "auto"}, {"samples": 20}, {"samples": 20, "lam": None}):
         chosen = fit_response(varied, VARIED_TIMES, **option)
-        assert chosen.meta["method"] == "debevec" and "lambda or samples given" in chosen.meta["chosen_by"]
+        assert chosen.meta["method"] == "debevec" and "samples or lambda 'auto' given" in chosen.meta["chosen_by"]
+    assert fit_response(varied, VARIED_TIMES, lam=None, samples=None).meta["method"] == "loglog"
+    with pytest.raises(ValueError, match="lam=5 with method 'auto' is ambiguous: give method='loglog'"):
+        fit_response(varied, VARIED_TIMES, lam=5)
 
 
 def test_equal_ratios_are_detected_and_warned(radiance, caplog):

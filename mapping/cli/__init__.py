@@ -27,7 +27,7 @@ Examples:
   radiomap demo -o demo_out
       simulate a camera and a room, calibrate, reconstruct and compare (no data needed)
   radiomap response data_samples/brackets --times data_samples/brackets/times.txt -o crf.npz
-      recover the camera response from bracketed exposures (auto: Engel, or Debevec & Malik at equal ratios)
+      recover the camera response from bracketed exposures (auto: Debevec's data term with a log-log prior)
   radiomap simulate paper -o paper_seq --seed 1
       render a white-paper vignetting calibration sweep with known ground truth
   radiomap vignetting paper_seq/rgb --response crf.npz -o vignetting.npz --model lut

@@ -60,8 +60,8 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
                                       "Debevec / Robertson.")
 @click.option("--lambda", "lam", type=LambdaType(), default=None,
               help="Smoothness weight (debevec: per level of data, default 10, or 'auto': chosen by "
-                   "cross-validation on held-out pixels; loglog: the prior's weight, default 0.1; "
-                   "opencv-debevec: OpenCV's lambda, default 10).")
+                   "cross-validation on held-out pixels, also with --method auto; loglog: the prior's weight, "
+                   "default 0.1; opencv-debevec: OpenCV's lambda, default 10). A number needs --method.")
 @click.option("--samples", type=click.IntRange(min=1), default=None,
               help="debevec: observations per intensity level (default 50); opencv-debevec: pixel locations (70).")
 @click.option("--mask-blue", is_flag=True,
@@ -116,7 +116,12 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
                                "a standard response")
     kwargs = {}
     if method in ("robertson", "engel") and (lam is not None or samples is not None):
-        raise click.UsageError(f"--lambda and --samples apply to debevec and opencv-debevec, not {method}")
+        raise click.UsageError(f"--lambda and --samples apply to debevec, loglog (--lambda only) and opencv-debevec, "
+                               f"not {method}")
+    if method == "auto" and lam is not None and lam != "auto":
+        raise click.UsageError("--lambda N with --method auto is ambiguous: give --method loglog (the prior's weight, "
+                               "default 0.1) or --method debevec (the smoothness, default 10); --lambda auto picks "
+                               "Debevec's by cross-validation")
     if method == "loglog" and samples is not None:
         raise click.UsageError("--samples applies to debevec and opencv-debevec; loglog uses all pixels")
     if lam == "auto" and method not in ("debevec", "auto"):
@@ -161,6 +166,9 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     plot_path = output.with_suffix(".png")
     repaired = meta.get("repaired_levels")
     monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
+    tied = sum(len(block) for channel in meta.get("pooled_levels") or [] for block in channel)
+    if tied and not meta.get("repaired"):
+        monotone = f"yes ({tied} levels tied by the constraint)"
     if method in ("debevec", "engel", "loglog"):
         sampled = "/".join(str(p) for p in meta["pixels"]) + " px"
     elif method == "opencv-debevec":
