@@ -453,7 +453,7 @@ def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kw
 
     kwargs = {k: v for k, v in kwargs.items() if not (k in ("lam", "samples") and v is None)}
     ratio = equal_ratios(np.asarray(times, dtype=np.float64))
-    if "samples" in kwargs or (isinstance(kwargs.get("lam"), str) and kwargs["lam"] == "auto"):
+    if "samples" in kwargs or kwargs.get("lam") == "auto":
         method, why = "debevec", "auto: Debevec's samples or lambda 'auto' given"
     elif "lam" in kwargs:
         raise ValueError(f"lam={kwargs['lam']!r} with method 'auto' is ambiguous: give method='loglog' (the "

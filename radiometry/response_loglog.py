@@ -195,22 +195,22 @@ def _log_covariance(curvature: np.ndarray, pix: np.ndarray, z: np.ndarray, n_pix
     return cov
 
 
-def _normalised_log_stderr(cov: np.ndarray, u: np.ndarray, observed: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def _normalised_log_stderr(cov: np.ndarray, u: np.ndarray, observed: np.ndarray, counts: np.ndarray,
+                           table: np.ndarray) -> np.ndarray:
     """Standard error of ``ln(table[z] / table[255])`` at every level, (256,): ``cov`` (of ``g`` at the observed
-    levels) carried through the completion of the table (interpolation, the extrapolation's line fits, the
-    normalisation at 255, usually extrapolated) by its Jacobian, taken by finite differences."""
+    levels) carried through the completion of ``u`` into ``table`` (interpolation, the extrapolation's line fits,
+    the normalisation at 255, usually extrapolated) by its Jacobian, taken by finite differences."""
     lv = np.flatnonzero(observed)
-    base, _ = _complete(u, observed, counts)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ref = np.log(base) - np.log(base[-1])
+        ref = np.log(table) - np.log(table[-1])
     eps = 1e-6
     jac = np.zeros((LEVELS, lv.size))
     for i, level in enumerate(lv):
         moved = u.copy()
         moved[level] *= math.exp(eps)
-        table, _ = _complete(moved, observed, counts)
+        moved_table, _ = _complete(moved, observed, counts)
         with np.errstate(divide="ignore", invalid="ignore"):
-            jac[:, i] = (np.log(table) - np.log(table[-1]) - ref) / eps
+            jac[:, i] = (np.log(moved_table) - np.log(moved_table[-1]) - ref) / eps
     with np.errstate(invalid="ignore"):
         var = np.einsum("ij,jk,ik->i", jac, cov, jac)
     var[~np.isfinite(var)] = 0.0  # level 0 (f^-1 = 0: no relative error)
@@ -251,7 +251,7 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
                                            None if pixels is None else int(pixels), valid_flat, rng)
         sol = _solve_channel(pix, img, z, n_pix, log_t, float(lam), float(smooth))
         table, extrapolated = _complete(sol["u"], sol["observed"], sol["counts"])
-        sol["log_stderr"] = _normalised_log_stderr(sol["log_cov"], sol["u"], sol["observed"], sol["counts"])
+        sol["log_stderr"] = _normalised_log_stderr(sol["log_cov"], sol["u"], sol["observed"], sol["counts"], table)
         tables.append(table)
         # fit residual in 8-bit levels: observed level vs f(E_i t_j), in the units of the completed table
         pred = np.interp(np.exp(sol["ln_e"][pix] + log_t[img]) / table[-1], table / table[-1], _LEVELS_F)
@@ -279,7 +279,8 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
         "repaired": False, "ties_separated": not strict,
         "fit_rms_levels": math.sqrt(sq / n_obs),
         "inverse_stderr": np.stack([s["log_stderr"] for s in per_channel], axis=1).tolist(),
-        "inverse_stderr_source": "loglog: sandwich covariance of the final linear system over pixels (noise only)",
+        "inverse_stderr_source": "loglog: sandwich covariance over pixels, carried through the extrapolation and "
+                                 "the normalisation at 255 (noise only)",
     }
     response = CameraResponse(table / table[-1], meta)
     response.meta["fit_seconds"] = time.perf_counter() - start

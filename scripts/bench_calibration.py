@@ -180,7 +180,7 @@ def ambiguity_rows() -> list[dict]:
     return rows
 
 
-def _end_to_end(args: argparse.Namespace, rest: list[str], *, explicit_methods: bool) -> int:
+def _end_to_end(args: argparse.Namespace, rest: list[str]) -> int:
     """``--end-to-end``: :mod:`bench_vignetting` once per design, with this command's ``--seed`` and, when given,
     the ``--methods`` that are :func:`radiometry.response_fit.fit_response` methods; ``rest`` (its own options,
     e.g. ``--vignettes``, ``-n``, ``--out``) goes through. With two designs, ``--out FILE`` gets the design in its
@@ -193,7 +193,7 @@ def _end_to_end(args: argparse.Namespace, rest: list[str], *, explicit_methods: 
     import bench_vignetting
 
     extra = ["--seed", str(args.seed)]
-    if explicit_methods:
+    if args.methods is not None:
         chosen = [m for m in args.methods if m in FIT_METHODS]
         if not chosen:
             print(f"bench_calibration: --end-to-end needs --methods among {', '.join(FIT_METHODS)}")
@@ -216,8 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
     parser.add_argument("--design", nargs="+", choices=("2x", "varied"), default=["2x", "varied"],
                         help="exposure designs (default both)")
-    parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=list(METHODS),
-                        help="methods (default all)")
+    parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=None,
+                        help="methods (default all; with --end-to-end, bench_vignetting's)")
     parser.add_argument("--seed", type=int, default=0, help="scene and noise seed")
     parser.add_argument("--curve-set", choices=("test", "break"), default="test",
                         help="test: the test set (gamma, S, two kinks, EuRoC); break: curves built to break the "
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
     args, rest = parser.parse_known_args(argv)
     if args.end_to_end:  # the response and the LUT calibrated with it, per curve x vignette x method
-        return _end_to_end(args, rest, explicit_methods="--methods" in (sys.argv[1:] if argv is None else argv))
+        return _end_to_end(args, rest)
     if rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     try:
@@ -252,7 +252,8 @@ def main(argv: list[str] | None = None) -> int:
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     try:
-        rows = run((width, height), args.design, args.methods, seed=args.seed, curve_set=args.curve_set)
+        rows = run((width, height), args.design, args.methods or list(METHODS), seed=args.seed,
+                   curve_set=args.curve_set)
     finally:
         quiet.setLevel(level)  # main() may run inside another program (the tests): leave its logging as it was
     print(f"response calibration vs truth ({width}x{height}, 12 exposures, OpenCV {cv2.__version__})")

@@ -61,6 +61,8 @@ def run(vignettes: list[str], curve_names: list[str], methods: list[str], design
             start = time.perf_counter()
             responses[method] = fit_response(images, times, method=method)
             print(f"  {cname:10s} response {method:8s} {time.perf_counter() - start:5.1f} s", flush=True)
+        response_errors = {label: "/".join(f"{v:.2f}" for v in max_error_percent(r.inverse_table, table, (5, 250)))
+                           for label, r in responses.items()}
         for vname in vignettes:
             width, height = default_size(vname)
             truth = vignette_field(vname, width, height)
@@ -76,9 +78,8 @@ def run(vignettes: list[str], curve_names: list[str], methods: list[str], design
                 strict = flat_rms_vs_truth(est, truth, table)
                 budget = model.info["error_budget"]["total"]
                 part = flat_rms_vs_truth(est, luts["truth"], table) if label != "truth" else np.zeros(3)
-                response_error = max_error_percent(responses[label].inverse_table, table, (5, 250))
                 rows.append({"vignette": vname, "curve": cname, "response": label,
-                             "response err 5..250 [%] R/G/B": "/".join(f"{v:.2f}" for v in response_error),
+                             "response err 5..250 [%] R/G/B": response_errors[label],
                              "LUT RMS [levels] R/G/B": "/".join(f"{v:.2f}" for v in strict),
                              "worst": float(strict.max()),
                              "response part R/G/B": "/".join(f"{v:.2f}" for v in part),

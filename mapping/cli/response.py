@@ -56,8 +56,8 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 @click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default="auto",
               show_default=True, help="auto: loglog (Debevec's data term over all pixels with a log-log curvature "
                                       "prior: the most accurate on our test set of curves), or debevec when "
-                                      "--lambda/--samples is given; or debevec, engel, loglog, or OpenCV's "
-                                      "Debevec / Robertson.")
+                                      "--samples or --lambda auto is given; or debevec, engel, loglog, or "
+                                      "OpenCV's Debevec / Robertson.")
 @click.option("--lambda", "lam", type=LambdaType(), default=None,
               help="Smoothness weight (debevec: per level of data, default 10, or 'auto': chosen by "
                    "cross-validation on held-out pixels, also with --method auto; loglog: the prior's weight, "
@@ -165,10 +165,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         click.echo(f"method {method} ({meta['chosen_by']})")
     plot_path = output.with_suffix(".png")
     repaired = meta.get("repaired_levels")
-    monotone = "yes" if not meta.get("repaired") else f"repaired ({sum(map(len, repaired or [[]]))} levels)"
     tied = sum(len(block) for channel in meta.get("pooled_levels") or [] for block in channel)
-    if tied and not meta.get("repaired"):
-        monotone = f"yes ({tied} levels tied by the constraint)"
+    if meta.get("repaired"):
+        monotone = f"repaired ({sum(map(len, repaired or [[]]))} levels)"
+    else:
+        monotone = f"yes ({tied} levels tied by the constraint)" if tied else "yes"
     if method in ("debevec", "engel", "loglog"):
         sampled = "/".join(str(p) for p in meta["pixels"]) + " px"
     elif method == "opencv-debevec":
