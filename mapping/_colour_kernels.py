@@ -27,9 +27,8 @@ def forward(x, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cov
         for i in range(x.shape[0]):
             e = x[i, c]
             if e > t0 and e < tmax:
-                b = int((e - low) * iw)
-                if b > nb:
-                    b = nb
+                q = (e - low) * iw
+                b = 0 if not q >= 0 else (nb if q > nb else int(q))  # a bucket of the table, always
                 j = starts[b, c]
                 while tables[j + 1, c] <= e:
                     j += 1
@@ -54,9 +53,8 @@ def l1(a, b, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cover
             tmax = tables[255, c]
             e = a[i, c]
             if e > t0 and e < tmax:
-                k = int((e - lo[c]) * inv_width[c])
-                if k > nb:
-                    k = nb
+                q = (e - lo[c]) * inv_width[c]
+                k = 0 if not q >= 0 else (nb if q > nb else int(q))
                 j = starts[k, c]
                 while tables[j + 1, c] <= e:
                     j += 1
@@ -67,9 +65,8 @@ def l1(a, b, tables, inv_slope, starts, lo, inv_width, out):  # pragma: no cover
                 la = 0.0
             e = b[i, c]
             if e > t0 and e < tmax:
-                k = int((e - lo[c]) * inv_width[c])
-                if k > nb:
-                    k = nb
+                q = (e - lo[c]) * inv_width[c]
+                k = 0 if not q >= 0 else (nb if q > nb else int(q))
                 j = starts[k, c]
                 while tables[j + 1, c] <= e:
                     j += 1

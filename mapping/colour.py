@@ -161,9 +161,9 @@ _BUCKETS = 4096
 
 
 def _kernels():
-    from mapping import _colour_kernels
+    from mapping._native import colour_kernels
 
-    return _colour_kernels
+    return colour_kernels()
 
 
 class FastForward:

@@ -64,7 +64,8 @@ def _nan_invalid(points: np.ndarray, invalid: np.ndarray) -> np.ndarray:
 _pyrdown_kernel = None
 
 
-def _get_pyrdown():
+def _numba_pyrdown():
+    """The Numba twin of ``mapping._ckernels.pyrdown`` (compiled on first use, cached on disk)."""
     global _pyrdown_kernel
     if _pyrdown_kernel is None:
         import numba
@@ -74,6 +75,7 @@ def _get_pyrdown():
             # 5x5 Gaussian (1 4 6 4 1)^2 around (2y, 2x), over the valid neighbours within ``diff`` of the
             # centre (edge-preserving, as Open3D's PyrDownDepth); NaN where the centre is invalid
             w1 = (1.0, 4.0, 6.0, 4.0, 1.0)
+            diff = np.float32(diff)
             rows, cols = depth.shape
             for y in range(out.shape[0]):
                 for x in range(out.shape[1]):
@@ -97,7 +99,7 @@ def _get_pyrdown():
                                 w = w1[dy + 2] * w1[dx + 2]
                                 s += w * d
                                 ws += w
-                    out[y, x] = s / ws
+                    out[y, x] = s / ws if ws > 0 else np.nan  # no neighbour within diff (diff <= 0, inf)
             return out
 
         _pyrdown_kernel = pyrdown
@@ -110,7 +112,9 @@ def pyrdown_depth(depth: np.ndarray, diff: float) -> np.ndarray:
     for noisy sensors: the coarse ICP levels see less noise than with plain subsampling."""
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     out = np.empty(((depth.shape[0] + 1) // 2, (depth.shape[1] + 1) // 2), np.float32)
-    return _get_pyrdown()(depth, np.float32(diff), out)
+    from mapping._native import pyrdown
+
+    return pyrdown()(depth, np.float32(diff), out)
 
 
 def scaled_intrinsics(K: np.ndarray, level: int) -> np.ndarray:

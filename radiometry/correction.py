@@ -48,45 +48,54 @@ _LEVELS = np.arange(256, dtype=np.float32)
 
 
 # --------------------------------------------------------------------------------------------------
-# Numba kernels (compiled on first use, cached on disk)
+# kernels: compiled C, or Numba's (compiled on first use, cached on disk)
 # --------------------------------------------------------------------------------------------------
 def _kernels():
-    """Compile (or load from Numba's cache) the look-up kernels. Indices are computed in unsigned 32-bit
-    arithmetic: signed indices make Numba emit wrap-around checks that halve the throughput."""
+    """The look-up kernels ``(lookup_rgb, lookup_shared, irradiance)``: compiled C (``radiometry._ckernels``), or
+    Numba's (:mod:`radiometry._native` chooses)."""
     global _KERNELS
     if _KERNELS is None:
-        from numba import njit
+        from radiometry._native import compiled
 
-        @njit(cache=True, nogil=True, boundscheck=False)
-        def lookup_rgb(img, q, k, table, out):  # pragma: no cover - compiled
-            # img, out, q: flat (N * 3), a gain index per value; k: (3, 256) offsets; table: flat uint8
-            for p in range(img.size // 3):
-                b = 3 * p
-                out[b] = table[np.uint32(q[b]) + np.uint32(k[0, img[b]])]
-                out[b + 1] = table[np.uint32(q[b + 1]) + np.uint32(k[1, img[b + 1]])]
-                out[b + 2] = table[np.uint32(q[b + 2]) + np.uint32(k[2, img[b + 2]])]
-
-        @njit(cache=True, nogil=True, boundscheck=False)
-        def lookup_shared(img, q, k, table, out, channels):  # pragma: no cover - compiled
-            # one gain index per pixel for every channel: q flat (N,); img/out flat (N * C)
-            for p in range(q.size):
-                level = np.uint32(q[p])
-                b = p * channels
-                for c in range(channels):
-                    out[b + c] = table[level + np.uint32(k[c, img[b + c]])]
-
-        @njit(cache=True, nogil=True, boundscheck=False)
-        def irradiance_kernel(img, lut, gain, out):  # pragma: no cover - compiled
-            # img (N, C) uint8; lut (C, 256) float32; gain (N, Cg) float32, Cg in {1, C}; out (N, C) float32
-            n, ch = img.shape
-            shared = gain.shape[1] == 1
-            for p in range(n):
-                for c in range(ch):
-                    g = gain[p, 0] if shared else gain[p, c]
-                    out[p, c] = lut[c, np.uint32(img[p, c])] * g
-
-        _KERNELS = (lookup_rgb, lookup_shared, irradiance_kernel)
+        c = compiled("radiometry._ckernels")
+        _KERNELS = (c.lookup_rgb, c.lookup_shared, c.irradiance) if c is not None else _numba_kernels()
     return _KERNELS
+
+
+def _numba_kernels():
+    """Compile (or load from Numba's cache) the Numba twins of the C kernels. Indices are computed in unsigned
+    32-bit arithmetic: signed indices make Numba emit wrap-around checks that halve the throughput."""
+    from numba import njit
+
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def lookup_rgb(img, q, k, table, out):  # pragma: no cover - compiled
+        # img, out, q: flat (N * 3), a gain index per value; k: (3, 256) offsets; table: flat uint8
+        for p in range(img.size // 3):
+            b = 3 * p
+            out[b] = table[np.uint32(q[b]) + np.uint32(k[0, img[b]])]
+            out[b + 1] = table[np.uint32(q[b + 1]) + np.uint32(k[1, img[b + 1]])]
+            out[b + 2] = table[np.uint32(q[b + 2]) + np.uint32(k[2, img[b + 2]])]
+
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def lookup_shared(img, q, k, table, out, channels):  # pragma: no cover - compiled
+        # one gain index per pixel for every channel: q flat (N,); img/out flat (N * C)
+        for p in range(q.size):
+            level = np.uint32(q[p])
+            b = p * channels
+            for c in range(channels):
+                out[b + c] = table[level + np.uint32(k[c, img[b + c]])]
+
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def irradiance_kernel(img, lut, gain, out):  # pragma: no cover - compiled
+        # img (N, C) uint8; lut (C, 256) float32; gain (N, Cg) float32, Cg in {1, C}; out (N, C) float32
+        n, ch = img.shape
+        shared = gain.shape[1] == 1
+        for p in range(n):
+            for c in range(ch):
+                g = gain[p, 0] if shared else gain[p, c]
+                out[p, c] = lut[c, np.uint32(img[p, c])] * g
+
+    return lookup_rgb, lookup_shared, irradiance_kernel
 
 
 _KERNELS = None

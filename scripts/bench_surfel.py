@@ -200,7 +200,10 @@ def main() -> None:
     import cv2
     import numba
 
-    numba.set_num_threads(1)
+    from mapping import _native
+
+    numba.set_num_threads(1)        # the surfel kernels
+    _native.set_num_threads(1)      # the display look-ups (C by default)
     cv2.setNumThreads(1)
     from mapping.colour import RawIntensity, make_colour_model
     from mapping.fusion.surfel import SurfelBackend

@@ -203,19 +203,19 @@ def test_fast_forward_matches_the_response(response):
 def test_display_l1_does_not_depend_on_the_number_of_threads():
     """The histogram's L1 kernel runs rows in parallel; each row sums its channels in one order, so one thread and
     every thread give the same float32 bits (and the same as the serial forward look-ups summed in that order)."""
-    import numba
+    from mapping import _native
 
     ff = FastForward(CameraResponse.gamma(2.2), reference_exposure=1.3)
     rng = np.random.default_rng(3)
     a = (rng.random((50_001, 3)) * 1.2).astype(np.float32)
     b = (a * rng.uniform(0.9, 1.1, a.shape)).astype(np.float32)
     a[::97, 0], b[::89, 1], b[::83, 2] = np.nan, 5.0, -1.0
-    threads = numba.get_num_threads()
+    threads = _native.get_num_threads()
     try:
-        numba.set_num_threads(1)
+        _native.set_num_threads(1)
         one = ff.l1(a, b)
     finally:
-        numba.set_num_threads(threads)
+        _native.set_num_threads(threads)
     every = ff.l1(a, b)
     assert one.dtype == np.float32 and np.array_equal(one, every)
     la, lb = ff(a).astype(np.float64), ff(b).astype(np.float64)

@@ -12,6 +12,8 @@ import mapping._numba_threads  # noqa: F401  (the threading layer, before any pa
 def colour_pairs(map_depth, depth, map_colour, colour, abs_tol, rel_tol, dmin, dmax, out_map,
                  out_sample):  # pragma: no cover
     """Gather (map colour, sample colour) where the rendered and measured depths agree; returns the count."""
+    f32 = np.float32  # the scalars' types here, not the caller's (the C twin's contract)
+    abs_tol, rel_tol, dmin, dmax = f32(abs_tol), f32(rel_tol), f32(dmin), f32(dmax)
     n = 0
     rows, cols = depth.shape
     for y in range(rows):
@@ -37,6 +39,7 @@ def finish_view(vertex, normal, depth, c, half_voxel, debias):  # pragma: no cov
     point along its ray by the mean displacement of Open3D's floored voxel reads,
     ``lambda = (n . h) z / (n . v)`` (``h = half_voxel * c``, ``c`` the grid diagonal in the camera frame)."""
     rows, cols = depth.shape
+    half_voxel = np.float32(half_voxel)
     limit = 2.0 * half_voxel
     for y in range(rows):
         for x in range(cols):
@@ -127,6 +130,8 @@ def refine(depth, vertex, fx, fy, cx, cy, R, o, tsdf, weight, index, lo, shift, 
     current depth by +-1 voxel, one regula-falsi step, one secant step. Pixels whose bracket does not change
     sign (or touches unobserved voxels) keep their depth. Returns the number of refined pixels."""
     rows, cols = depth.shape
+    f64 = np.float64
+    fx, fy, cx, cy, vs = f64(fx), f64(fy), f64(cx), f64(cy), f64(vs)
     inv_vs = 1.0 / vs
     n = 0
     for v in range(rows):
@@ -171,6 +176,9 @@ def range_fragments(blocks, R, t, fx, fy, cx, cy, down, res, voxel_size, h_down,
     depth interval). Coordinates beyond the map are clipped before the int conversion (Open3D's overflows to
     INT_MIN and widens nothing, so the count here is never the smaller). Returns the total."""
     total = 0
+    f32 = np.float32
+    fx, fy, cx, cy, down, voxel_size = f32(fx), f32(fy), f32(cx), f32(cy), f32(down), f32(voxel_size)
+    depth_min, depth_max = f32(depth_min), f32(depth_max)
     one = np.float32(1.0)
     for k in range(blocks.shape[0]):
         u_min, v_min, u_max, v_max = w_down - 1, h_down - 1, 0, 0
@@ -212,8 +220,11 @@ def hit_bounds(depth, Rc, o, fx, fy, cx, cy, block_size):  # pragma: no cover
     """The block coordinates (lowest, highest) of a box holding the surface point of every pixel with depth
     (``o + depth * Rc (u - cx) / fx, (v - cy) / fy, 1)``, camera-to-world ``Rc``, origin ``o``) and the blocks
     of its eight neighbouring voxels (one block wider on each side)."""
+    f32 = np.float32
+    fx, fy, cx, cy, block_size = f32(fx), f32(fy), f32(cx), f32(cy), f32(block_size)
     lo = np.full(3, 2 ** 30, np.int64)
     hi = np.full(3, -2 ** 30, np.int64)
+    q = np.empty(3, np.float32)
     rows, cols = depth.shape
     for y in range(rows):
         dy = (np.float32(y) - cy) / fy
@@ -223,13 +234,22 @@ def hit_bounds(depth, Rc, o, fx, fy, cx, cy, block_size):  # pragma: no cover
                 continue
             dx = (np.float32(x) - cx) / fx
             for a in range(3):
-                g = o[a] + t * (Rc[a, 0] * dx + Rc[a, 1] * dy + Rc[a, 2])
-                b = int(np.floor(g / block_size))
+                q[a] = (o[a] + t * (Rc[a, 0] * dx + Rc[a, 1] * dy + Rc[a, 2])) / block_size
+            if not (_in_range(q[0]) and _in_range(q[1]) and _in_range(q[2])):
+                continue  # no block (inf, or beyond 2^30 blocks)
+            for a in range(3):
+                b = int(np.floor(q[a]))
                 if b - 1 < lo[a]:
                     lo[a] = b - 1
                 if b + 1 > hi[a]:
                     hi[a] = b + 1
     return lo, hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _in_range(q):  # pragma: no cover
+    """A block coordinate that fits (``|q| < 2^30``; False for NaN and inf)."""
+    return abs(q) < np.float32(1073741824.0)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -244,6 +264,7 @@ def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res,
     ``(i, j, k)`` of a block sits at its corner ``+ (i, j, k) * voxel_size`` (z-major buffers)."""
     rows, cols = depth.shape
     f32 = np.float32
+    fx, fy, cx, cy, scale = f32(fx), f32(fy), f32(cx), f32(cy), f32(scale)
     vs = f32(voxel_size)
     block_size = vs * f32(res)
     res2 = res * res
@@ -261,9 +282,12 @@ def surface_colour(depth, Rc, o, fx, fy, cx, cy, colour, weight, index, lo, res,
             xg = o[0] + t * (Rc[0, 0] * dxc + Rc[0, 1] * dyc + Rc[0, 2])
             yg = o[1] + t * (Rc[1, 0] * dxc + Rc[1, 1] * dyc + Rc[1, 2])
             zg = o[2] + t * (Rc[2, 0] * dxc + Rc[2, 1] * dyc + Rc[2, 2])
-            bx = int(np.floor(xg / block_size))
-            by = int(np.floor(yg / block_size))
-            bz = int(np.floor(zg / block_size))
+            qx, qy, qz = xg / block_size, yg / block_size, zg / block_size
+            if not (_in_range(qx) and _in_range(qy) and _in_range(qz)):
+                continue
+            bx = int(np.floor(qx))
+            by = int(np.floor(qy))
+            bz = int(np.floor(qz))
             slot = _block_slot(bx, by, bz, index, lo)
             if slot < 0:
                 continue
@@ -337,6 +361,8 @@ def integrate_u16(depth, colour, fx, fy, cx, cy, E, keys, slots, res, voxel_size
     res2 = res * res
     res3 = res2 * res
     f32 = np.float32
+    fx, fy, cx, cy, voxel_size = f32(fx), f32(fy), f32(cx), f32(cy), f32(voxel_size)
+    sdf_trunc, depth_max, scale = f32(sdf_trunc), f32(depth_max), np.float64(scale)
     for b in prange(slots.shape[0]):
         base = slots[b] * res3
         xb, yb, zb = keys[b, 0] * res, keys[b, 1] * res, keys[b, 2] * res

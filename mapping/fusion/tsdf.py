@@ -30,7 +30,7 @@ block search and one ray cast per frame, as Open3D's own dense SLAM loop. When t
 (``valid``), their depth is removed and the blocks are searched again for what is left.
 :meth:`TSDFBackend.render` (the generic interface) casts within the blocks of the last integrated frame. Open3D
 casts depth only; the colour of each surface point (the trilinear interpolation of its eight voxels, those
-observed, as Open3D's cast computes it) is read straight from the grid's buffers by a Numba kernel through a
+observed, as Open3D's cast computes it) is read straight from the grid's buffers by our kernel through a
 dense table of block slots instead of the hash map (filled from the list of blocks and slots that the backend
 keeps as it adds blocks, read afresh from the hash map only after it grows, which moves them): ~23 ms of CPU
 per 640x480 frame at 1 cm voxels, where Open3D's cast spends ~41 ms more with colour than without (its march,
@@ -116,7 +116,8 @@ def range_map_fragments(blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray
     """The fragments Open3D's ``VoxelBlockGrid.ray_cast`` allots each block of ``blocks`` (N x 3 block
     coordinates) when it builds its range map for a ``height`` x ``width`` image (both multiples of 8) seen
     with ``K`` and ``extrinsic`` (world to camera): pass 0 of ``EstimateRange`` (Open3D 0.16-0.20), its
-    float32 arithmetic in a Numba kernel (:func:`mapping.fusion._tsdf_kernels.range_fragments`)."""
+    float32 arithmetic in our kernel (:func:`mapping.fusion._tsdf_kernels.range_fragments`, compiled in C by
+    default: :mod:`mapping._native`)."""
     b = np.ascontiguousarray(np.asarray(blocks).reshape(-1, 3), dtype=np.int32)
     E = np.asarray(extrinsic, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
@@ -144,10 +145,10 @@ def _tensor(array: np.ndarray, dtype=np.float32):
 
 
 def _kernels():
-    """The Numba kernels (compiled on first use, cached on disk)."""
-    from mapping.fusion import _tsdf_kernels
+    """The kernels (compiled C, or Numba's: :mod:`mapping._native`)."""
+    from mapping._native import tsdf_kernels
 
-    return _tsdf_kernels
+    return tsdf_kernels()
 
 
 def _quiet():

@@ -1,0 +1,174 @@
+/* The look-up kernels of radiometry.correction, compiled at install: the C twins of its Numba kernels (same
+ * arguments, same results; tests/test_native_kernels.py compares them). Why C: Numba's runtime costs ~111 MB of
+ * memory in every process that calls a kernel (issue 17); see mapping/_ckernels.c. */
+#include "_buffers.h"
+
+#if defined(__GNUC__) || defined(__clang__)
+#define RM_UNLIKELY(x) __builtin_expect((x), 0)
+#else
+#define RM_UNLIKELY(x) (x)
+#endif
+
+/* q: the quantised log gains, uint16 or uint32 */
+static int get_q(PyObject *obj, Py_buffer *view)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        view->obj = NULL;
+        PyErr_Clear();
+        PyErr_SetString(PyExc_ValueError, "q: needs a C-contiguous array");
+        return -1;
+    }
+    if (rm_kind(view->format) != 'u' || (view->itemsize != 2 && view->itemsize != 4)) {
+        PyBuffer_Release(view);
+        view->obj = NULL;
+        PyErr_SetString(PyExc_ValueError, "q: needs uint16 or uint32 elements");
+        return -1;
+    }
+    return 0;
+}
+
+static inline uint32_t q_at(const void *q, int wide, Py_ssize_t i)
+{
+    return wide ? ((const uint32_t *)q)[i] : (uint32_t)((const uint16_t *)q)[i];
+}
+
+/* the three-channel gather, one loop per width of q (an index past the table stops it: returns 1) */
+#define LOOKUP_RGB_LOOP(NAME, QTYPE)                                                                               \
+    static int NAME(const uint8_t *img, const QTYPE *q, const uint32_t *k, const uint8_t *table, uint64_t nt,   \
+                    uint8_t *out, Py_ssize_t pixels)                                                           \
+    {                                                                                                          \
+        for (Py_ssize_t p = 0; p < pixels; p++) {                                                              \
+            Py_ssize_t b = 3 * p;                                                                              \
+            uint64_t j0 = (uint64_t)q[b] + k[img[b]];                                                          \
+            uint64_t j1 = (uint64_t)q[b + 1] + k[256 + img[b + 1]];                                            \
+            uint64_t j2 = (uint64_t)q[b + 2] + k[512 + img[b + 2]];                                            \
+            if (RM_UNLIKELY((j0 >= nt) | (j1 >= nt) | (j2 >= nt)))                                             \
+                return 1;                                                                                      \
+            out[b] = table[j0];                                                                                \
+            out[b + 1] = table[j1];                                                                            \
+            out[b + 2] = table[j2];                                                                            \
+        }                                                                                                      \
+        return 0;                                                                                              \
+    }
+LOOKUP_RGB_LOOP(lookup_rgb_loop, uint32_t)
+LOOKUP_RGB_LOOP(lookup_rgb_loop16, uint16_t)
+
+/* out[b + c] = table[q[qi] + k[c, img[b + c]]] for pixel p (b = p * channels), qi = b + c (``per_channel``, three
+ * channels) or p (one gain per pixel); fails on an index past the table */
+static PyObject *lookup(PyObject *args, int per_channel)
+{
+    PyObject *oi, *oq, *ok, *ot, *oo;
+    Py_ssize_t channels = 3;
+    Py_buffer v[5] = {{0}};
+    if (per_channel ? !PyArg_ParseTuple(args, "OOOOO", &oi, &oq, &ok, &ot, &oo)
+                    : !PyArg_ParseTuple(args, "OOOOOn", &oi, &oq, &ok, &ot, &oo, &channels))
+        return NULL;
+    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || get_q(oq, &v[1]) || rm_get(ok, &v[2], 'u', 4, 2, 0, "k")
+        || rm_get(ot, &v[3], 'u', 1, 1, 0, "table") || rm_get(oo, &v[4], 'u', 1, 1, 1, "out"))
+        goto fail;
+    Py_ssize_t n = v[0].shape[0], pixels = channels > 0 ? n / channels : 0;
+    if (channels < 1 || n % channels) {
+        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of %zd channels", n, channels);
+        goto fail;
+    }
+    if (rm_items(&v[1]) != (per_channel ? n : pixels) || rm_dim(&v[2], 0, channels, "k")
+        || rm_dim(&v[2], 1, 256, "k") || rm_dim(&v[4], 0, n, "out")) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "q: needs one gain index per value (per pixel when shared)");
+        goto fail;
+    }
+    const uint8_t *img = v[0].buf, *table = v[3].buf;
+    const uint32_t *k = v[2].buf;
+    const void *q = v[1].buf;
+    const int wide = v[1].itemsize == 4;
+    uint8_t *out = v[4].buf;
+    const uint64_t nt = (uint64_t)v[3].shape[0];
+    int bad = 0;
+    Py_BEGIN_ALLOW_THREADS
+    if (per_channel && wide)
+        bad = lookup_rgb_loop(img, (const uint32_t *)q, k, table, nt, out, pixels);
+    else if (per_channel)
+        bad = lookup_rgb_loop16(img, (const uint16_t *)q, k, table, nt, out, pixels);
+    else
+        for (Py_ssize_t p = 0; p < pixels && !bad; p++) {
+            uint64_t level = q_at(q, wide, p);
+            Py_ssize_t b = p * channels;
+            for (Py_ssize_t c = 0; c < channels; c++) {
+                uint64_t j = level + k[c * 256 + img[b + c]];
+                if (j >= nt) {
+                    bad = 1;
+                    break;
+                }
+                out[b + c] = table[j];
+            }
+        }
+    Py_END_ALLOW_THREADS
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "q, k: an index past the end of table");
+        goto fail;
+    }
+    rm_release(v, 5);
+    Py_RETURN_NONE;
+fail:
+    rm_release(v, 5);
+    return NULL;
+}
+
+static PyObject *lookup_rgb(PyObject *self, PyObject *args)
+{
+    return lookup(args, 1);
+}
+
+static PyObject *lookup_shared(PyObject *self, PyObject *args)
+{
+    return lookup(args, 0);
+}
+
+/* out[p, c] = lut[c, img[p, c]] * gain[p, 0 or c] (float32) */
+static PyObject *irradiance(PyObject *self, PyObject *args)
+{
+    PyObject *oi, *ol, *og, *oo;
+    Py_buffer v[4] = {{0}};
+    if (!PyArg_ParseTuple(args, "OOOO", &oi, &ol, &og, &oo))
+        return NULL;
+    if (rm_get(oi, &v[0], 'u', 1, 2, 0, "img") || rm_get(ol, &v[1], 'f', 4, 2, 0, "lut")
+        || rm_get(og, &v[2], 'f', 4, 2, 0, "gain") || rm_get(oo, &v[3], 'f', 4, 2, 1, "out"))
+        goto fail;
+    Py_ssize_t n = v[0].shape[0], ch = v[0].shape[1], cg = v[2].shape[1];
+    if (rm_dim(&v[1], 0, ch, "lut") || rm_dim(&v[1], 1, 256, "lut") || rm_dim(&v[2], 0, n, "gain")
+        || rm_dim(&v[3], 0, n, "out") || rm_dim(&v[3], 1, ch, "out"))
+        goto fail;
+    if (cg != 1 && cg != ch) {
+        PyErr_Format(PyExc_ValueError, "gain: needs 1 or %zd columns, got %zd", ch, cg);
+        goto fail;
+    }
+    const uint8_t *img = v[0].buf;
+    const float *lut = v[1].buf, *gain = v[2].buf;
+    float *out = v[3].buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t p = 0; p < n; p++)
+        for (Py_ssize_t c = 0; c < ch; c++)
+            out[p * ch + c] = lut[c * 256 + img[p * ch + c]] * gain[p * cg + (cg == 1 ? 0 : c)];
+    Py_END_ALLOW_THREADS
+    rm_release(v, 4);
+    Py_RETURN_NONE;
+fail:
+    rm_release(v, 4);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"lookup_rgb", lookup_rgb, METH_VARARGS, "uint8 correction, a gain index per value (three channels)."},
+    {"lookup_shared", lookup_shared, METH_VARARGS, "uint8 correction, one gain index per pixel."},
+    {"irradiance", irradiance, METH_VARARGS, "Irradiance of a uint8 image: lut[c, I] * gain."},
+    RM_THREAD_METHODS,
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels",
+                                    "radiomap's compiled correction kernels (see the C source's header).", -1,
+                                    methods};
+
+PyMODINIT_FUNC PyInit__ckernels(void)
+{
+    return PyModule_Create(&module);
+}
