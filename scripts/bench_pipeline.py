@@ -19,6 +19,8 @@ alternating order, ``--repeats`` times; the table reports medians.
 - radiomap-float32: the same with the float32 grid (``colour_storage="float32"``; not run unless listed in
             ``--methods``): the 16-bit grid's memory saving and its effect on the histogram mean, ATE and time,
             measured in the same run.
+- radiomap-numba: radiomap with its Numba kernels (``RADIOMAP_KERNELS=numba``; not run unless listed): what
+            the compiled kernels save in memory and time, in the same run.
 
 Reported: ms per frame, frames/s, the time ratios (ours / each Open3D loop; issue 17's target: <= 1.0 against
 open3d-colour), ATE RMSE after Horn alignment against the dataset's ground truth (target: no worse than Open3D's),
@@ -52,9 +54,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32")
+METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba")
 PEERS = ("open3d", "open3d-colour")
-OURS = ("radiomap", "radiomap-float32")
+OURS = ("radiomap", "radiomap-float32", "radiomap-numba")
 
 
 def parse_frames(text: str) -> slice:
@@ -155,7 +157,7 @@ def worker_radiomap(args) -> dict:
     vignetting = PolynomialVignetting(np.tile([-0.3, 0.05, -0.02], (3, 1)),
                                       np.tile([w / 2 - 0.5, h / 2 - 0.5], (3, 1)), (w, h))
     colour = IrradianceColour(CameraResponse.gamma(2.2), vignetting)
-    # load the Numba kernels (compiled and cached on disk) outside the timed loop, as Open3D's C++ is: a
+    # load the kernels (C, or Numba's compiled and cached on disk) outside the timed loop, as Open3D's C++ is: a
     # throw-away run over the first three frames, freed before the measured run starts
     reconstruct(ArrayDataset([ds[0], ds[1], ds[2]]),
                 colour_model=IrradianceColour(CameraResponse.gamma(2.2), vignetting),
@@ -171,7 +173,10 @@ def worker_radiomap(args) -> dict:
     run = reconstruct(timed, colour_model=colour, backend=backend, tracker=tracker, progress=False)
     timed.marks.append(time.perf_counter())
     stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
-    return {"method": args.worker, "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
+    from radiometry._native import compiled
+
+    return {"method": args.worker, "kernels": "C" if compiled("mapping._ckernels") else "Numba",
+            "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
             "ate_m": None if run.ate is None else run.ate.rmse, "peak_rss_mb": _peak_mb(),
             "blocks": run.map_stats.get("blocks"), "stage_ms": stages,
             "histogram_mean": run.histogram.mean(), "frame_ms": (1000 * np.diff(timed.marks)).tolist()}
@@ -183,7 +188,10 @@ def run_worker(method: str, args) -> dict:
            "--block-count", str(args.block_count), "--trunc", str(args.trunc), "--depth-max", str(args.depth_max),
            "--depth-diff", str(args.depth_diff), "--device", args.device, "--motion-model", args.motion_model]
     load = _load()
-    out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    if method == "radiomap-numba":
+        env["RADIOMAP_KERNELS"] = "numba"
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if out.returncode != 0:
         how = f"signal {-out.returncode}" if out.returncode < 0 else f"exit code {out.returncode}"
         raise SystemExit(f"{method} worker failed ({how}):\n{out.stderr[-3000:]}")
@@ -211,7 +219,8 @@ def main(argv=None) -> int:
     p.add_argument("--motion-model", default="constant_velocity", choices=("constant_velocity", "previous"))
     p.add_argument("--device", default="CPU:0")
     p.add_argument("--repeats", type=int, default=2)
-    p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {', '.join(METHODS)}")
+    p.add_argument("--methods", default="open3d,open3d-colour,radiomap",
+                   help=f"comma-separated subset of {', '.join(METHODS)}")
     p.add_argument("--scaling", help="comma-separated frame numbers (e.g. 100,250,500): time per frame before each")
     p.add_argument("--window", type=int, default=25, help="frames averaged before each --scaling frame number")
     p.add_argument("--json", type=Path, help="also write the results here")
@@ -240,7 +249,8 @@ def main(argv=None) -> int:
             runs[method].append(r)
             print(f"  run {rep + 1} {method:16s} {1000 * r['seconds'] / r['frames']:7.1f} ms/frame  "
                   f"ATE {100 * r['ate_m'] if r['ate_m'] is not None else float('nan'):5.2f} cm  "
-                  f"peak {r['peak_rss_mb']:6.0f} MB  load {r['load'][0]:.1f}-{r['load'][1]:.1f}", file=sys.stderr)
+                  f"peak {r['peak_rss_mb']:6.0f} MB  load {r['load'][0]:.1f}-{r['load'][1]:.1f}"
+                  + (f"  {r['kernels']} kernels" if "kernels" in r else ""), file=sys.stderr)
 
     def med(method, key):
         vals = [r[key] for r in runs[method] if r.get(key) is not None]
