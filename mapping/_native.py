@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from radiometry._native import compiled
+from radiometry._native import choice, compiled
 
 _TSDF = ("colour_pairs", "finish_view", "refine", "range_fragments", "surface_colour", "fill_block_table",
          "integrate_u16")
@@ -91,3 +91,21 @@ def set_num_threads(n: int) -> None:
     import numba
 
     numba.set_num_threads(int(n))
+
+
+def summary() -> str:
+    """Which kernels run, for ``radiomap --version``: e.g. ``C (OpenMP, 2 threads)``."""
+    try:
+        mapping_c, radiometry_c = _c(), compiled("radiometry._ckernels")
+    except (ValueError, ImportError) as exc:
+        return f"none usable: {exc}"
+    if mapping_c is None and radiometry_c is None:
+        why = "RADIOMAP_KERNELS=numba" if choice() == "numba" else \
+            "the C extensions are not built: reinstall with a C compiler, pip install -e ."
+        return f"Numba ({why})"
+    if mapping_c is None or radiometry_c is None:
+        built = "mapping._ckernels" if mapping_c is not None else "radiometry._ckernels"
+        return f"C for {built} only, Numba for the rest (reinstall with pip install -e . to build both)"
+    n = mapping_c.get_num_threads()
+    threads = f"OpenMP, {n} thread{'s' if n != 1 else ''}" if mapping_c.openmp else "no OpenMP: one thread"
+    return f"C ({threads})"

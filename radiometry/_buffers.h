@@ -13,6 +13,9 @@
 
 #ifdef _OPENMP
 #include <omp.h>
+#define RM_OPENMP 1
+#else
+#define RM_OPENMP 0
 #endif
 
 /* 'f' float, 'i' signed integer, 'u' unsigned integer, 'b' bool; 0 for anything else */

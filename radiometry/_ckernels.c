@@ -170,5 +170,10 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels",
 
 PyMODINIT_FUNC PyInit__ckernels(void)
 {
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m != NULL && PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }

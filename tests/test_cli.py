@@ -17,7 +17,17 @@ def run(*args: str) -> subprocess.CompletedProcess:
 def test_version():
     out = run("--version")
     assert out.returncode == 0
-    assert out.stdout.strip() == f"radiomap {__version__}"
+    lines = out.stdout.strip().splitlines()
+    assert lines[0] == f"radiomap {__version__}" and lines[1].startswith("kernels: ")
+    assert run("-V").stdout == out.stdout
+
+
+def test_version_says_which_kernels_run(monkeypatch):
+    monkeypatch.setenv("RADIOMAP_KERNELS", "numba")
+    assert run("--version").stdout.strip().splitlines()[1] == "kernels: Numba (RADIOMAP_KERNELS=numba)"
+    monkeypatch.setenv("RADIOMAP_KERNELS", "fortran")
+    out = run("--version")
+    assert out.returncode == 0 and "kernels: none usable: RADIOMAP_KERNELS='fortran'" in out.stdout
 
 
 def test_help_lists_examples():

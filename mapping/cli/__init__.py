@@ -94,9 +94,19 @@ class LazyGroup(click.Group):
             ctx.exit(1)
 
 
+def _print_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if not value or ctx.resilient_parsing:
+        return
+    from mapping._native import summary
+
+    click.echo(f"radiomap {__version__}\nkernels: {summary()}")
+    ctx.exit()
+
+
 @click.group(cls=LazyGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"],
                                                              "max_content_width": 100})
-@click.version_option(__version__, "--version", "-V", prog_name="radiomap", message="%(prog)s %(version)s")
+@click.option("--version", "-V", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Show the version and the kernels in use (compiled C or Numba), and exit.")
 @click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug), before the command: "
                                                    "radiomap -v reconstruct ...")
 def cli(verbose: int) -> None:
