@@ -170,14 +170,15 @@ def _solve_channel(pix: np.ndarray, img: np.ndarray, z: np.ndarray, n_pix: int, 
 
 
 def _log_covariance(curvature: np.ndarray, pix: np.ndarray, z: np.ndarray, n_pix: int, lv: np.ndarray,
-                    residual: np.ndarray) -> np.ndarray:
+                    residual: np.ndarray) -> np.ndarray | None:
     """Covariance of ``g`` at the observed levels ``lv`` relative to the top one (its row and column are 0):
     the sandwich ``H^-1 (sum_i s_i s_i^T / W^2) H^-1`` with ``H`` the energy's Hessian at the solution (data,
     prior, the smoothness rows inside the Huber threshold; the ties of the monotone solve are ignored),
     ``s_i = sum_j w_ij r_ij e_(z_ij)`` the score of pixel ``i`` from its residuals (pixels are independent, their
     observations need not be; the eliminated irradiance drops out since ``sum_j w_ij r_ij = 0``) and ``W`` the sum
     of weights. It measures the noise of the pixels, not the prior's bias nor the factor periodic in ``ln E`` that
-    equal exposure ratios leave undetermined."""
+    equal exposure ratios leave undetermined. None when ``H`` is singular (or so ill-conditioned that its inverse
+    means nothing): the data and prior leave a direction undetermined, and no error is stated rather than 0."""
     import scipy.sparse as sp
 
     column = np.full(LEVELS, -1, dtype=np.intp)
@@ -187,19 +188,29 @@ def _log_covariance(curvature: np.ndarray, pix: np.ndarray, z: np.ndarray, n_pix
     meat = (scores.T @ scores).toarray()[:-1, :-1] / float(w.sum()) ** 2
     cov = np.zeros((lv.size, lv.size))
     if lv.size > 1:
-        try:
-            inv = np.linalg.inv(curvature[:-1, :-1])
-        except np.linalg.LinAlgError:
-            return cov
+        h = curvature[:-1, :-1]
+        if not np.all(np.isfinite(h)) or np.linalg.cond(h) > _MAX_CONDITION:
+            return None
+        inv = np.linalg.inv(h)
         cov[:-1, :-1] = inv @ meat @ inv
+        if not np.all(np.isfinite(cov)):
+            return None
     return cov
 
 
-def _normalised_log_stderr(cov: np.ndarray, u: np.ndarray, observed: np.ndarray, counts: np.ndarray,
-                           table: np.ndarray) -> np.ndarray:
+#: the largest condition number of the Hessian whose inverse is taken as a covariance: numerically singular
+#: beyond it (1 / machine epsilon). Well-posed fits reach ~1e13 (the prior's weight spans many decades).
+_MAX_CONDITION = 1.0 / np.finfo(np.float64).eps
+
+
+def _normalised_log_stderr(cov: np.ndarray | None, u: np.ndarray, observed: np.ndarray, counts: np.ndarray,
+                           table: np.ndarray) -> np.ndarray | None:
     """Standard error of ``ln(table[z] / table[255])`` at every level, (256,): ``cov`` (of ``g`` at the observed
     levels) carried through the completion of ``u`` into ``table`` (interpolation, the extrapolation's line fits,
-    the normalisation at 255, usually extrapolated) by its Jacobian, taken by finite differences."""
+    the normalisation at 255, usually extrapolated) by its Jacobian, taken by finite differences. None when
+    ``cov`` is (the Hessian was singular)."""
+    if cov is None:
+        return None
     lv = np.flatnonzero(observed)
     with np.errstate(divide="ignore", invalid="ignore"):
         ref = np.log(table) - np.log(table[-1])
@@ -278,10 +289,17 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
         "monotonicity": "the energy's minimum over non-decreasing g when the free minimum is not increasing",
         "repaired": False, "ties_separated": not strict,
         "fit_rms_levels": math.sqrt(sq / n_obs),
-        "inverse_stderr": np.stack([s["log_stderr"] for s in per_channel], axis=1).tolist(),
-        "inverse_stderr_source": "loglog: sandwich covariance over pixels, carried through the extrapolation and "
-                                 "the normalisation at 255 (noise only)",
     }
+    singular = [c for c, s in enumerate(per_channel) if s["log_stderr"] is None]
+    if singular:  # no standard error rather than a false 0 (the budget then uses its other terms)
+        meta["inverse_stderr_source"] = (f"none: the energy's Hessian is singular in channel(s) "
+                                         f"{', '.join(map(str, singular))} (a direction the brackets and the prior "
+                                         f"leave undetermined)")
+        log.warning("loglog response: no standard error stated (%s)", meta["inverse_stderr_source"])
+    else:
+        meta["inverse_stderr"] = np.stack([s["log_stderr"] for s in per_channel], axis=1).tolist()
+        meta["inverse_stderr_source"] = ("loglog: sandwich covariance over pixels, carried through the extrapolation "
+                                         "and the normalisation at 255 (noise only)")
     response = CameraResponse(table / table[-1], meta)
     response.meta["fit_seconds"] = time.perf_counter() - start
     return response

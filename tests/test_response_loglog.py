@@ -144,3 +144,28 @@ def test_bad_options():
         fit_response_loglog(images, TIMES[:3], pixels=1)
     with pytest.raises(ValueError, match="levels must satisfy"):
         fit_response_loglog(images, TIMES[:3], levels=(0, 254))
+
+
+def test_a_singular_hessian_states_no_error_rather_than_zero(radiance, monkeypatch, caplog):
+    """Where the energy's Hessian is singular (a direction the brackets and the prior leave undetermined), the fit
+    records no ``inverse_stderr`` (and says why) instead of a standard error of 0; the vignetting budget then
+    falls back to the curve's roughness, as for any response without one. Well-posed fits keep theirs: Hessians reach
+    condition numbers ~1e13 (24 curves x 2 designs: 6.6e12-2.4e13), below the 1/eps threshold."""
+    import radiometry.response_loglog as ll
+    from radiometry.response import relative_stderr
+
+    singular = np.diag([1.0, 2.0, 0.0, 3.0])
+    args = (np.zeros(3, np.intp), np.array([10, 20, 30]), 1, np.array([10, 20, 30, 40]), np.zeros(3))
+    assert ll._log_covariance(singular, *args) is None
+    assert ll._log_covariance(np.diag([1.0, 2.0, 3.0e-17, 3.0]), *args) is None     # numerically singular
+    assert ll._log_covariance(np.diag([1.0, 2.0, 1e-3, 3.0]), *args) is not None
+    images = render_brackets(kink_curve(), radiance, TIMES)
+    fine = fit_response_loglog(images, TIMES)
+    assert relative_stderr(fine) is not None and fine.meta["inverse_stderr_source"].startswith("loglog:")
+    monkeypatch.setattr(ll, "_log_covariance", lambda *a: None)
+    with caplog.at_level("WARNING", logger="radiometry.response_loglog"):
+        response = fit_response_loglog(images, TIMES)
+    assert "inverse_stderr" not in response.meta and relative_stderr(response) is None
+    assert response.meta["inverse_stderr_source"].startswith("none: the energy's Hessian is singular in channel(s) 0, 1, 2")
+    assert "no standard error stated" in caplog.text
+    assert np.array_equal(response.inverse_table, fine.inverse_table)
