@@ -224,6 +224,8 @@ static f64 tsdf_at(f64 px, f64 py, f64 pz, f64 inv_vs, int shift, const f32 *tsd
 {
     int64_t res = (int64_t)1 << shift, mask = res - 1;
     f64 gx = px * inv_vs, gy = py * inv_vs, gz = pz * inv_vs;
+    if (!(fabs(gx) < 4e18 && fabs(gy) < 4e18 && fabs(gz) < 4e18)) /* inf or NaN: no voxel */
+        return NAN;
     f64 fx0 = floor(gx), fy0 = floor(gy), fz0 = floor(gz);
     int64_t ix = (int64_t)fx0, iy = (int64_t)fy0, iz = (int64_t)fz0;
     f64 fx = gx - fx0, fy = gy - fy0, fz = gz - fz0;
@@ -740,7 +742,7 @@ static inline f64 level(const Forward *f, f32 e, int c)
     const f32 t0 = f->tables[c], tmax = f->tables[255 * 3 + c];
     if (e > t0 && e < tmax) {
         f32 q = (e - f->lo[c]) * f->inv_width[c];
-        int64_t b = !(q >= 0) ? 0 : q > (f32)f->nb ? f->nb : (int64_t)q; /* a bucket of the table, always */
+        int64_t b = !(q >= 0) ? 0 : (f64)q > (f64)f->nb ? f->nb : (int64_t)q; /* a bucket of the table, always */
         int64_t j = f->starts[b * 3 + c];
         while (f->tables[(j + 1) * 3 + c] <= e)
             j++;
@@ -887,7 +889,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels",
 PyMODINIT_FUNC PyInit__ckernels(void)
 {
     PyObject *m = PyModule_Create(&module);
-    if (m != NULL && PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0) {
+    if (m != NULL && (PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0
+                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from radiometry._native import choice, compiled
+from radiometry._native import choice, compiled, unusable
 
 _TSDF = ("colour_pairs", "finish_view", "refine", "range_fragments", "surface_colour", "fill_block_table",
          "integrate_u16")
@@ -94,18 +94,20 @@ def set_num_threads(n: int) -> None:
 
 
 def summary() -> str:
-    """Which kernels run, for ``radiomap --version``: e.g. ``C (OpenMP, 2 threads)``."""
+    """Which kernels run, for ``radiomap --version``: e.g. ``C (OpenMP, 2 threads)``, or Numba and why."""
     try:
-        mapping_c, radiometry_c = _c(), compiled("radiometry._ckernels")
-    except (ValueError, ImportError) as exc:
+        wanted = choice()
+        if wanted == "numba":
+            return "Numba (RADIOMAP_KERNELS=numba)"
+        problems = [why for why in (unusable("mapping._ckernels"), unusable("radiometry._ckernels")) if why]
+        if problems and wanted == "c":
+            return f"none usable: RADIOMAP_KERNELS=c but {'; '.join(problems)}"
+        if len(problems) == 2:
+            return f"Numba ({'; '.join(problems)}: reinstall with a C compiler, pip install -e .)"
+        if problems:
+            return f"C and Numba ({problems[0]}: reinstall with pip install -e . to use C for all)"
+        c = _c()
+        n = c.get_num_threads()
+        return f"C (OpenMP, {n} thread{'s' if n != 1 else ''})" if c.openmp else "C (no OpenMP: one thread)"
+    except Exception as exc:  # noqa: BLE001 - --version must answer whatever the installation's state
         return f"none usable: {exc}"
-    if mapping_c is None and radiometry_c is None:
-        why = "RADIOMAP_KERNELS=numba" if choice() == "numba" else \
-            "the C extensions are not built: reinstall with a C compiler, pip install -e ."
-        return f"Numba ({why})"
-    if mapping_c is None or radiometry_c is None:
-        built = "mapping._ckernels" if mapping_c is not None else "radiometry._ckernels"
-        return f"C for {built} only, Numba for the rest (reinstall with pip install -e . to build both)"
-    n = mapping_c.get_num_threads()
-    threads = f"OpenMP, {n} thread{'s' if n != 1 else ''}" if mapping_c.openmp else "no OpenMP: one thread"
-    return f"C ({threads})"

@@ -11,6 +11,10 @@
 #include <stdint.h>
 #include <string.h>
 
+/* The kernels' argument contract: radiometry._native.ABI must equal it (a stale build is then not used). Bump
+ * both whenever a kernel's arguments change. */
+#define RM_ABI 1
+
 #ifdef _OPENMP
 #include <omp.h>
 #define RM_OPENMP 1

@@ -171,7 +171,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels",
 PyMODINIT_FUNC PyInit__ckernels(void)
 {
     PyObject *m = PyModule_Create(&module);
-    if (m != NULL && PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0) {
+    if (m != NULL && (PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0
+                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

@@ -36,3 +36,8 @@ class ModelMismatchError(RadiomapError):
 
 class OutputError(RadiomapError):
     """An output cannot be written (permissions, full disk, existing file without --force)."""
+
+
+class InstallationError(RadiomapError):
+    """The installation or environment cannot run what was asked (e.g. ``RADIOMAP_KERNELS`` names kernels that are
+    not built, or an unknown value)."""

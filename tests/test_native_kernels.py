@@ -541,17 +541,65 @@ def test_bad_arguments_name_the_argument(kernels):
 
 
 def test_the_choice_and_its_errors(monkeypatch):
+    from radiometry.errors import InstallationError
+
     monkeypatch.setenv("RADIOMAP_KERNELS", "fortran")
-    with pytest.raises(ValueError, match="RADIOMAP_KERNELS='fortran'.*auto, c or numba"):
+    with pytest.raises(InstallationError, match="RADIOMAP_KERNELS='fortran'.*auto, c or numba"):
         choice()
     monkeypatch.setenv("RADIOMAP_KERNELS", "numba")
     assert compiled("mapping._ckernels") is None
     monkeypatch.setenv("RADIOMAP_KERNELS", "c")
-    with pytest.raises(ImportError, match="RADIOMAP_KERNELS=c but mapping._no_such_kernels is not built.*"
-                                          "pip install -e ."):
+    with pytest.raises(InstallationError, match="RADIOMAP_KERNELS=c but mapping._no_such_kernels cannot be loaded "
+                                                "\\(ModuleNotFoundError.*pip install -e ."):
         compiled("mapping._no_such_kernels")
     monkeypatch.setenv("RADIOMAP_KERNELS", "auto")
     assert compiled("mapping._no_such_kernels") is None
+
+
+def test_a_stale_or_broken_build_is_not_used(monkeypatch, tmp_path, caplog):
+    """An extension built for other kernels (its ABI differs) or one that fails as it loads is not used: Numba runs,
+    said once at INFO (not at every kernel call), and --version's summary says why."""
+    import types
+
+    from radiometry import _native as rn
+
+    monkeypatch.setitem(sys.modules, "radiometry._stale_kernels", types.SimpleNamespace(ABI=rn.ABI - 1))
+    (tmp_path / "broken_kernels_pkg").mkdir()
+    (tmp_path / "broken_kernels_pkg" / "__init__.py").write_text("")
+    (tmp_path / "broken_kernels_pkg" / "_ck.py").write_text("raise RuntimeError('invalid ELF header')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("RADIOMAP_KERNELS", "auto")
+    with caplog.at_level("INFO", logger="radiometry._native"):
+        for _ in range(3):
+            assert compiled("radiometry._stale_kernels") is None
+            assert compiled("broken_kernels_pkg._ck") is None
+    assert caplog.text.count("_stale_kernels was built for other kernels (ABI 0, this radiomap needs 1)") == 1
+    assert caplog.text.count("broken_kernels_pkg._ck cannot be loaded (RuntimeError: invalid ELF header)") == 1
+    monkeypatch.setattr(_native, "_c", lambda: (_ for _ in ()).throw(OSError("disk gone")))
+    monkeypatch.setattr(_native, "unusable", lambda module: "")
+    assert _native.summary() == "none usable: disk gone"
+
+
+@needs_c
+def test_the_extensions_carry_the_abi_of_this_radiomap():
+    from radiometry import _native as rn
+
+    assert compiled("mapping._ckernels").ABI == compiled("radiometry._ckernels").ABI == rn.ABI
+    assert _native.summary().startswith("C (OpenMP, ") or _native.summary() == "C (no OpenMP: one thread)"
+
+
+def test_a_wrong_choice_fails_before_a_command_writes_anything(tmp_path):
+    env = dict(os.environ, RADIOMAP_KERNELS="fortran")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "mapping.cli", "correct", str(tmp_path / "in.png"), "-r", "x.npz",
+                           "--vignetting", "v.npz", "-o", str(out)], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert proc.returncode in (1, 2) and not out.exists()
+    proc = subprocess.run([sys.executable, "-m", "mapping.cli", "simulate", "room", "-o", str(out), "-n", "2"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1 and not out.exists()
+    assert proc.stderr.strip().splitlines() == ["radiomap: error: RADIOMAP_KERNELS='fortran' is not a kernel choice: "
+                                                "set it to auto, c or numba (or unset it)"]
 
 
 # --------------------------------------------------------------------------------------------------

@@ -117,6 +117,11 @@ def cli(verbose: int) -> None:
     """
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    from radiometry._native import choice, compiled
+
+    if choice() == "c":  # a wrong RADIOMAP_KERNELS fails here, before a command writes anything
+        compiled("mapping._ckernels")
+        compiled("radiometry._ckernels")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -102,6 +102,8 @@ def _tsdf_at(px, py, pz, inv_vs, shift, tsdf, weight, index, lo):  # pragma: no 
     res = 1 << shift
     mask = res - 1
     gx, gy, gz = px * inv_vs, py * inv_vs, pz * inv_vs
+    if not (abs(gx) < 4e18 and abs(gy) < 4e18 and abs(gz) < 4e18):  # inf or NaN: no voxel
+        return np.nan
     fx0, fy0, fz0 = np.floor(gx), np.floor(gy), np.floor(gz)
     ix, iy, iz = int(fx0), int(fy0), int(fz0)
     fx, fy, fz = gx - fx0, gy - fy0, gz - fz0
