@@ -180,21 +180,10 @@ typedef struct {
 
 static int attr(PyObject *obj, Py_buffer *view, const char *name, Attr *a)
 {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
-        view->obj = NULL;
-        PyErr_Clear();
-        PyErr_Format(PyExc_ValueError, "%s: needs a C-contiguous array", name);
+    if (rm_get_of(obj, view, 'f', 4, 'u', 2, -1, 0, name) < 0)
         return -1;
-    }
-    char kind = rm_kind(view->format);
-    if (!((kind == 'f' && view->itemsize == 4) || (kind == 'u' && view->itemsize == 2))) {
-        PyErr_Format(PyExc_ValueError, "%s: needs float32 or uint16 elements", name);
-        PyBuffer_Release(view);
-        view->obj = NULL;
-        return -1;
-    }
     a->data = view->buf;
-    a->u16 = kind == 'u';
+    a->u16 = view->itemsize == 2;
     a->n = rm_items(view);
     return 0;
 }

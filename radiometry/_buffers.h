@@ -40,9 +40,11 @@ static char rm_kind(const char *format)
     }
 }
 
-/* ``ndim`` < 0: any number of dimensions. ``name`` names the argument in the error. */
-static int rm_get(PyObject *obj, Py_buffer *view, char kind, Py_ssize_t itemsize, int ndim, int writable,
-                  const char *name)
+/* The C-contiguous buffer of ``obj`` with elements of kind ``kind_a`` and ``size_a`` bytes, or (``size_b`` > 0) of
+ * kind ``kind_b`` and ``size_b`` bytes; ``ndim`` < 0: any number of dimensions. ``name`` names the argument in the
+ * error. On failure ``view->obj`` is NULL (rm_release skips it). */
+static int rm_get_of(PyObject *obj, Py_buffer *view, char kind_a, Py_ssize_t size_a, char kind_b, Py_ssize_t size_b,
+                     int ndim, int writable, const char *name)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(obj, view, flags) < 0) {
@@ -51,14 +53,27 @@ static int rm_get(PyObject *obj, Py_buffer *view, char kind, Py_ssize_t itemsize
         view->obj = NULL;
         return -1;
     }
-    if (rm_kind(view->format) != kind || view->itemsize != itemsize || (ndim >= 0 && view->ndim != ndim)) {
-        PyErr_Format(PyExc_ValueError, "%s: needs %d-d %c%zd elements, got %d-d format '%s'", name, ndim, kind,
-                     itemsize * 8, view->ndim, view->format ? view->format : "B");
+    char kind = rm_kind(view->format);
+    int ok = (kind == kind_a && view->itemsize == size_a) || (size_b > 0 && kind == kind_b && view->itemsize == size_b);
+    if (!ok || (ndim >= 0 && view->ndim != ndim)) {
+        const char *format = view->format ? view->format : "B";
+        if (size_b > 0)
+            PyErr_Format(PyExc_ValueError, "%s: needs %c%zd or %c%zd elements, got format '%s'", name, kind_a,
+                         size_a * 8, kind_b, size_b * 8, format);
+        else
+            PyErr_Format(PyExc_ValueError, "%s: needs %d-d %c%zd elements, got %d-d format '%s'", name, ndim, kind_a,
+                         size_a * 8, view->ndim, format);
         PyBuffer_Release(view);
         view->obj = NULL;
         return -1;
     }
     return 0;
+}
+
+static int rm_get(PyObject *obj, Py_buffer *view, char kind, Py_ssize_t itemsize, int ndim, int writable,
+                  const char *name)
+{
+    return rm_get_of(obj, view, kind, itemsize, 0, 0, ndim, writable, name);
 }
 
 /* Fails with ValueError unless dimension ``axis`` of ``view`` is ``size``. */

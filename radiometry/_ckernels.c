@@ -9,24 +9,6 @@
 #define RM_UNLIKELY(x) (x)
 #endif
 
-/* q: the quantised log gains, uint16 or uint32 */
-static int get_q(PyObject *obj, Py_buffer *view)
-{
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
-        view->obj = NULL;
-        PyErr_Clear();
-        PyErr_SetString(PyExc_ValueError, "q: needs a C-contiguous array");
-        return -1;
-    }
-    if (rm_kind(view->format) != 'u' || (view->itemsize != 2 && view->itemsize != 4)) {
-        PyBuffer_Release(view);
-        view->obj = NULL;
-        PyErr_SetString(PyExc_ValueError, "q: needs uint16 or uint32 elements");
-        return -1;
-    }
-    return 0;
-}
-
 static inline uint32_t q_at(const void *q, int wide, Py_ssize_t i)
 {
     return wide ? ((const uint32_t *)q)[i] : (uint32_t)((const uint16_t *)q)[i];
@@ -63,7 +45,8 @@ static PyObject *lookup(PyObject *args, int per_channel)
     if (per_channel ? !PyArg_ParseTuple(args, "OOOOO", &oi, &oq, &ok, &ot, &oo)
                     : !PyArg_ParseTuple(args, "OOOOOn", &oi, &oq, &ok, &ot, &oo, &channels))
         return NULL;
-    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || get_q(oq, &v[1]) || rm_get(ok, &v[2], 'u', 4, 2, 0, "k")
+    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get_of(oq, &v[1], 'u', 2, 'u', 4, -1, 0, "q")
+        || rm_get(ok, &v[2], 'u', 4, 2, 0, "k")
         || rm_get(ot, &v[3], 'u', 1, 1, 0, "table") || rm_get(oo, &v[4], 'u', 1, 1, 1, "out"))
         goto fail;
     Py_ssize_t n = v[0].shape[0], pixels = channels > 0 ? n / channels : 0;

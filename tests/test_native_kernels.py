@@ -130,6 +130,12 @@ def _camera(rng, rows=36, cols=44):
     return Rc, o, depth, K
 
 
+def _extrinsic(Rc, o) -> np.ndarray:
+    """World-to-camera (3 x 4, float32) of a camera at ``o`` with camera-to-world rotation ``Rc``."""
+    E = np.linalg.inv(np.block([[Rc, o[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))[:3]
+    return np.ascontiguousarray(E, np.float32)
+
+
 def _rotation(a):
     cx, cy, cz = np.cos(a)
     sx, sy, sz = np.sin(a)
@@ -217,14 +223,14 @@ def test_integrate_u16(kernels, seed):
     colour[rng.random(colour.shape) < 0.03] = np.nan
     colour[rng.random(colour.shape) < 0.03] = -0.5
     colour[rng.random(colour.shape) < 0.03] = 9.0                     # past 65535 / 8192
-    E = np.linalg.inv(np.block([[Rc, o[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))[:3]
+    E = _extrinsic(Rc, o)
     f32 = np.float32
     outs = []
     for k in (c, nb):
         tsdf, weight, buf = g["tsdf"].copy(), g["weight"].copy(), g["colour"].copy()
         clipped = np.zeros(len(g["slots"]), np.int64)
         k.integrate_u16(depth, colour, f32(K[0, 0]), f32(K[1, 1]), f32(K[0, 2]), f32(K[1, 2]),
-                        np.ascontiguousarray(E, f32), g["keys"], g["slots"].astype(np.int64), g["res"], f32(0.05),
+                        E, g["keys"], g["slots"].astype(np.int64), g["res"], f32(0.05),
                         f32(f32(4.0) * f32(0.05)), f32(1.8), 8192.0, tsdf, weight, buf, clipped)
         outs.append((tsdf, weight, buf, clipped))
     for a, b in zip(*outs):
@@ -444,8 +450,7 @@ def test_python_float_scalars_give_the_same_bits(kernels):
     g = _grid(rng, "uint16")
     Rc, o, d, K = _camera(rng)
     d = np.nan_to_num(d, nan=0.0)
-    E = np.ascontiguousarray(np.linalg.inv(np.block([[Rc, o[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))[:3],
-                             f32)
+    E = _extrinsic(Rc, o)
     fused = []
     for k in (c, nb):
         for cast in (float, f32):
@@ -487,7 +492,7 @@ def test_integrate_and_l1_do_not_depend_on_the_number_of_threads(kernels):
     Rc, o, depth, K = _camera(rng, 120, 160)
     depth = np.nan_to_num(depth, nan=0.0)
     colour = rng.uniform(0, 1.2, depth.shape + (3,)).astype(np.float32)
-    E = np.linalg.inv(np.block([[Rc, o[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))[:3].astype(np.float32)
+    E = _extrinsic(Rc, o)
     from mapping.colour import FastForward
     from radiometry.response import CameraResponse
 
