@@ -78,7 +78,8 @@ def read_vignetting(path: PathLike):
 
 
 def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLike | Sequence[float] | None = None, *,
-                       method: str = "auto", progress: bool = True, **options: Any) -> CameraResponse:
+                       method: str = "auto", progress: bool = True, quality: str = "full",
+                       **options: Any) -> CameraResponse:
     """The inverse response ``f^-1`` from bracketed exposures of a static scene (``radiomap response``).
 
     brackets: a folder of images with its times file (``times.txt`` / ``image_list.txt``, lines
@@ -87,6 +88,9 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
               in seconds (required).
     method:   ``auto`` (the log-log fit; Debevec with ``samples`` or ``lam="auto"``; the default), ``loglog``,
               ``debevec`` (sparse Debevec & Malik), ``engel``, ``opencv-debevec`` or ``robertson``.
+    quality:  the truth-free quality figure (:mod:`radiometry.response_quality`, in ``meta["quality"]``):
+              ``"full"`` (each exposure predicted by a fit without it, and two fits on disjoint pixel halves),
+              ``"fast"`` (each exposure predicted through this response, no refits) or ``"none"``.
     options:  the method's keywords (``lam``, ``samples``, ``mask``, ...; see
               :func:`radiometry.response_fit.fit_response`).
 
@@ -114,6 +118,16 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
     except CalibrationError as exc:
         raise CalibrationError(f"{where}{exc}") from None
     response.meta["prediction_rms_levels"] = rms
+    if quality not in ("full", "fast", "none"):
+        raise ValueError(f"quality must be 'full', 'fast' or 'none', got {quality!r}")
+    if quality != "none":
+        from radiometry.response_quality import assess
+
+        response.meta["quality"] = assess(images, stack_times, response, mask=options.get("mask"),
+                                          method=method if quality == "full" else None,
+                                          fit_options={k: v for k, v in options.items() if k != "mask"})
+        if response.meta["quality"]["grade"] != "good":
+            log.warning("%s%s", where, response.meta["quality"]["summary"])
     if not np.isfinite(rms) or rms > 10:
         log.warning("%sthe response predicts the images with an RMS error of %.1f levels: motion, misregistration, "
                     "wrong exposure times or auto exposure/white balance?", where, rms)

@@ -120,10 +120,14 @@ def equal_ratios(times: np.ndarray, *, tolerance: float = 0.02) -> float | None:
 
 
 def _observations(values: np.ndarray, t: np.ndarray, levels: tuple[int, int], pixels: int | None,
-                  valid: np.ndarray | None, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """Flatten the usable observations of one channel: (pixel index, exposure index, level) arrays."""
+                  valid: np.ndarray | None, rng: np.random.Generator,
+                  stalled: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Flatten the usable observations of one channel: (pixel index, exposure index, level) arrays. ``stalled``:
+    ``(P, N)`` boolean, observations to leave out (saturated pixels, :mod:`radiometry.response_levels`)."""
     lo, hi = levels
     usable = (values >= lo) & (values <= hi)
+    if stalled is not None:
+        usable &= ~stalled
     if valid is not None:
         usable &= valid[None, :]
     keep = np.flatnonzero(usable.sum(axis=0) >= 2)

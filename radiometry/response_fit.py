@@ -237,7 +237,8 @@ def select_samples(values: np.ndarray, times: np.ndarray, *, samples: int = DEFA
 # Debevec & Malik, sparse
 # --------------------------------------------------------------------------------------------------
 def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
-                           levels: tuple[int, int] = (1, 254), *, stderr: bool = False) -> dict[str, Any]:
+                           levels: tuple[int, int] = (1, 254), *, stderr: bool = False,
+                           stalled: np.ndarray | None = None) -> dict[str, Any]:
     """Solve one channel. ``values`` is ``(P, S)`` uint8 of the sampled pixels.
 
     Returns ``g`` (256,), ``ln_e`` (S,) and the observations used (image, pixel, level index arrays);
@@ -250,7 +251,14 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
     from scipy.sparse.linalg import splu
 
     n_img, n_pix = values.shape
-    w_obs = np.where((values >= levels[0]) & (values <= levels[1]), HAT_WEIGHTS[values], 0.0)
+    inside = (values >= levels[0]) & (values <= levels[1])
+    if stalled is not None:  # saturated pixels below the level cut (radiometry.response_levels)
+        inside &= ~stalled
+    w_obs = np.where(inside, HAT_WEIGHTS[values], 0.0)
+    seen = (w_obs > 0).any(axis=0)
+    if not seen.all():  # pixels left with no usable observation carry no information (and no row for their ln E)
+        values, w_obs = values[:, seen], w_obs[:, seen]
+        n_pix = values.shape[1]
     img_idx, pix_idx = np.nonzero(w_obs > 0)
     z = values[img_idx, pix_idx].astype(np.intp)
     w = w_obs[img_idx, pix_idx]
@@ -339,7 +347,8 @@ def _log_stderr(lu, n_pix: int, residual: np.ndarray, w: np.ndarray, pix: np.nda
 
 def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float | str = DEFAULT_LAMBDA,
                          samples: int = DEFAULT_SAMPLES, mask: np.ndarray | None = None,
-                         levels: tuple[int, int] = (1, 254), seed: int = 0) -> CameraResponse:
+                         levels: tuple[int, int] | str = "auto", edges: bool | str = "auto",
+                         seed: int = 0) -> CameraResponse:
     """Debevec & Malik on a sparse least-squares solve (see the module docstring).
 
     ``lam``: smoothness weight per level of data (> 0), or ``"auto"``: chosen by cross-validation on held-out
@@ -348,8 +357,11 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     intensity level. ``mask``: boolean ``(H, W)``, True = usable pixel (see :func:`blue_fill_mask`).
     ``levels``: the valid intensity range (inclusive, like radical's ``--valid-min/--valid-max``):
     observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
-    still estimated (extrapolated) there. ``seed``: sampling order. The result is repaired to strictly
-    increasing only if the solve is not (``meta["repaired"]``, ``meta["repaired_levels"]``). ``meta``
+    still estimated (extrapolated) there; ``"auto"`` (default): per channel from the data, with the saturated
+    observations below the cut left out too, and ``edges`` drops the pixels near strong edges
+    (:mod:`radiometry.response_levels`, as :func:`radiometry.response_loglog.fit_response_loglog`). ``seed``:
+    sampling order. The result is repaired to strictly increasing only if the solve is not (``meta["repaired"]``,
+    ``meta["repaired_levels"]``). ``meta``
     also records the sampled pixels and observations per channel, the levels never observed, those outside the
     observed span (``extrapolated_levels``: their values come from the smoothness term alone), ``inverse_stderr``
     (per level and channel, the relative standard error of ``f^-1`` from the fit's covariance, see
@@ -362,32 +374,39 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                          f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
-    lo, hi = _check_levels(levels)
+    from radiometry.response_levels import prepare, stalled_observations
+
+    if not isinstance(levels, str):
+        levels = _check_levels(levels)
     start = time.perf_counter()
     stack, t = _as_stack(images, times)
     _check_brightness_order(stack, t)
     n_img, h, w, n_ch = stack.shape
     valid = _check_mask(mask, (h, w))
     valid_flat = None if valid is None else valid.ravel()
+    channel_levels, valid_flat, level_meta = prepare(stack, t, valid_flat, levels, edges=edges, seed=seed)
     flat = stack.reshape(n_img, h * w, n_ch)
     log_t = np.log(t)
     g = np.empty((LEVELS, n_ch))
-    sampled = []
+    sampled, stalls = [], []
     for c in range(n_ch):
         values = np.ascontiguousarray(flat[:, :, c])
+        lo, hi = channel_levels[c]
         idx = select_samples(values, t, samples=int(samples), valid=valid_flat, levels=(lo, hi), seed=seed + c)
         if idx.size == 0:
             raise CalibrationError(f"channel {c}: every pixel is saturated, empty or masked in every image (no "
                                    f"level in {lo}..{hi}); use shorter or longer exposures or check the mask")
         sampled.append(values[:, idx])
+        stalls.append(stalled_observations(values[:, idx], t) if isinstance(levels, str) else None)
     scores = None
     if auto:
         from radiometry.response_lambda import cross_validate_lambda
 
-        lam, scores = cross_validate_lambda(sampled, log_t, (lo, hi), seed=seed)
+        lam, scores = cross_validate_lambda(sampled, log_t, (max(lv[0] for lv in channel_levels),
+                                                             min(lv[1] for lv in channel_levels)), seed=seed)
     solved = []
     for c, values in enumerate(sampled):
-        sol = _solve_debevec_channel(values, log_t, float(lam), (lo, hi), stderr=True)
+        sol = _solve_debevec_channel(values, log_t, float(lam), channel_levels[c], stderr=True, stalled=stalls[c])
         g[:, c] = sol["g"]
         solved.append(sol)
     unobserved, extrapolated = [], []
@@ -400,12 +419,16 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
             log.warning("channel %d: %d intensity levels were never observed; their values are extrapolated "
                         "by the smoothness term", c, len(unobserved[-1]))
     meta: dict[str, Any] = {
-        "method": "debevec", "lambda": float(lam), "samples_per_level": int(samples), "levels": [lo, hi],
+        "method": "debevec", "lambda": float(lam), "samples_per_level": int(samples),
+        "levels": levels if isinstance(levels, str) else list(levels),
         "seed": int(seed),
         "images": int(n_img), "times": t.tolist(), "masked": valid is not None,
         "pixels": [int(sol["ln_e"].size) for sol in solved],
         "observations": [int(sol["z"].size) for sol in solved],
         "unobserved_levels": unobserved, "extrapolated_levels": extrapolated,
+        "declared_levels": [[int(np.flatnonzero(np.bincount(sol["z"], minlength=LEVELS))[0]),
+                             int(np.flatnonzero(np.bincount(sol["z"], minlength=LEVELS))[-1])] for sol in solved],
+        **level_meta,
         "inverse_stderr": np.stack([sol["log_stderr"] for sol in solved], axis=1).tolist(),
         "inverse_stderr_source": "debevec: covariance of the weighted least squares (smoothness rows as a prior)",
     }
@@ -491,12 +514,23 @@ def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method
 # --------------------------------------------------------------------------------------------------
 # checking a response against the images
 # --------------------------------------------------------------------------------------------------
+def _declared_weights(response: CameraResponse, channels: int) -> np.ndarray:
+    """Hat weight per level and channel ``(256, C)``, 0 outside the response's declared levels (else 1..254)."""
+    from radiometry.response_quality import declared
+
+    out = np.zeros((LEVELS, channels))
+    for c, (lo, hi) in enumerate(declared(response, channels) if response.meta.get("declared_levels")
+                                 else [(1, 254)] * channels):
+        out[lo:hi + 1, c] = np.maximum(HAT_WEIGHTS[lo:hi + 1], 1.0)
+    return out
+
+
 def merge_radiance(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
                    mask: np.ndarray | None = None) -> np.ndarray:
     """HDR merge: per pixel, the hat-weighted mean of ``ln f^-1(z_j) - ln t_j`` over the exposures.
 
-    Returns float32 ``(H, W, C)`` relative radiance; NaN where no exposure has a level in 1..254 or the
-    mask is False.
+    Only the levels the response declares constrained count (``meta["declared_levels"]``, else 1..254).
+    Returns float32 ``(H, W, C)`` relative radiance; NaN where no exposure has such a level or the mask is False.
     """
     stack, t = _as_stack(images, times)
     n_img, h, w, n_ch = stack.shape
@@ -505,12 +539,13 @@ def merge_radiance(images: Sequence[np.ndarray], times: Sequence[float], respons
     with np.errstate(divide="ignore"):
         g = np.log(tables)
     g = np.where(np.isfinite(g), g, 0.0)  # level 0 may map to 0; it has weight 0 anyway
+    weights = _declared_weights(response, n_ch)
     num = np.zeros((h, w, n_ch))
     den = np.zeros((h, w, n_ch))
     log_t = np.log(t)
     for j in range(n_img):
         z = stack[j]
-        wj = HAT_WEIGHTS[z]
+        wj = np.stack([weights[:, c][z[..., c]] for c in range(n_ch)], axis=-1)
         gz = np.stack([g[:, c][z[..., c]] for c in range(n_ch)], axis=-1)
         num += wj * (gz - log_t[j])
         den += wj
@@ -527,16 +562,18 @@ def prediction_rms(images: Sequence[np.ndarray], times: Sequence[float], respons
     """RMS error (8-bit levels) of predicting every exposure from the merged radiance map.
 
     Each image is predicted as ``f(E * t_j)`` (``response.forward``, interpolated) from
-    :func:`merge_radiance`; the error is taken over unmasked pixels whose observed level is in 1..254
-    (not empty, not saturated). ``per_image=True`` returns one RMS per image.
+    :func:`merge_radiance`; the error is taken over unmasked pixels whose observed level is within the
+    response's declared levels (1..254 when it declares none: not empty, not saturated). ``per_image=True``
+    returns one RMS per image.
     """
     stack, t = _as_stack(images, times)
     radiance = merge_radiance(stack, t, response, mask=mask)
     defined = np.isfinite(radiance)
     sq_sum, count, per = 0.0, 0, []
+    weights = _declared_weights(response, stack.shape[3])
     for j in range(stack.shape[0]):
         z = stack[j]
-        sel = defined & (z > 0) & (z < 255)
+        sel = defined & np.stack([weights[:, c][z[..., c]] > 0 for c in range(stack.shape[3])], axis=-1)
         pred = response.forward(np.where(defined, radiance, 0.0) * np.float32(t[j]))
         err = (pred - z.astype(np.float32))[sel].astype(np.float64)
         sq_sum += float(np.sum(err ** 2))

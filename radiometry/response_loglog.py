@@ -236,14 +236,22 @@ def _normalised_log_stderr(cov: np.ndarray | None, u: np.ndarray, observed: np.n
 def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float = DEFAULT_LAM,
                         smooth: float = DEFAULT_SMOOTH, pixels: int | None = DEFAULT_PIXELS,
                         mask: np.ndarray | None = None,
-                        levels: tuple[int, int] = (1, 254), seed: int = 0) -> CameraResponse:
+                        levels: tuple[int, int] | str = "auto", edges: bool | str = "auto",
+                         seed: int = 0) -> CameraResponse:
     """Debevec's data term over all pixels with the log-log curvature prior (see the module docstring).
 
     ``lam``: the prior's weight (per unit of data weight; default 0.1). ``smooth``: weight of the knee-preserving
     smoothness (0 = none). ``pixels``: at most this many pixels per
     channel (seeded random subset; None = all). ``mask``: boolean ``(H, W)``, True = usable. ``levels``: the valid
-    intensity range (inclusive); observations outside it are ignored.
+    intensity range (inclusive) for every channel; observations outside it are ignored; ``"auto"`` (default): per
+    channel, the levels between the floor and the ceiling found in the data (:mod:`radiometry.response_levels`: a
+    channel that saturates at 241 is fitted below it, the levels above are extrapolated and declared so in
+    ``meta["declared_levels"]``). ``edges``: drop the pixels near strong edges (JPEG ringing and chroma
+    subsampling; :func:`radiometry.response_levels.edge_mask`): True, False, or ``"auto"`` (default) when the stack
+    looks JPEG-compressed.
     """
+    from radiometry.response_levels import prepare, stalled_observations
+
     if pixels is not None and (int(pixels) != pixels or pixels < 2):
         raise ValueError(f"pixels must be a whole number >= 2 (pixels used per channel) or None for all, "
                          f"got {pixels}")
@@ -251,20 +259,25 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
         raise ValueError(f"lam must be a positive number (the prior's weight), got {lam!r}")
     if isinstance(smooth, bool) or not isinstance(smooth, (int, float)) or not (math.isfinite(smooth) and smooth >= 0):
         raise ValueError(f"smooth must be a number >= 0 (0 = no smoothness term), got {smooth!r}")
-    lo, hi = _check_levels(levels)
+    if not isinstance(levels, str):
+        levels = _check_levels(levels)
     start = time.perf_counter()
     stack, t = _as_stack(images, times)
     _check_brightness_order(stack, t)
     n_img, h, w, n_ch = stack.shape
     valid = _check_mask(mask, (h, w))
     valid_flat = None if valid is None else valid.ravel()
+    channel_levels, valid_flat, level_meta = prepare(stack, t, valid_flat, levels, edges=edges, seed=seed)
+    stall_test = isinstance(levels, str)  # with levels given, exactly those
     flat = stack.reshape(n_img, h * w, n_ch)
     log_t = np.log(t)
     tables, per_channel, sq, n_obs = [], [], 0.0, 0
     for c in range(n_ch):
         rng = np.random.default_rng(seed + c)
-        pix, img, z, n_pix = _observations(np.ascontiguousarray(flat[:, :, c]), t, (lo, hi),
-                                           None if pixels is None else int(pixels), valid_flat, rng)
+        values = np.ascontiguousarray(flat[:, :, c])
+        stalled = stalled_observations(values, t) if stall_test else None
+        pix, img, z, n_pix = _observations(values, t, channel_levels[c],
+                                           None if pixels is None else int(pixels), valid_flat, rng, stalled)
         sol = _solve_channel(pix, img, z, n_pix, log_t, float(lam), float(smooth))
         table, extrapolated = _complete(sol["u"], sol["observed"], sol["counts"])
         sol["log_stderr"] = _normalised_log_stderr(sol["log_cov"], sol["u"], sol["observed"], sol["counts"], table)
@@ -283,17 +296,20 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
     meta: dict[str, Any] = {
         "method": "loglog", "lambda": float(lam), "prior": "log-log curvature, rows weighted (1/z) (128/z)^2",
         "smooth": float(smooth), "smooth_term": f"Huber ({SMOOTH_DELTA:g}) on hat-weighted g''",
-        "levels": [lo, hi], "seed": int(seed), "max_pixels": None if pixels is None else int(pixels),
+        "levels": levels if isinstance(levels, str) else list(levels), "seed": int(seed),
+        "max_pixels": None if pixels is None else int(pixels),
         "images": int(n_img), "times": t.tolist(), "masked": valid is not None,
         "equal_ratios": equal_ratios(t),
         "pixels": [s["pixels"] for s in per_channel], "observations": [s["observations"] for s in per_channel],
         "observed_range": [[int(o[0]), int(o[-1])] for o in observed],
+        "declared_levels": [[int(o[0]), int(o[-1])] for o in observed],
         "extrapolated_levels": [s["extrapolated"] for s in per_channel],
         "unobserved_levels": [[int(k) for k in range(1, LEVELS - 1) if not s["observed"][k]] for s in per_channel],
         "pooled_levels": [s["pooled"] for s in per_channel],
         "monotonicity": "the energy's minimum over non-decreasing g when the free minimum is not increasing",
         "repaired": False, "ties_separated": not strict,
         "fit_rms_levels": math.sqrt(sq / n_obs),
+        **level_meta,
     }
     singular = [c for c, s in enumerate(per_channel) if s["log_stderr"] is None]
     if singular:  # no standard error rather than a false 0 (the budget then uses its other terms)

@@ -26,6 +26,11 @@ that response against the truth, in one table (:mod:`bench_vignetting`; its opti
 ``--curve-set break`` runs the curves built to break the priors instead (``tests/response_curves.py``'s
 ``break_curves``: knees and a flat stretch in the dark octaves, a shoulder, linear, gamma 3, sRGB).
 
+``--pipelines`` runs instead the default fit through real camera pipelines (``tests/camera_pipelines.py``: white
+balance after the sensor clips, JPEG q92 and q75, noise after the response; issue 28): per curve, pipeline and design
+the largest ``|f^-1 - truth|`` over the levels the fit declares constrained (after a per-channel scale), whether
+those levels stay below every channel's true ceiling, what the fit found, and the truth-free quality figure.
+
 ``--ambiguity`` prints instead, per curve and smoothness prior, the error of the member of the exact-2x ambiguity
 family (``g + q(g mod ln 2)``, ``g = ln f^-1``, ``q`` periodic) that the prior prefers, computed from the true
 curve: what a fit with that prior cannot get below however many pixels it has (:func:`ambiguity_bound`).
@@ -180,6 +185,45 @@ def ambiguity_rows() -> list[dict]:
     return rows
 
 
+def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, quality: bool = True) -> list[dict]:
+    """The ``--pipelines`` table (see the module docstring)."""
+    from camera_pipelines import PIPELINES, ceiling_level, max_error_scale_free, render
+    from response_curves import curves, scene
+
+    from radiometry.response_fit import fit_response
+    from radiometry.response_quality import assess
+
+    width, height = size
+    radiance = scene(height, width, seed=seed + 1)
+    rows = []
+    for name, table in curves().items():
+        for pipeline, options in PIPELINES.items():
+            gains = options.get("gains", (1.0, 1.0, 1.0))
+            ceilings = [ceiling_level(table, g) for g in gains]
+            for design in designs:
+                times = design_times(design)
+                images = render(table, radiance, times, seed=seed + 2, **options)
+                start = time.perf_counter()
+                response = fit_response(images, times)
+                seconds = time.perf_counter() - start
+                declared = response.meta["declared_levels"]
+                err = max_error_scale_free(response.inverse_table, table, declared)
+                row = {"curve": name, "pipeline": pipeline, "design": design,
+                       "max err [%] R/G/B": "/".join(f"{v:.2f}" for v in err),
+                       "levels used (top) R/G/B": "/".join(str(hi) for _, hi in declared),
+                       "true ceiling R/G/B": "/".join(f"{c:.0f}" for c in ceilings),
+                       "below ceiling": all(hi <= c for (_, hi), c in zip(declared, ceilings)),
+                       "found": response.meta.get("levels_summary", "").split("; levels used")[0] or "-",
+                       "fit [s]": round(seconds, 1)}
+                if quality:
+                    q = assess(images, times, response, method=None)
+                    row["held-out RMS [levels]"] = round(q["holdout_rms_levels"], 2)
+                    row["grade (fast)"] = q["grade"]
+                rows.append(row)
+                print(" ".join(str(v) for v in row.values()), flush=True)
+    return rows
+
+
 def _end_to_end(args: argparse.Namespace, rest: list[str]) -> int:
     """``--end-to-end``: :mod:`bench_vignetting` once per design, with this command's ``--seed`` and, when given,
     the ``--methods`` that are :func:`radiometry.response_fit.fit_response` methods; ``rest`` (its own options,
@@ -225,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end-to-end", action="store_true",
                         help="instead: response and vignetting LUT end to end per curve x vignette x method "
                              "(scripts/bench_vignetting.py; its options follow)")
+    parser.add_argument("--pipelines", action="store_true",
+                        help="instead: the default fit through real camera pipelines (white balance after the clip, "
+                             "JPEG, noise after the response; tests/camera_pipelines.py)")
     parser.add_argument("--ambiguity", action="store_true",
                         help="instead: the exact-2x ambiguity bound per prior (no rendering, no fits)")
     args, rest = parser.parse_known_args(argv)
@@ -251,6 +298,15 @@ def main(argv: list[str] | None = None) -> int:
     quiet = logging.getLogger("radiometry")  # repaired / equal-ratio warnings: the table shows them
     level = quiet.level
     quiet.setLevel(logging.ERROR)
+    if args.pipelines:
+        try:
+            rows = pipeline_rows((width, height), args.design, seed=args.seed)
+        finally:
+            quiet.setLevel(level)
+        print(f"the default response fit through camera pipelines vs truth ({width}x{height}, 12 exposures, "
+              f"OpenCV {cv2.__version__} JPEG)")
+        print(format_table(rows))
+        return 0
     try:
         rows = run((width, height), args.design, args.methods or list(METHODS), seed=args.seed,
                    curve_set=args.curve_set)

@@ -108,7 +108,9 @@ def test_default_and_debevec_recover_known_response(synthetic, crf, channels, me
     assert table.shape == (256, channels) and table.dtype == np.float64
     assert np.all(np.diff(table, axis=0) > 0) and table[-1].tolist() == [1.0] * channels
     assert response.meta["method"] == expected and response.meta["repaired"] is False
-    assert response.meta["unobserved_levels"] == [[]] * channels
+    for (lo, hi), unobserved in zip(response.meta["declared_levels"], response.meta["unobserved_levels"]):
+        # the edge mask (issue 28) may leave a few levels of this small scene's steep ramps unsampled: interpolated
+        assert lo <= 8 and hi >= 249 and len([k for k in unobserved if lo <= k <= hi]) <= 8, (lo, hi, unobserved)
     err = np.abs(table[LEVELS_CHECKED] - truth[LEVELS_CHECKED]).max(axis=0)
     assert np.all(err < 0.01), f"max |f^-1 - truth| per channel: {err}"
     assert response.meta["fit_rms_levels"] < 1.5
@@ -177,14 +179,18 @@ def test_opencv_methods_are_comparable(synthetic, channels):
 def test_valid_levels_exclude_a_floor(synthetic):
     images, truth = synthetic("gamma", 1)
     floored = [np.maximum(im, 12) for im in images]  # a black level: nothing below 12
-    plain = fit_response_debevec(floored, TIMES)
+    plain = fit_response_debevec(floored, TIMES, levels=(1, 254), edges=False)  # the floor taken as data
     limited = fit_response_debevec(floored, TIMES, levels=(13, 254))
+    found = fit_response_debevec(floored, TIMES)  # the floor found from the data (issue 28)
+    assert found.meta["level_detection"][0]["floor_at"] >= 12 and found.meta["declared_levels"][0][0] > 12
     assert limited.meta["levels"] == [13, 254] and set(range(1, 13)) <= set(limited.meta["unobserved_levels"][0])
     assert np.abs(limited.inverse_table[LEVELS_CHECKED[10:], 0] - truth[LEVELS_CHECKED[10:], 0]).max() < 0.01
     dark = np.arange(16, 41)  # the floor distorts the dark levels next to it (relative error of f^-1)
     err_plain = np.abs(np.log(plain.inverse_table[dark, 0] / truth[dark, 0])).max()
     err_limited = np.abs(np.log(limited.inverse_table[dark, 0] / truth[dark, 0])).max()
     assert err_limited < 0.5 * err_plain, (err_limited, err_plain)
+    err_found = np.abs(np.log(found.inverse_table[dark, 0] / truth[dark, 0])).max()
+    assert err_found < 0.5 * err_plain, (err_found, err_plain)
     for levels in ((0, 254), (1, 255), (100, 110)):
         with pytest.raises(ValueError, match="levels must satisfy"):
             fit_response_debevec(images, TIMES, levels=levels)
@@ -276,8 +282,10 @@ def test_exposures_that_never_overlap_are_rejected():
     b = np.full((10, 10), 255, np.uint8)
     a[:5] = 100  # pixels seen in one exposure each: the response is not observable
     b[5:] = 100
-    with pytest.raises(CalibrationError, match="two different exposures"):
+    with pytest.raises(CalibrationError, match="two different exposures|too few levels"):
         fit_response_debevec([a, b], [1.0, 2.0])
+    with pytest.raises(CalibrationError, match="two different exposures"):
+        fit_response_debevec([a, b], [1.0, 2.0], levels=(1, 254))
 
 
 def test_integer_images_in_range_are_accepted():
@@ -462,8 +470,11 @@ def test_agreement_with_opencv(request, name):
         images = [im[rows, cols] for im in images]
     ours = fit_response(images, times)
     theirs = fit_response(images, times, method="opencv-debevec", samples=150)
-    rms = _agreement(ours, theirs)
-    assert np.all(rms < 0.045), f"{name}: RMS difference per channel {rms}"
+    top = min(hi for _, hi in ours.meta["declared_levels"])  # ours declares the levels above its ceiling extrapolated
+    rms = _agreement(ours, theirs, levels=np.arange(10, min(top, 245) + 1))
+    # after issue 28 (ceiling and floor from the data): taipei R 2.6 %, G 1.3 %, B 5.4 % (B was 2.93 %: taipei's blue
+    # differs most between the two methods, and OpenCV's is no truth: its prediction RMS is worse, 4.48 vs 4.37)
+    assert np.all(rms < 0.06), f"{name}: RMS difference per channel {rms}"
 
 
 # --------------------------------------------------------------------------------------------------

@@ -74,11 +74,15 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
                    "assumption for a camera whose response is unknown). No FOLDER.")
 @click.option("--linear", is_flag=True, help="Instead of calibrating, write the linear response f^-1(I) = I/255. "
                                              "No FOLDER.")
+@click.option("--quality", type=click.Choice(["full", "fast", "none"]), default="full", show_default=True,
+              help="The truth-free quality figure: full (each exposure predicted by a fit without it, and the "
+                   "agreement of fits on two disjoint pixel halves), fast (each exposure predicted through this "
+                   "response, no refits), none.")
 @click.option("--force", is_flag=True, help="Overwrite OUTPUT if it exists.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(folder: Path | None, times_file: Path | None, output: Path, method: str, lam: float | None,
             samples: int | None, mask_blue: bool, channel: str | None, gamma: float | None, linear: bool,
-            force: bool, no_progress: bool) -> None:
+            quality: str, force: bool, no_progress: bool) -> None:
     """Recover the inverse camera response f^-1 from bracketed exposures of a static scene.
 
     FOLDER holds the images (same size, 8-bit, fixed white balance) and usually their times file.
@@ -96,7 +100,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
               "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,
-              "force": force}
+              "quality": quality, "force": force}
     suffix = output.suffix.lower()
     if suffix not in FORMATS:
         raise OutputError(f"{output}: unknown response format {output.suffix!r}; use .npz (radiomap), "
@@ -150,7 +154,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
 
     start = time.perf_counter()
     try:  # the fit and its prediction error, as radiometry.calibrate_response does them
-        response = calibrate_response(images, times, method=method, **kwargs)
+        response = calibrate_response(images, times, method=method, quality=quality, **kwargs)
     except ValueError as exc:  # the images or times of this folder are unusable
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
     except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
@@ -191,10 +195,15 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     click.echo("fit RMS: error of predicting every unsaturated pixel of every exposure from the merged radiance")
     if meta.get("lambda_selection") == "cross-validation":
         click.echo(f"lambda {meta['lambda']:g}, chosen by cross-validation on held-out pixels")
-    if "observed_range" in meta:
+    if "levels_summary" in meta:
+        click.echo(meta["levels_summary"])
+    elif "observed_range" in meta:
         spans = ", ".join(f"{lo}..{hi}" for lo, hi in meta["observed_range"])
         click.echo(f"levels constrained by data: {spans} (per channel); the others are extrapolated "
                    "(meta 'extrapolated_levels')")
+    if "quality" in meta:
+        q = meta["quality"]
+        click.echo(q["summary"] if q["grade"] == "good" else f"warning: {q['summary']}", err=q["grade"] != "good")
     click.echo(f"wrote {output} ({FORMATS[suffix]}), {plot_path}, {output.with_suffix('.json')}")
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "

@@ -48,12 +48,16 @@ DEFAULT_SMOOTH_SIGMA = 1.0
                    "lower it to keep fine non-radial detail when every pixel has many samples.")
 @click.option("--save-accumulation", type=click.Path(dir_okay=False), default=None,
               help="Also save the fused data (.npz) for later fits or repeatability studies.")
+@click.option("--allow-exposure-changes", is_flag=True,
+              help="Calibrate even when the sheet's brightness varied by more than 25% between frames (auto "
+                   "exposure left on); the drift correction then leaves up to ~0.7 levels of error.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures (the coverage map is always written).")
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(frames: str, response_path: str, output: str, model_name: str, min_samples: int,
             stop_when_covered: bool, max_frames: int | None, no_drift_correction: bool, smooth_sigma: float,
-            save_accumulation: str | None, no_plots: bool, force: bool, no_progress: bool) -> None:
+            save_accumulation: str | None, allow_exposure_changes: bool, no_plots: bool, force: bool,
+            no_progress: bool) -> None:
     """Calibrate vignetting from a white-paper sweep FRAMES (folder, video file or camera index).
 
     Writes the model, a coverage map (<OUT stem>_coverage.png), figures (V per channel, radial
@@ -83,6 +87,13 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     response = load_response(response_path)
     acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
                              max_frames=max_frames, progress=not no_progress)
+    spread = frame_scale_spread(acc)
+    if spread > SCALE_SPREAD_REFUSED and not allow_exposure_changes:
+        from radiometry.errors import CalibrationError
+
+        raise CalibrationError(f"{frames}: the sheet's brightness varied by {100 * spread:.0f}% between frames: auto "
+                               "exposure (or the light) changed during the sweep; record it with a fixed exposure, "
+                               "or pass --allow-exposure-changes to accept up to ~0.7 levels of error")
     fit_options = {"joint_scale": not no_drift_correction}
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma
@@ -98,6 +109,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     ]
     if "error_budget" in facts:
         lines.append(budget_text(facts["error_budget"], model.channels))
+    lines.extend(_truth_free_lines(acc, response, model_name, fit_options, facts, not no_drift_correction))
     text = "\n".join(lines)
     prefix = out.with_name(out.stem)
     # the model, its figures, summaries and the accumulation: all published together or none (the old set stays)
@@ -121,7 +133,62 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
                                                               "stop_when_covered": stop_when_covered,
                                                               "max_frames": max_frames,
                                                               "drift_correction": not no_drift_correction,
+                                                              "allow_exposure_changes": allow_exposure_changes,
                                                               "smooth_sigma": smooth_sigma if model_name == "lut"
                                                               else None})})
     click.echo(text)
 
+
+
+#: the split-half uncertainty (levels) up to which a vignetting model is trusted
+SPLIT_GOOD_LEVELS = 0.5
+#: frame-to-frame brightness spread (max / min - 1) above which the sweep is said to have had auto exposure on, and
+#: above which it is refused (without --allow-exposure-changes): the drift correction absorbs a spread of 15 % to
+#: 0.30-0.44 levels and one of 45 % only to 0.72 (EuRoC vignette, docs/calibration_pipelines.md)
+SCALE_SPREAD = 0.05
+SCALE_SPREAD_REFUSED = 0.25
+
+
+def frame_scale_spread(acc) -> float:
+    """How much the sheet's brightness varied between frames: max / min of the frames' scales, minus 1."""
+    import numpy as np
+
+    scales = acc.frame_scales() if acc.frames_used > 1 else np.ones((1, acc.channels))
+    return float(np.max(scales) / np.min(scales) - 1.0)
+
+
+def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: dict, drift: bool) -> list[str]:
+    """The figures a user without the truth can judge a calibration by (also recorded in ``facts``): the split-half
+    uncertainty (the model on the even and the odd frames) and the spread of the frames' brightness."""
+    import numpy as np
+
+    from radiometry.vignetting_calibration.evaluate import split_half_levels
+
+    lines = []
+    split = split_half_levels(acc, response, model=model_name, **fit_options)
+    names = "R/G/B" if acc.channels == 3 else "grey"
+    if split is None:
+        facts["split_half_levels"] = None
+        lines.append("split-half uncertainty: not computed (fewer than 4 frames, or a half too thin to fit)")
+    else:
+        facts["split_half_levels"] = [round(float(v), 4) for v in split]
+        worst = float(np.max(split))
+        grade = "good" if worst <= SPLIT_GOOD_LEVELS else "doubtful"
+        facts["quality"] = grade
+        text = "/".join(f"{v:.3f}" for v in split)
+        lines.append(f"split-half uncertainty ({names}, levels of a flat field at 200; the model on the even vs the "
+                     f"odd frames, halved): {text}: {grade}"
+                     + ("" if grade == "good" else f" (trusted up to {SPLIT_GOOD_LEVELS:g}); record a longer sweep "
+                                                   "that covers every part of the image several times"))
+    spread = frame_scale_spread(acc)
+    facts["frame_scale_spread"] = round(spread, 4)
+    if spread > SCALE_SPREAD:
+        if drift:
+            lines.append(f"note: the sheet's brightness varied by {100 * spread:.0f}% between frames (auto exposure "
+                         "on, or the light changing); the drift correction absorbed it, but a fixed exposure is "
+                         "better")
+        else:
+            lines.append(f"warning: the sheet's brightness varied by {100 * spread:.0f}% between frames (auto "
+                         "exposure on, or the light changing) and --no-drift-correction averaged it into V; drop "
+                         "that option or record with a fixed exposure")
+    return lines

@@ -97,6 +97,12 @@ class VignettingAccumulator:
         self.count = np.zeros(self.shape, np.int32)
         self.sum = np.zeros(self.shape, np.float64)
         self.sumsq = np.zeros(self.shape, np.float64)
+        # the odd frames (2nd, 4th, ...) again on their own: the two halves of the sweep, for the split-half figure
+        self.odd_count = np.zeros(self.shape, np.int32)
+        self.odd_sum = np.zeros(self.shape, np.float64)
+        self.odd_sumsq = np.zeros(self.shape, np.float64)
+        # the sheet's raw levels per channel (every masked pixel): a channel piling up below 255 is clipped
+        self.level_hist = np.zeros((channels, 256), np.int64)
         self.grid = (-(-height // self.block), -(-width // self.block))
         self._cell_sums: list[np.ndarray] = []
         self._cell_counts: list[np.ndarray] = []
@@ -106,9 +112,11 @@ class VignettingAccumulator:
     def frames(self) -> int:
         return len(self._cell_sums)
 
-    def add(self, image: np.ndarray, mask: np.ndarray, *, index: int | None = None) -> int:
+    def add(self, image: np.ndarray, mask: np.ndarray, *, index: int | None = None,
+            sheet: np.ndarray | None = None) -> int:
         """Add one frame's sheet pixels (``mask``); ``index`` is its position in the source (default: the
-        count of frames added so far). Returns the number of pixel-channel samples added."""
+        count of frames added so far); ``sheet``: the whole detected sheet, for the level histogram (default
+        ``mask``). Returns the number of pixel-channel samples added."""
         img = np.asarray(image)
         if img.ndim == 2:
             img = img[:, :, None]
@@ -120,8 +128,15 @@ class VignettingAccumulator:
         gh, gw = self.grid
         cell_sum = np.zeros((gh, gw, self.shape[2]), np.float64)
         cell_cnt = np.zeros((gh, gw, self.shape[2]), np.int64)
-        added = _accumulate_kernel()(np.ascontiguousarray(img), np.ascontiguousarray(mask), self._table, self.block,
-                                     self.sum, self.sumsq, self.count, cell_sum, cell_cnt)
+        img, mask = np.ascontiguousarray(img), np.ascontiguousarray(mask)
+        added = _accumulate_kernel()(img, mask, self._table, self.block, self.sum, self.sumsq, self.count, cell_sum,
+                                     cell_cnt)
+        if self.frames % 2 == 1:
+            _accumulate_kernel()(img, mask, self._table, self.block, self.odd_sum, self.odd_sumsq, self.odd_count,
+                                 np.zeros_like(cell_sum), np.zeros_like(cell_cnt))
+        levels = img[mask if sheet is None else np.asarray(sheet, dtype=bool)]
+        for c in range(self.shape[2]):
+            self.level_hist[c] += np.bincount(levels[:, c], minlength=256)
         self._cell_sums.append(cell_sum.astype(np.float32))
         self._cell_counts.append(cell_cnt.astype(np.uint16))
         self._indices.append(len(self._indices) if index is None else int(index))
@@ -145,7 +160,9 @@ class VignettingAccumulator:
                                       frame_indices=np.array(self._indices, dtype=np.int64),
                                       skipped=dict(skipped or {}), source=source,
                                       response_table=self.response.inverse_table.copy(),
-                                      response_stderr=response_log_stderr(self.response, ch))
+                                      response_stderr=response_log_stderr(self.response, ch),
+                                      odd=(self.odd_count.copy(), self.odd_sum.copy(), self.odd_sumsq.copy()),
+                                      level_hist=self.level_hist.copy())
 
 
 @dataclass(frozen=True)
@@ -198,6 +215,10 @@ class VignettingAccumulation:
     source: str = ""
     response_table: np.ndarray | None = None
     response_stderr: np.ndarray | None = None
+    #: ``(count, sum, sumsq)`` of the odd frames alone (the 2nd, 4th, ... used), None when not collected
+    odd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    #: the sheet's raw levels per channel, ``(C, 256)``, None when not collected
+    level_hist: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---------------------------------------------------------------- basic properties
@@ -264,6 +285,45 @@ class VignettingAccumulation:
         var = np.maximum(self.sumsq / n - (self.sum / n) ** 2, 0.0) * n / np.maximum(n - 1, 1)
         return np.where(self.count > 1, np.sqrt(var), np.nan)
 
+    def halves(self) -> tuple["VignettingAccumulation", "VignettingAccumulation"] | None:
+        """The even and the odd frames of the sweep as two accumulations (None when the odd frames were not kept,
+        e.g. an accumulation saved before they were, or fewer than 4 frames)."""
+        if self.odd is None or self.frames_used < 4:
+            return None
+        odd_count, odd_sum, odd_sumsq = self.odd
+        parts = []
+        for which, (count, total, sq) in ((0, (self.count - odd_count, self.sum - odd_sum, self.sumsq - odd_sumsq)),
+                                          (1, (odd_count, odd_sum, odd_sumsq))):
+            pick = np.arange(which, self.frames_used, 2)
+            parts.append(VignettingAccumulation(
+                count=count.astype(np.int32), sum=np.maximum(total, 0.0), sumsq=np.maximum(sq, 0.0),
+                cell_sums=self.cell_sums[pick], cell_counts=self.cell_counts[pick], block=self.block,
+                frame_indices=self.indices()[pick], source=f"{self.source} ({'odd' if which else 'even'} frames)",
+                response_table=self.response_table, response_stderr=self.response_stderr))
+        return parts[0], parts[1]
+
+    def clipped_channels(self, *, share: float = 0.02) -> list[tuple[int, int, float]]:
+        """Channels whose sheet pixels pile up at their top level below 255: ``(channel, level, share)`` for each
+        where at least ``share`` of the sheet's pixels sit within one level of the highest level seen (a smooth
+        vignetted sheet has a thin tail there; a channel that saturates, e.g. white balance applied after the
+        sensor clipped, a plateau)."""
+        if self.level_hist is None:
+            return []
+        out = []
+        for c, hist in enumerate(np.asarray(self.level_hist)):
+            total = float(hist.sum())
+            if total == 0:
+                continue
+            top = int(np.flatnonzero(hist)[-1])
+            # the highest level holding a visible part of the sheet (a few stray pixels above do not count)
+            cumulative = np.cumsum(hist[::-1])[::-1]
+            top = int(np.flatnonzero(cumulative >= 1e-4 * total)[-1])
+            pile = float(hist[max(top - 1, 0):top + 1].sum()) / total
+            below = float(hist[max(top - 3, 0):max(top - 1, 0)].sum()) / total
+            if pile >= share and pile >= 2.0 * below and top >= 64:  # a spike, not the top of a smooth spread
+                out.append((c, top, pile))
+        return out
+
     # ---------------------------------------------------------------- drift
     def frame_scales(self) -> np.ndarray:
         """Per-frame, per-channel brightness scales ``s_t`` (``(T, C)``, geometric mean 1), cached."""
@@ -309,6 +369,10 @@ class VignettingAccumulation:
             arrays["response_table"] = self.response_table
         if self.response_stderr is not None:
             arrays["response_stderr"] = np.asarray(self.response_stderr, dtype=np.float64)
+        if self.odd is not None:
+            arrays.update(odd_count=self.odd[0], odd_sum=self.odd[1], odd_sumsq=self.odd[2])
+        if self.level_hist is not None:
+            arrays["level_hist"] = np.asarray(self.level_hist, dtype=np.int64)
         return save_model_file(path, ACCUMULATION_KIND, arrays,
                                {"block": self.block, "skipped": self.skipped, "source": self.source})
 
@@ -322,7 +386,10 @@ class VignettingAccumulation:
                       frame_indices=arrays.get("frame_indices"),
                       skipped={str(k): int(v) for k, v in dict(meta.get("skipped", {})).items()},
                       source=str(meta.get("source", "")), response_table=arrays.get("response_table"),
-                      response_stderr=arrays.get("response_stderr"))
+                      response_stderr=arrays.get("response_stderr"),
+                      odd=(tuple(arrays[k] for k in ("odd_count", "odd_sum", "odd_sumsq"))
+                           if all(k in arrays for k in ("odd_count", "odd_sum", "odd_sumsq")) else None),
+                      level_hist=arrays.get("level_hist"))
         except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:
@@ -342,4 +409,8 @@ class VignettingAccumulation:
                                        f"count {acc.count.shape}, cells {acc.cell_sums.shape}); re-collect it")
         if acc.response_table is not None:
             validate_inverse_table(acc.response_table, source=str(path))
+        if acc.odd is not None and any(np.shape(a) != acc.count.shape for a in acc.odd):
+            raise CalibrationFileError(f"{path}: the odd frames' arrays do not match the counts; re-collect it")
+        if acc.level_hist is not None and np.shape(acc.level_hist) != (ch, 256):
+            raise CalibrationFileError(f"{path}: the level histogram is not (channels, 256); re-collect it")
         return acc

@@ -80,7 +80,7 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
                 skipped[det.status] += 1
                 log.debug("frame %d skipped: %s", n_seen - 1, det.status)
                 continue
-            acc.add(frame, det.mask, index=n_seen - 1)
+            acc.add(frame, _away_from_ceiling(frame, det.mask, saturation), index=n_seen - 1, sheet=det.mask)
             seed = det.centre
             if stop_when_covered and acc.covered(min_samples):  # type: ignore[arg-type]
                 log.info("every pixel has %d samples after %d frames; stopping", min_samples, n_seen)
@@ -102,9 +102,38 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
         log.warning("%d of %d frames were skipped as saturated; lowering the exposure would use them",
                     skipped["saturated"], n_seen)
     result = acc.result(skipped=dict(skipped), source=frames.name)
+    clipped = result.clipped_channels()
+    if clipped:
+        names = ("R", "G", "B") if result.channels == 3 else ("grey",)
+        what = ", ".join(f"{names[c]} at level {level} ({100 * share:.0f}% of the sheet's pixels)"
+                         for c, level, share in clipped)
+        raise CalibrationError(
+            f"{frames.name}: the sheet saturates in {what}: a channel that clips (white balance applied after the "
+            "sensor saturated, or overexposure) flattens V where the sheet is brightest; record the sweep with a "
+            "shorter exposure or dimmer light so that every channel of the sheet stays below its ceiling")
     log.info("vignetting data: %d frames used, %d skipped %s", result.frames_used, result.frames_skipped,
              dict(skipped))
     return result
+
+
+#: sheet pixels within NEAR_CEILING levels of the saturation level, and their neighbours within CEILING_RADIUS pixels,
+#: are left out of a frame: a per-pixel cut keeps the pixels that noise pushed down and drops those it pushed up,
+#: which biases the bright part of the sheet low (0.8 levels with auto exposure left on, measured)
+NEAR_CEILING = 6
+CEILING_RADIUS = 3
+
+
+def _away_from_ceiling(frame: np.ndarray, mask: np.ndarray, saturation: int) -> np.ndarray:
+    """``mask`` without the neighbourhoods of pixels near the saturation level (any channel)."""
+    near = (frame >= saturation - NEAR_CEILING) if frame.ndim == 2 else (frame >= saturation - NEAR_CEILING).any(axis=2)
+    near &= mask
+    if not near.any():
+        return mask
+    import cv2
+
+    size = 2 * CEILING_RADIUS + 1
+    grown = cv2.dilate(near.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+    return mask & ~grown
 
 
 def _size_text(frame: np.ndarray) -> str:

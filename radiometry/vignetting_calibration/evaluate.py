@@ -4,15 +4,19 @@ corner falloff, fit error, coverage)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 import numpy as np
 
+from radiometry.errors import RadiomapError
 from radiometry.registry import validate_name
 from radiometry.response import CameraResponse
 from radiometry.vignetting import VignettingModel
 from radiometry.vignetting_calibration.accumulate import VignettingAccumulation
 from radiometry.vignetting_calibration.fit import MODELS, fit_vignetting, observed_flat
+
+log = logging.getLogger(__name__)
 
 
 def vignetting_error_levels(estimate: np.ndarray | VignettingModel, truth: np.ndarray, response: CameraResponse, *,
@@ -172,3 +176,22 @@ def repeatability(accumulations: Sequence[VignettingAccumulation], response: Cam
                 if j != i:
                     results[name].append(flat_rms_levels(model, other, response))
     return {name: np.array(errs) for name, errs in results.items()}
+
+
+def split_half_levels(accumulation: VignettingAccumulation, response: CameraResponse, *, model: str = "lut",
+                      **fit_options) -> np.ndarray | None:
+    """A truth-free figure for a calibration: the model fitted on the even and on the odd frames of the sweep, their
+    RMS difference in levels of a flat field at 200 (:func:`vignetting_error_levels`, one half against the other),
+    halved: each half has twice the full fit's noise variance, so the difference has twice its standard deviation.
+    It covers what the frames leave uncertain (noise, the sheet's texture, drift the correction did not absorb), not
+    an error shared by every frame (a wrong response, a lens-shading correction in the camera). None when the
+    halves are not available (fewer than 4 frames, or an accumulation saved without them)."""
+    halves = accumulation.halves()
+    if halves is None:
+        return None
+    try:
+        a, b = (fit_vignetting(half, model=model, **fit_options).evaluate() for half in halves)
+    except (ValueError, RadiomapError) as exc:  # a half too thin to fit: no figure rather than no calibration
+        log.info("split-half figure not computed: %s", exc)
+        return None
+    return vignetting_error_levels(a, b, response) / 2.0

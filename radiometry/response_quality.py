@@ -1,0 +1,213 @@
+"""A truth-free quality figure for a response calibration: whether to trust the file.
+
+A user with a real camera has no true curve to compare with. Two figures need none:
+
+- **held-out prediction** (levels RMS): each exposure in turn is left out, the response is fitted on the others
+  (or, for a response given rather than fitted, used as it is), the others are merged into radiance and the
+  left-out exposure is predicted through the response. A response that is right predicts an image it has not
+  seen to the image's noise; a wrong curve, wrong exposure times or a camera that moved between exposures do
+  not.
+- **split-half uncertainty** (% of the range): the response fitted on two spatially disjoint halves of the pixels (a
+  checkerboard of 32-pixel blocks), compared over the declared levels after the same per-channel scale alignment
+  the accuracy figures use; half their largest difference (each half has twice the full fit's variance, so the
+  difference has twice its standard deviation) estimates what the pixels leave uncertain in the full fit;
+  scene-dependent errors (a region that does not follow the model) make the halves disagree more.
+
+Both are computed over the levels the fit declares constrained and without the observations it found saturated
+(:mod:`radiometry.response_levels`). :func:`verdict` turns them into a sentence with the thresholds that
+separated good from broken fits in ``scripts/bench_calibration.py --quality`` (docs/calibration_pipelines.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from radiometry.errors import RadiomapError
+from radiometry.response import LEVELS, CameraResponse
+
+#: held-out RMS (levels) up to which a response is trusted, and beyond which it is called broken
+HOLDOUT_GOOD = 3.0
+HOLDOUT_BROKEN = 6.0
+#: split-half disagreement (% of the range) up to which a response is trusted
+SPLIT_GOOD = 1.5
+SPLIT_BROKEN = 4.0
+#: pixels per channel in the held-out and split-half fits (fewer than the fit itself: they are many)
+QUALITY_PIXELS = 40_000
+BLOCK = 32
+_HAT = np.maximum(np.minimum(np.arange(LEVELS, dtype=np.float64), 255.0 - np.arange(LEVELS)), 1.0)
+
+
+def declared(response: CameraResponse, channels: int) -> list[tuple[int, int]]:
+    """The levels a response declares constrained per channel (``meta["declared_levels"]``, else its observed range,
+    else 5..250)."""
+    given = response.meta.get("declared_levels") or response.meta.get("observed_range")
+    if isinstance(given, list) and len(given) in (1, channels):
+        pairs = [(max(int(lo), 1), min(int(hi), 254)) for lo, hi in given]
+        return pairs * channels if len(pairs) == 1 else pairs
+    return [(5, 250)] * channels
+
+
+def _usable(stack: np.ndarray, times: np.ndarray, levels: list[tuple[int, int]]) -> np.ndarray:
+    """``(P, N, C)`` boolean: observations within the declared levels and not stalled (saturated)."""
+    from radiometry.response_levels import stalled_observations
+
+    n_img, n_pix, n_ch = stack.shape
+    out = np.zeros(stack.shape, bool)
+    for c in range(n_ch):
+        lo, hi = levels[c]
+        values = stack[:, :, c]
+        out[:, :, c] = (values >= lo) & (values <= hi) & ~stalled_observations(values, times)
+    return out
+
+
+def _predict_rms(stack: np.ndarray, times: np.ndarray, usable: np.ndarray, response: CameraResponse, j: int,
+                 pixels: np.ndarray) -> tuple[float, int]:
+    """Squared-error sum and count of predicting exposure ``j`` from the others merged, over ``pixels``."""
+    n_img, _, n_ch = stack.shape
+    tables = response.channel_tables(n_ch).astype(np.float64)
+    sq, count = 0.0, 0
+    others = [k for k in range(n_img) if k != j]
+    for c in range(n_ch):
+        with np.errstate(divide="ignore"):
+            g = np.log(tables[:, c])
+        num = np.zeros(pixels.size)
+        den = np.zeros(pixels.size)
+        for k in others:
+            z = stack[k, pixels, c]
+            w = np.where(usable[k, pixels, c], _HAT[z], 0.0)
+            num += w * (np.where(w > 0, g[z], 0.0) - math.log(times[k]))
+            den += w
+        sel = (den > 0) & usable[j, pixels, c]
+        if not sel.any():
+            continue
+        radiance = np.exp(num[sel] / den[sel]) * times[j]
+        pred = np.interp(radiance, tables[:, c], np.arange(LEVELS, dtype=np.float64))
+        err = pred - stack[j, pixels[sel], c]
+        sq += float(np.sum(err ** 2))
+        count += int(err.size)
+    return sq, count
+
+
+def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
+                refit: Callable[[list[np.ndarray], np.ndarray], CameraResponse] | None = None,
+                mask: np.ndarray | None = None, max_pixels: int = 200_000, seed: int = 0) -> dict[str, Any]:
+    """Each exposure predicted from the others (``refit``: a function ``(images, times) -> response`` that fits
+    without it; None: ``response`` for every exposure). Returns ``{"rms": overall, "per_exposure": [...]}``,
+    levels."""
+    from radiometry.response_fit import _as_stack
+
+    from radiometry.response_levels import edge_mask
+
+    stack, t = _as_stack(images, times)
+    n_img, h, w, n_ch = stack.shape
+    flat = stack.reshape(n_img, h * w, n_ch)
+    valid = None if mask is None else np.asarray(mask, bool).ravel()
+    keep, _ = edge_mask(stack, valid)  # the pixels the fit itself uses: JPEG's edges predict nothing
+    if keep is not None:
+        valid = keep.ravel() if valid is None else valid & keep.ravel()
+    pixels = np.arange(h * w) if valid is None else np.flatnonzero(valid)
+    if pixels.size > max_pixels:
+        pixels = np.sort(np.random.default_rng(seed).choice(pixels, max_pixels, replace=False))
+    usable = _usable(flat, t, declared(response, n_ch))
+    per, sq_all, n_all = [], 0.0, 0
+    for j in range(n_img):
+        model = response
+        if refit is not None:
+            keep = [k for k in range(n_img) if k != j]
+            model = refit([stack[k] if n_ch == 3 else stack[k, :, :, 0] for k in keep], t[keep])
+        sq, count = _predict_rms(flat, t, usable, model, j, pixels)
+        per.append(math.sqrt(sq / count) if count else float("nan"))
+        sq_all += sq
+        n_all += count
+    return {"rms": math.sqrt(sq_all / n_all) if n_all else float("nan"), "per_exposure": per,
+            "refit": refit is not None}
+
+
+def _aligned_difference(a: np.ndarray, b: np.ndarray, levels: list[tuple[int, int]]) -> np.ndarray:
+    """Max ``|a - b|`` per channel over the declared levels, % of the range, ``a`` scaled to ``b`` by least squares
+    in ``ln`` over the declared levels from 32 up."""
+    out = []
+    for c, (lo, hi) in enumerate(levels):
+        sel = slice(max(lo, 32), hi + 1)
+        scale = float(np.exp(np.mean(np.log(b[sel, c]) - np.log(a[sel, c]))))
+        out.append(100 * float(np.abs(a[lo:hi + 1, c] * scale - b[lo:hi + 1, c]).max()))
+    return np.array(out)
+
+
+def split_half(images: Sequence[np.ndarray], times: Sequence[float], fit: Callable[..., CameraResponse],
+               levels: list[tuple[int, int]], *, mask: np.ndarray | None = None) -> np.ndarray:
+    """Per channel, half the largest disagreement (% of the range) of two fits on a checkerboard of 32-pixel blocks
+    and its complement (an estimate of the full fit's error from its pixels); ``fit(images, times, mask=...)`` fits
+    one half."""
+    shape = np.asarray(images[0]).shape[:2]
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    board = ((yy // BLOCK + xx // BLOCK) % 2).astype(bool)
+    base = np.ones(shape, bool) if mask is None else np.asarray(mask, bool)
+    a = fit(images, times, mask=base & board).inverse_table
+    b = fit(images, times, mask=base & ~board).inverse_table
+    return _aligned_difference(a, b, levels) / 2.0
+
+
+def verdict(holdout: float, split: Sequence[float] | None) -> tuple[str, str]:
+    """``(grade, sentence)``: ``good``, ``doubtful`` or ``broken``, with what to do."""
+    worst_split = None if split is None else float(np.max(split))
+    broken = not math.isfinite(holdout) or holdout > HOLDOUT_BROKEN or (
+        worst_split is not None and worst_split > SPLIT_BROKEN)
+    good = math.isfinite(holdout) and holdout <= HOLDOUT_GOOD and (worst_split is None or worst_split <= SPLIT_GOOD)
+    figures = f"held-out prediction {holdout:.2f} levels RMS" + (
+        "" if worst_split is None else f", split-half uncertainty {worst_split:.2f} %")
+    if good:
+        return "good", f"quality good: {figures}"
+    if broken:
+        return "broken", (f"quality BROKEN: {figures} (trusted up to {HOLDOUT_GOOD:g} levels and {SPLIT_GOOD:g} %); "
+                          "do not use this response: the camera moved between exposures, the exposure times are "
+                          "wrong, auto exposure or white balance was on, or the curve does not fit these images")
+    return "doubtful", (f"quality doubtful: {figures} (trusted up to {HOLDOUT_GOOD:g} levels and {SPLIT_GOOD:g} %); "
+                        "check the plot and the per-exposure errors; re-record with a fixed camera if they vary")
+
+
+def assess(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
+           method: str | None = None, fit_options: dict | None = None, mask: np.ndarray | None = None,
+           seed: int = 0) -> dict[str, Any]:
+    """The quality record of ``response`` on the stack: held-out prediction (refitting without each exposure with
+    ``method`` when given, else the response as it is), split-half agreement (when ``method`` is given) and the
+    verdict. Saved in the response's meta as ``quality``."""
+    from radiometry.response_fit import fit_response
+
+    n_ch = 3 if np.asarray(images[0]).ndim == 3 else 1
+    levels = declared(response, n_ch)
+    refit = None
+    split = None
+    if method is not None:
+        options = dict(fit_options or {})
+        options.pop("mask", None)
+        takes_mask = method in ("auto", "loglog", "debevec", "engel")
+        if method in ("loglog", "engel") or (method == "auto" and "samples" not in options
+                                              and options.get("lam") != "auto"):
+            options.setdefault("pixels", QUALITY_PIXELS)
+
+        def refit(imgs, ts, *, mask=mask):  # noqa: ANN001 - the fit on a part of the data
+            return fit_response(imgs, ts, method=method, **({"mask": mask} if takes_mask else {}), **options)
+
+        split_error = "the method takes no mask (OpenCV's)" if not takes_mask else None
+        if takes_mask:
+            try:
+                split = split_half(images, times, refit, levels, mask=mask).tolist()
+            except (ValueError, ArithmeticError, RadiomapError) as exc:  # a half too small to fit
+                split, split_error = None, str(exc)
+    hold = holdout_rms(images, times, response, refit=refit, mask=mask, seed=seed)
+    grade, sentence = verdict(hold["rms"], split)
+    out = {"holdout_rms_levels": hold["rms"], "holdout_per_exposure": hold["per_exposure"],
+           "holdout_refit": hold["refit"], "split_half_percent": split, "grade": grade, "summary": sentence,
+           "thresholds": {"holdout_good": HOLDOUT_GOOD, "holdout_broken": HOLDOUT_BROKEN,
+                          "split_good": SPLIT_GOOD, "split_broken": SPLIT_BROKEN}}
+    if method is not None and split is None:
+        out["split_half_error"] = split_error
+    return out
+
+
+__all__ = ["assess", "holdout_rms", "split_half", "verdict", "declared"]

@@ -1,0 +1,226 @@
+"""Calibration through real camera pipelines (issue 28): white balance after the sensor clips, JPEG, noise after the
+response; the truth-free quality figures; vignetting sweeps through the same pipelines.
+
+Every stack is made by ``tests/camera_pipelines.py`` (its own sensor, white balance, response and OpenCV's JPEG;
+nothing from radiometry touches a pixel) over curves from real cameras (the EuRoC pcalib) and curves built to
+break the method (a knee, a near-flat stretch). Figures measured at 320x240 are in the docstrings; the bounds leave
+room for other noise draws. docs/calibration_pipelines.md has the whole table (scripts/bench_calibration.py
+--pipelines).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from camera_pipelines import PIPELINES, ceiling_level, max_error_scale_free, render, sweep
+from radiometry.errors import CalibrationError
+from radiometry.response import CameraResponse
+from radiometry.response_fit import fit_response
+from radiometry.response_quality import assess
+from response_curves import TIMES, curves, scene
+
+VARIED = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
+DESIGNS = {"2x": TIMES, "varied": VARIED}
+
+
+@pytest.fixture(scope="module")
+def radiance():
+    return scene(240, 320, seed=1)
+
+
+def _fit(curve, pipeline, design, radiance, **options):
+    table = curves()[curve]
+    times = DESIGNS[design]
+    images = render(table, radiance, times, seed=2, **PIPELINES[pipeline])
+    return table, images, times, fit_response(images, times, **options)
+
+
+@pytest.mark.parametrize("design", ["2x", "varied"])
+@pytest.mark.parametrize("curve", ["gamma-2.2", "kink-4x", "euroc"])
+def test_white_balance_after_the_clip_is_found_per_channel_and_fitted_below_it(curve, design, radiance):
+    """Measured (max error %, R/G/B): gamma 0.38/0.38/0.44 (2x), kink 0.49/0.48/0.48, EuRoC 0.41/0.33/0.49; before
+    issue 28 the same stacks were off by 77-95 % at the top (saturated pixels taken as data)."""
+    if curve == "euroc" and "euroc" not in curves():
+        pytest.skip("../shared/data (EuRoC pcalib) is absent")
+    table, _, _, response = _fit(curve, "wb-after-clip", design, radiance)
+    declared = response.meta["declared_levels"]
+    gains = PIPELINES["wb-after-clip"]["gains"]
+    for c, (lo, hi) in enumerate(declared):
+        assert hi <= ceiling_level(table, gains[c]), (c, hi)  # never above the channel's true saturation
+    assert declared[0][1] < declared[1][1] - 8  # red (gain 0.88) is cut well below green
+    assert "R at" in response.meta["levels_summary"] and "saturates" in response.meta["levels_summary"]
+    err = max_error_scale_free(response.inverse_table, table, declared)
+    assert np.all(err <= 1.0), err
+
+
+@pytest.mark.parametrize("design", ["2x", "varied"])
+@pytest.mark.parametrize("pipeline", ["wb-jpeg92", "post-noise", "jpeg75"])
+def test_jpeg_and_noise_after_the_response_stay_within_one_percent_on_gamma(pipeline, design, radiance):
+    """Measured: wb-jpeg92 0.45/0.42/0.52 (2x), 0.36/0.21/0.38 (varied); post-noise 0.59/0.73/0.57, 0.50/0.49/0.46;
+    jpeg75 0.77/0.75/0.83, 0.53/0.64/0.62 (before: 60-86 %)."""
+    table, _, _, response = _fit("gamma-2.2", pipeline, design, radiance)
+    err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
+    assert np.all(err <= 1.0), err
+
+
+def test_the_euroc_curve_through_jpeg_with_white_balance(radiance):
+    """Measured: 0.92 / 0.48 / 2.19 %: blue misses the 1 % target at its top declared level (234, the ceiling at 243
+    less the margin): a documented failure, bounded here; the declared levels stay below every true ceiling."""
+    if "euroc" not in curves():
+        pytest.skip("../shared/data (EuRoC pcalib) is absent")
+    table, _, _, response = _fit("euroc", "wb-jpeg92", "2x", radiance)
+    gains = PIPELINES["wb-jpeg92"]["gains"]
+    declared = response.meta["declared_levels"]
+    assert all(hi <= ceiling_level(table, gains[c]) for c, (_, hi) in enumerate(declared)), declared
+    err = max_error_scale_free(response.inverse_table, table, declared)
+    assert np.all(err[:2] <= 1.0) and err[2] <= 3.0, err
+
+
+@pytest.mark.parametrize("curve, pipeline, bound", [("flat-then-steep", "wb-jpeg92", 3.0), ("kink-4x", "jpeg75", 4.0),
+                                                    ("s-curve", "jpeg75", 4.5)])
+def test_where_it_fails_knees_under_jpeg_stay_bounded(curve, pipeline, bound, radiance):
+    """Documented failures: a knee (slope x50 at level 200, or x4 at 180) blurred by JPEG's level noise, and the
+    s-curve's blue shoulder under JPEG q75: 1.5-3.9 % at single levels (docs/calibration_pipelines.md). Bounded so
+    that they cannot grow silently."""
+    table, _, _, response = _fit(curve, pipeline, "2x", radiance)
+    err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
+    assert np.all(err <= bound), err
+
+
+def test_the_clean_camera_keeps_its_accuracy(radiance):
+    table, _, _, response = _fit("kink-4x", "clean", "2x", radiance)
+    err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
+    assert np.all(err <= 0.8), err
+    assert all(hi >= 250 for _, hi in response.meta["declared_levels"])  # a clean ceiling costs at most a few levels
+
+
+def test_debevec_also_finds_the_ceiling(radiance):
+    table, _, _, response = _fit("gamma-2.2", "wb-after-clip", "2x", radiance, method="debevec")
+    declared = response.meta["declared_levels"]
+    assert declared[0][1] <= ceiling_level(table, PIPELINES["wb-after-clip"]["gains"][0])
+    err = max_error_scale_free(response.inverse_table, table, declared)
+    assert np.all(err <= 1.5), err
+
+
+def test_explicit_levels_switch_the_detection_off(radiance):
+    table, _, _, response = _fit("gamma-2.2", "clean", "2x", radiance, method="loglog", levels=(1, 254), edges=False)
+    assert "levels_summary" not in response.meta and response.meta["levels"] == [1, 254]
+
+
+def test_a_channel_saturated_in_every_exposure_stops_with_the_fix():
+    """Red saturated everywhere (gain 1 but radiance far above the well in every exposure): one line, the channel
+    and what to record instead."""
+    rng = np.random.default_rng(0)
+    radiance = np.exp(rng.uniform(-2, 2, (60, 80, 3))) * np.array([1e4, 1.0, 1.0])
+    images = render(curves()["gamma-2.2"], radiance, TIMES[6:], seed=3)
+    with pytest.raises(CalibrationError, match=r"channel R .*add exposures"):
+        fit_response(images, TIMES[6:])
+
+
+# ------------------------------------------------------------------------------------------------ quality figures
+def test_the_quality_figure_separates_good_from_broken(radiance):
+    """Measured (gamma 2.2, 320x240): a good fit 2.1 levels held-out RMS, split-half 0.3 %; a camera that moved
+    1-2 px between exposures 17.6 levels; the wrong response (the kink curve given for a gamma camera) 40.7."""
+    table, images, times, response = _fit("gamma-2.2", "clean", "2x", radiance)
+    good = assess(images, times, response, method="auto")
+    assert good["grade"] == "good", good["summary"]
+    assert good["holdout_refit"] and len(good["holdout_per_exposure"]) == len(times)
+    rng = np.random.default_rng(3)
+    moved = [np.roll(im, tuple(rng.integers(-2, 3, 2)), axis=(0, 1)) for im in images]
+    broken = assess(moved, times, fit_response(moved, times), method=None)
+    assert broken["grade"] == "broken" and broken["holdout_rms_levels"] > 3 * good["holdout_rms_levels"]
+    wrong = assess(images, times, CameraResponse.from_table(curves()["kink-4x"]))
+    assert wrong["grade"] == "broken" and "do not use" in wrong["summary"]
+
+
+def test_the_quality_figure_of_a_jpeg_stack_is_good(radiance):
+    _, images, times, response = _fit("gamma-2.2", "wb-jpeg92", "2x", radiance)
+    q = assess(images, times, response, method=None)
+    assert q["grade"] == "good", q["summary"]
+
+
+# ------------------------------------------------------------------------------------------------ vignetting sweeps
+@pytest.fixture(scope="module")
+def euroc_vignette():
+    from vignetting_sweeps import default_size, shared_available, vignette_field
+
+    if not shared_available():
+        pytest.skip("../shared/data (EuRoC vignette.png, lensfun) is absent")
+    width, height = default_size("euroc")
+    return vignette_field("euroc", width, height)
+
+
+def test_a_jpeg_sweep_through_the_response_from_a_jpeg_stack(euroc_vignette, radiance):
+    """Measured: kink-4x, JPEG q92 with white balance: 0.34/0.24/0.61 levels; with the true response and a JPEG q75
+    sweep 0.34/0.42/0.59 (JPEG's colour rounding and block noise, not the response: docs)."""
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
+    from vignetting_sweeps import flat_rms_vs_truth
+
+    table, _, _, response = _fit("kink-4x", "wb-jpeg92", "2x", radiance)
+    frames = sweep(table, euroc_vignette, frames=64, **PIPELINES["wb-jpeg92"])
+    model = fit_vignetting(collect_vignetting(frames, response, progress=False), model="lut")
+    err = flat_rms_vs_truth(model.evaluate(), euroc_vignette, table)
+    assert np.all(err <= 0.7), err
+
+
+def test_a_sheet_clipped_below_255_is_refused_in_one_line(euroc_vignette):
+    from radiometry.vignetting_calibration import collect_vignetting
+
+    table = curves()["gamma-2.2"]
+    # sensor overexposed at the sheet's centre, every gain below 1 after the clip: red piles up at level 240, green
+    # at 248, blue at 246 (nothing reaches the usual 250 cut, so only the pile-up shows the clip)
+    frames = sweep(table, euroc_vignette * 1.3, frames=24, top_level=254.0, gains=(0.88, 0.94, 0.92))
+    with pytest.raises(CalibrationError, match=r"saturates in R at level 24\d") as err:
+        collect_vignetting(frames, CameraResponse.from_table(table), progress=False)
+    assert "\n" not in str(err.value) and "shorter exposure" in str(err.value)
+
+
+def test_auto_exposure_left_on_is_absorbed_or_refused(euroc_vignette, tmp_path):
+    """A +-0.1-stop jitter (spread ~15 %) is absorbed by the drift correction (0.30-0.44 levels, measured); +-0.3
+    stops (spread ~45 %) leaves 0.72 and the command refuses it without --allow-exposure-changes."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli as main
+    from radiometry.images import write_image
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
+    from vignetting_sweeps import flat_rms_vs_truth
+
+    table = curves()["kink-4x"]
+    response = CameraResponse.from_table(table)
+    small = sweep(table, euroc_vignette, frames=64, top_level=180.0, exposure_jitter=0.1)
+    acc = collect_vignetting(small, response, progress=False)
+    scales = acc.frame_scales()
+    assert 0.05 < scales.max() / scales.min() - 1 < 0.25
+    err = flat_rms_vs_truth(fit_vignetting(acc, model="lut").evaluate(), euroc_vignette, table)
+    assert np.all(err <= 0.5), err
+    big = sweep(table, euroc_vignette, frames=40, top_level=180.0, exposure_jitter=0.3, seed=4)
+    folder = tmp_path / "sweep"
+    folder.mkdir()
+    for k, frame in enumerate(big):
+        write_image(folder / f"{k:03d}.png", frame)
+    response.save(tmp_path / "crf.npz")
+    out = tmp_path / "v.npz"
+    result = CliRunner().invoke(main, ["vignetting", str(folder), "-r", str(tmp_path / "crf.npz"), "-o", str(out),
+                                       "--no-plots", "--no-progress"])
+    assert result.exit_code == 1 and "auto" in result.output and "--allow-exposure-changes" in result.output
+    assert not out.exists()
+    result = CliRunner().invoke(main, ["vignetting", str(folder), "-r", str(tmp_path / "crf.npz"), "-o", str(out),
+                                       "--no-plots", "--no-progress", "--allow-exposure-changes"])
+    assert result.exit_code == 0, result.output
+    assert "brightness varied" in result.output and "split-half uncertainty" in result.output
+
+
+def test_the_split_half_figure_is_the_size_of_the_error(euroc_vignette):
+    """The even and odd frames' LUTs differ by about twice the full LUT's noise: the figure (half the difference)
+    is within a factor 3 of the true error for the true response (measured 0.12-0.13 vs 0.15-0.18 levels)."""
+    from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
+    from radiometry.vignetting_calibration.evaluate import split_half_levels
+    from vignetting_sweeps import flat_rms_vs_truth
+
+    table = curves()["euroc"] if "euroc" in curves() else curves()["gamma-2.2"]
+    response = CameraResponse.from_table(table)
+    acc = collect_vignetting(sweep(table, euroc_vignette, frames=64), response, progress=False)
+    split = split_half_levels(acc, response, model="lut")
+    err = flat_rms_vs_truth(fit_vignetting(acc, model="lut").evaluate(), euroc_vignette, table)
+    assert split is not None and np.all(split > err / 3) and np.all(split < 3 * err), (split, err)
