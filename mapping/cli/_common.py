@@ -253,6 +253,47 @@ class RadiomapCommand(click.Command):
         return aliased
 
 
+class PoseSource(click.ParamType):
+    """``--poses``: ``icp``, ``gt`` or a trajectory (a TUM file, a Redwood ``.log``, a folder of 7-Scenes pose files;
+    :mod:`mapping.pose_files`), which becomes a Path (recorded absolute in config.json)."""
+
+    name = "icp|gt|FILE"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, os.PathLike) or value in ("icp", "gt"):
+            return value
+        path = Path(str(value))
+        if not path.exists():
+            self.fail(f"{value!r} is neither icp, gt nor an existing trajectory (a TUM file, a Redwood .log, a folder "
+                      "of 7-Scenes pose files); check the path", param, ctx)
+        return path
+
+
+def pose_options(default: str, help_text: str):
+    """``--poses`` (:class:`PoseSource`, ``default``) and ``--poses-max-difference`` (seconds between a frame and the
+    pose of a TUM trajectory file it takes)."""
+    def decorate(f):
+        f = click.option("--poses-max-difference", type=float, default=None, metavar="SECONDS",
+                         help="With --poses FILE (a TUM trajectory): the largest time difference between a frame and "
+                              "the pose it takes, as evo's --t_max_diff [default: 0.02].")(f)
+        return click.option("--poses", type=PoseSource(), default=default, show_default=True, help=help_text)(f)
+    return decorate
+
+
+def poses_max_difference(ctx: click.Context) -> float:
+    """The checked ``--poses-max-difference`` (BadParameter when negative, or given without a trajectory file)."""
+    value = ctx.params.get("poses_max_difference")
+    if value is None:
+        return 0.02
+    if not (value >= 0 and value < float("inf")):
+        raise click.BadParameter(f"must be a number of seconds >= 0, got {value}", param_hint="--poses-max-difference")
+    if ctx.params.get("poses") in ("icp", "gt") and \
+            not drop_replayed(ctx, "poses_max_difference", None, f"--poses {ctx.params.get('poses')}"):
+        raise click.BadParameter(f"applies with --poses FILE only (got --poses {ctx.params['poses']}); drop it",
+                                 param_hint="--poses-max-difference")
+    return float(value)
+
+
 def settings_line(ctx: click.Context, settings: list[tuple]) -> str:
     """``settings: poses gt (compare's default; reconstruct's is icp), ...``: each ``(label, parameter, shown
     value[, what the default is called])`` with where the value came from (given, a config file, the default);
@@ -357,5 +398,5 @@ def evaluation_options(f):
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
            "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
            "fusion_options",
-           "load_replay_config", "positive", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
+           "load_replay_config", "pose_options", "poses_max_difference", "PoseSource", "positive", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
            "warn_far_depth"]
