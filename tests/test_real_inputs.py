@@ -256,8 +256,10 @@ def test_compare_and_self_calibrate_take_a_pose_file(tmp_path):
         np.testing.assert_allclose(poses, np.stack([f.pose for f in ds.frames]), atol=1e-6)
     res = CliRunner().invoke(cli, ["self-calibrate", str(tmp_path / "seq"), "-o", str(tmp_path / "sc"), "--poses",
                                    log, "--no-plots", "--no-progress"])
-    assert "--poses" not in res.output   # accepted (the solver may still find the tiny sequence too thin)
-    assert (tmp_path / "sc" / "trajectory.txt").is_file() or res.exit_code != 0
+    assert res.exit_code == 0, res.output
+    _, poses = read_tum_trajectory(tmp_path / "sc" / "trajectory.txt")
+    np.testing.assert_allclose(poses, np.stack([f.pose for f in ds.frames]), atol=1e-6)
+    assert (tmp_path / "sc" / "groundtruth_tum.txt").is_file()
     res = CliRunner().invoke(cli, ["self-calibrate", str(tmp_path / "seq"), "-o", str(tmp_path / "sc2"), "--poses",
                                    "gt", "--tracker", "hybrid"])
     assert res.exit_code == 2 and "applies with --poses icp only" in res.output
@@ -320,3 +322,23 @@ def test_a_self_calibration_refused_at_validation_writes_nothing(tmp_path):
     res = CliRunner().invoke(cli, ["self-calibrate", str(tmp_path / "seq"), "-o", str(out), "--poses", "gt"])
     assert res.exit_code == 1 and list(out.iterdir()) == []
     shutil.rmtree(out)
+
+
+def test_a_batch_gives_each_sequence_its_own_pose_file(tmp_path):
+    """``radiomap batch reconstruct LIST -- --poses groundtruth.txt``: a relative path not found from the working
+    folder is each sequence's own file; the poses fused are that sequence's."""
+    from mapping.simulation.sequences import simulate_room
+
+    seqs = [simulate_room(tmp_path / name, seed=seed, n_frames=5, width=64, height=48, progress=False)
+            for name, seed in (("a", 1), ("b", 2))]
+    (tmp_path / "list.txt").write_text("\n".join(str(s) for s in seqs) + "\n")
+    res = CliRunner().invoke(cli, ["batch", "reconstruct", str(tmp_path / "list.txt"), "-o", str(tmp_path / "runs"),
+                                   "--no-progress", "--", "--poses", "groundtruth.txt", "--depth-max", "6",
+                                   "--voxel-size", "0.04"])
+    assert res.exit_code == 0, res.output
+    for seq in seqs:
+        truth = open_dataset(seq).ground_truth()
+        _, poses = read_tum_trajectory(tmp_path / "runs" / seq.name / "trajectory.txt")
+        np.testing.assert_allclose(poses, truth[1], atol=1e-6)
+        config = json.loads((tmp_path / "runs" / seq.name / "config.json").read_text())
+        assert config["parameters"]["poses"] == str((seq / "groundtruth.txt").resolve())

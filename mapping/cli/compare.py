@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, fusion_options,
-                                 pose_options, poses_max_difference, replay_manifest, sequence_options, settings_line,
+                                 pose_arguments, pose_options, replay_manifest, sequence_options, settings_line,
                                  warn_far_depth)
 from mapping.factory import TRACKERS
 
@@ -118,6 +118,7 @@ def task_arguments(ctx: click.Context) -> dict:
     from mapping.batch.commands import MethodChoiceError, compare_methods
 
     p = ctx.params
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     methods = p["methods"]
     if methods is not None and p["exposure_compensation"] and \
             not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
@@ -146,7 +147,7 @@ def task_arguments(ctx: click.Context) -> dict:
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
                                  "render_width", "glb", "holdout_every", "colour_map", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
-            "poses_max_difference": poses_max_difference(ctx),
+            "poses_max_difference": max_difference,
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
             "manifest": replay_manifest(ctx, files=("intrinsics", "poses")),
             "settings": settings}

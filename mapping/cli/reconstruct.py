@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
-                                 fusion_options, pose_options, poses_max_difference, positive, replay_manifest,
+                                 fusion_options, pose_arguments, pose_options, positive, replay_manifest,
                                  sequence_options, settings_line, warn_far_depth)
 from mapping.factory import TRACKERS
 
@@ -112,6 +112,7 @@ def task_arguments(ctx: click.Context) -> dict:
     :func:`mapping.batch.commands.reconstruct_command`: plain values, the replay manifest and the settings line
     (what ``radiomap reconstruct`` runs, and what each task of ``radiomap batch reconstruct`` runs)."""
     p = ctx.params
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     response, backend = p["response"], p["backend"]
     if p["vignetting"] is not None and response is None:
         raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
@@ -138,7 +139,7 @@ def task_arguments(ctx: click.Context) -> dict:
     except ValueError as exc:
         raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
-                   poses=p["poses"], poses_max_difference=poses_max_difference(ctx), tracker=p["tracker"],
+                   poses=p["poses"], poses_max_difference=max_difference, tracker=p["tracker"],
                    voxel_size=p["voxel_size"],
                    frames=p["frames"] or slice(None), depth_scale=p["depth_scale"], intrinsics=p["intrinsics"],
                    backend=backend, surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],

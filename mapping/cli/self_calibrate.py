@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from mapping.cli._common import pose_options, poses_max_difference, sequence_options
+from mapping.cli._common import pose_arguments, pose_options, sequence_options
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -63,7 +63,7 @@ def task_arguments(ctx: click.Context) -> dict:
     if p["tracker"] != "auto" and p["poses"] != "icp":
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
-    max_difference = poses_max_difference(ctx)
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
                                                "poses": p["poses"], "tracker": p["tracker"], "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
