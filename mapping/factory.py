@@ -90,8 +90,8 @@ def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0,
                  trunc_voxel_multiplier=trunc_voxel_multiplier, **options)
 
 
-#: trackers by name: the default, point-to-plane ICP with coloured ICP where its system is ill-conditioned
-#: (:mod:`mapping.tracking_auto`), point-to-plane ICP alone (depth only), hybrid RGB-D odometry and coloured ICP
+#: trackers by name: the default, point-to-plane ICP with coloured ICP where its system is ill-conditioned or it
+#: fails (:mod:`mapping.tracking_auto`), point-to-plane ICP alone (depth only), hybrid RGB-D odometry and coloured ICP
 #: (depth and the colour the map holds; :mod:`mapping.tracking_photometric`)
 TRACKERS = Registry("tracker", {"auto": "mapping.tracking_auto:AutoTracker",
                                 "icp": "mapping.tracking:FrameToModelTracker",

@@ -1,5 +1,5 @@
-"""The default tracker (``--tracker auto``): point-to-plane ICP, and a photometric tracker (Open3D's hybrid RGB-D
-odometry) for the frames where geometry alone cannot fix the pose.
+"""The default tracker (``--tracker auto``): point-to-plane ICP, and a photometric tracker (Open3D's coloured ICP)
+for the frames where geometry alone cannot fix the pose.
 
 Point-to-plane ICP constrains only the motions that change the distance of surface points to their planes. A
 frame that sees one wall (or a wall and a floor, a desk top) leaves directions free: its 6 x 6 Gauss-Newton
@@ -11,15 +11,16 @@ the plane and the frame is lost or, worse, accepted at the wrong place. Per fram
    point-to-plane association, with the points centred and scaled to unit RMS radius so that the number does
    not depend on the scene's size or units; ``lambda_max / lambda_min``);
 3. when ICP failed (an exception, a singular system, or its result failed the rules) or the condition number
-   exceeds ``max_condition``, the ``fallback`` (hybrid odometry, :class:`mapping.tracking_photometric.HybridTracker`;
-   or coloured ICP: depth and the colour the map holds) from the same prediction; its pose is taken when it passes
+   exceeds ``max_condition``, the ``fallback`` (coloured ICP, :class:`mapping.tracking_photometric.ColouredICPTracker`:
+   depth and the colour the map holds; or hybrid odometry) from the same prediction; its pose is taken when it passes
    the same failure rules (judged by the point-to-plane association, as every tracker's), else ICP's result
    stands (a failure with both reasons when ICP failed too).
 
 Optional (``photometric_margin``, off by default): ICP's pose is also doubted when the frame's colours agree less
 with the map there than at the prediction by more than that fraction (:func:`photometric_error`), and the
-fallback's pose taken when its colours agree better. Measured, it sent 18-53 % of the frames of the kitchen and
-the lamp shade to hybrid odometry and made the kitchen's ATE worse (1.14 against 1.09 cm): off.
+fallback's pose taken when its colours agree better. Measured (with hybrid odometry as the fallback), it sent
+18-44 % of the frames of the kitchen and the lamp shade to the fallback and made the kitchen's ATE worse (1.14
+against 1.09 cm): off.
 
 ``max_condition`` and ``fallback`` were chosen by measurement on real recordings (docs/tracking.md,
 ``scripts/bench_tracking.py``). ``stats()`` counts the frames each method tracked (metrics.json ``tracking``).
@@ -40,7 +41,7 @@ log = logging.getLogger(__name__)
 #: condition number of the normalised point-to-plane system above which coloured ICP is tried (docs/tracking.md)
 MAX_CONDITION = 100.0
 #: the photometric tracker of step 3 (docs/tracking.md)
-FALLBACK = "hybrid"
+FALLBACK = "coloured-icp"
 
 
 def photometric_error(intensity: np.ndarray, depth: np.ndarray, K: np.ndarray, view, view_intensity: np.ndarray,

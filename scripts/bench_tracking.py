@@ -8,8 +8,8 @@ Every tracker of ``mapping.factory.TRACKERS`` (and the auto tracker with either 
 - the shared RealSense lamp shade (no options: its ``camera_intrinsic.json``),
 - the shared 7-Scenes kitchen (ATE against its poses),
 - a simulated room with plain walls (no furniture, no posters; the camera looks level, at the walls; ATE against
-  the simulation's truth), with depth to 5 m (the whole room) and to 2 m (``plain-room-2m``: a view holds about
-  one wall and a strip of floor, the degenerate case).
+  the simulation's truth), 6 x 5 m with depth to 5 m (the whole room), and 3.4 x 3.4 m with depth cut at 2 m
+  (``small-plain-room-cut``: a view holds about one wall, the degenerate case).
 
 Reported per run: frames fused of the sequence, whether tracking was lost (the run kept a partial map), ATE
 (Horn-aligned RMSE, cm) where there is truth, the auto tracker's frames per method, and seconds. ``auto`` is the
@@ -38,7 +38,7 @@ DATA = ROOT.parent / "shared" / "data" / "rgbd"
 TRACKERS = {"icp": ("icp", {}), "auto": ("auto", {}), "auto+colour-check": ("auto", {"photometric_margin": 0.05}),
             "auto-coloured": ("auto", {"fallback": "coloured-icp"}),
             "hybrid": ("hybrid", {}), "coloured-icp": ("coloured-icp", {})}
-SEQUENCES = ("office", "lampshade", "kitchen", "plain-room", "plain-room-2m")
+SEQUENCES = ("office", "lampshade", "kitchen", "plain-room", "small-plain-room-cut")
 
 
 def sequence(name: str, out: Path):
@@ -54,7 +54,18 @@ def sequence(name: str, out: Path):
     if name == "kitchen":
         path = DATA / "redkitchen_7scenes_000-099"
         return (open_dataset(path), 3.0) if path.is_dir() else None
-    if name in ("plain-room", "plain-room-2m"):
+    if name == "small-plain-room-cut":
+        from mapping.simulation.room import make_room
+        from mapping.simulation.sequences import simulate_room
+        from mapping.simulation.trajectory import HandheldMotion
+
+        folder = out / "small_plain_room"
+        if not (folder / "rgb.txt").is_file():
+            simulate_room(folder, seed=4, n_frames=80, width=320, height=240,
+                          room=make_room(4, n_boxes=0, n_posters=0, size=(3.4, 3.4, 2.7)),
+                          motion=HandheldMotion(pitch=0.0, speed=1.0), progress=False, force=True)
+        return open_dataset(folder), 2.0   # depth beyond 2 m cut: a view holds about one wall
+    if name == "plain-room":
         from mapping.simulation.room import make_room
         from mapping.simulation.sequences import simulate_room
         from mapping.simulation.trajectory import HandheldMotion
@@ -63,14 +74,14 @@ def sequence(name: str, out: Path):
         if not (folder / "rgb.txt").is_file():
             simulate_room(folder, seed=3, n_frames=80, width=320, height=240, room=make_room(3, n_boxes=0, n_posters=0),
                           motion=HandheldMotion(pitch=0.0, speed=1.0), progress=False, force=True)
-        # plain-room-2m: depth beyond 2 m cut away, so that a view holds one wall and a strip of floor (degenerate)
-        return open_dataset(folder), 5.0 if name == "plain-room" else 2.0
+        return open_dataset(folder), 5.0
     raise ValueError(f"unknown sequence {name!r}; choose from {', '.join(SEQUENCES)}")
 
 
 def run_case(dataset, depth_max: float, tracker_key: str) -> dict:
     from mapping.factory import make_backend, make_tracker
     from mapping.pipeline import TrackingError, TrackingLostError, reconstruct
+    from radiometry.errors import RadiomapError
 
     name, options = TRACKERS[tracker_key]
     tracker = make_tracker(name, depth_max=depth_max, **options)
@@ -81,7 +92,7 @@ def run_case(dataset, depth_max: float, tracker_key: str) -> dict:
         run = reconstruct(dataset, backend=backend, tracker=tracker, poses="icp", progress=False, write_mesh=False)
     except TrackingLostError as exc:
         run, lost = exc.run, "lost (partial map)"
-    except TrackingError as exc:
+    except (TrackingError, RadiomapError) as exc:
         return {"fused": 0, "frames": len(dataset), "lost": f"failed: {str(exc)[:60]}", "ATE cm": None,
                 "seconds": round(time.perf_counter() - t0, 1), "methods": None}
     stats = tracker.stats() if hasattr(tracker, "stats") else None

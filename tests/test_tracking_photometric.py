@@ -356,17 +356,19 @@ def test_the_condition_number_tells_a_corner_from_a_wall():
 
 
 def test_the_auto_tracker_uses_colour_where_icp_is_singular():
-    """One textured wall, a sideways motion: ICP's system is singular, the auto tracker takes hybrid odometry's
-    pose (within 5 mm of the truth) and counts it."""
+    """One textured wall, a sideways motion: ICP's system is singular, the auto tracker takes coloured ICP's pose
+    (within 5 mm of the truth) and counts it; with hybrid odometry as the fallback, the same."""
     scene = Planes(WALL)
     true = _pose(t=(0.02, 0.0, 0.0))
     frame = _frame(scene, true)
-    tracker = make_tracker("auto", depth_max=5.0, motion_model="previous")
-    tracker.start(np.eye(4))
-    result = tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4), colour=_raw_colour(frame))
-    assert result.ok, result.reason
-    assert _error(result.pose, true)[0] < 0.005
-    assert tracker.stats()["frames_by_method"] == {"icp": 0, "hybrid": 1, "failed": 0}
+    for fallback in ("coloured-icp", "hybrid"):
+        tracker = make_tracker("auto", depth_max=5.0, motion_model="previous", fallback=fallback)
+        tracker.start(np.eye(4))
+        result = tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4), colour=_raw_colour(frame))
+        assert result.ok, result.reason
+        assert _error(result.pose, true)[0] < 0.005
+        assert tracker.stats()["frames_by_method"] == {"icp": 0, fallback: 1, "failed": 0}
+    assert make_tracker("auto").fallback == "coloured-icp"
 
 
 def test_the_auto_tracker_keeps_icp_where_geometry_fixes_the_pose():
@@ -390,7 +392,7 @@ def test_the_auto_tracker_fails_by_the_rules_on_a_blank_wall():
     tracker = make_tracker("auto", depth_max=5.0, motion_model="previous")
     tracker.start(np.eye(4))
     result = tracker.track(frame.depth, K, _raw_view(wall, np.eye(4)), np.eye(4), colour=_raw_colour(frame))
-    assert not result.ok and "hybrid" in result.reason
+    assert not result.ok and "coloured-icp" in result.reason
     np.testing.assert_array_equal(result.pose, np.eye(4))
     assert tracker.stats()["frames_by_method"]["failed"] == 1
     with pytest.raises(ValueError, match="fallback must be one of hybrid, coloured-icp"):

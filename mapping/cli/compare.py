@@ -73,7 +73,7 @@ def _methods(ctx, param, value):
                     "or a trajectory (a TUM file, a Redwood .log, a folder of 7-Scenes pose files; see reconstruct "
                     "--help).")
 @click.option("--tracker", type=click.Choice(list(TRACKERS)), default="auto", show_default=True,
-              help="With --poses icp: auto (ICP, hybrid odometry where ICP is ill-conditioned), point-to-plane ICP, "
+              help="With --poses icp: auto (ICP, coloured ICP where ICP is ill-conditioned), point-to-plane ICP, "
                    "hybrid RGB-D odometry or coloured ICP, on the first method's colour (see reconstruct --help).")
 @sequence_options
 @click.option("--brightness", type=click.Choice(["mean", "calibrated"]), default="mean", show_default=True,

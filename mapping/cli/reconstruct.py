@@ -59,8 +59,8 @@ def _mesh_exposure(ctx, param, value):
                      "trajectory: a TUM file (e.g. an earlier run's trajectory.txt, ORB-SLAM's, evo's), a Redwood "
                      ".log or a folder of 7-Scenes pose files (frames without a pose are skipped).")
 @click.option("--tracker", type=click.Choice(list(TRACKERS)), default="auto", show_default=True,
-              help="With --poses icp: auto (point-to-plane ICP, and Open3D's hybrid RGB-D odometry for the frames where "
-                   "its system is ill-conditioned or it fails: a wall, a floor; docs/tracking.md), point-to-plane ICP "
+              help="With --poses icp: auto (point-to-plane ICP, and Open3D's coloured ICP for the frames where its "
+                   "system is ill-conditioned or it fails: a wall, a floor; docs/tracking.md), point-to-plane ICP "
                    "alone (depth), hybrid RGB-D odometry or coloured ICP (depth and the colour the map holds: raw "
                    "levels, or irradiance at the map's exposure).")
 @sequence_options
