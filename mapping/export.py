@@ -53,9 +53,9 @@ MESH_FORMATS = ("ply", "glb", "obj")
 #: method). ``--force`` removes these and the files listed in the previous run's MANIFEST before a new run starts;
 #: any other file in the folder (the user's notes, say) is left alone.
 RESULT_NAMES = frozenset({
-    RUNNING_MARKER, "config.json", "metrics.json", "trajectory.txt", "groundtruth_tum.txt", "frames.csv", "summary.txt", "histogram.json",
-    "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz", "surfels.ply",
-    "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", "colour_map.json",
+    RUNNING_MARKER, "config.json", "metrics.json", "trajectory.txt", "frames.csv", "summary.txt", "histogram.json",
+    "groundtruth_tum.txt", "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz",
+    "surfels.ply", "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", "colour_map.json",
     "mesh_colourmap.ply", "mesh_colourmap.glb", "mesh_colourmap.obj", "mesh_colourmap_colours.npz", "holdout.csv", MANIFEST})
 
 _HELD: dict[str, "FolderLock"] = {}   # resolved folder -> the lock this process holds on it

@@ -219,5 +219,5 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     output.complete()
 
 
-__all__ = ["GROUND_TRUTH_FILE", "FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv", "peak_rss_mb", "reason_kind",
-           "write_partial", "write_results"]
+__all__ = ["GROUND_TRUTH_FILE", "FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv",
+           "peak_rss_mb", "reason_kind", "write_partial", "write_results"]

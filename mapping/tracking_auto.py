@@ -158,7 +158,7 @@ class AutoTracker(_PhotometricTracker):
         self.ill_conditioned += int(ill)
         if colour is None:
             raise ValueError("the auto tracker needs the frame's colour (colour=tracking_colour(...))")
-        worse, colour_error = False, None
+        worse = False
         if self.photometric_margin is not None and icp.ok and not ill:
             # the colours judge ICP's move: sliding along a plane makes them agree less than at the prediction
             intensity = self._photometric_intensity(colour)

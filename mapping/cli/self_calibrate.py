@@ -65,7 +65,8 @@ def task_arguments(ctx: click.Context) -> dict:
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
-                                               "poses": p["poses"], "tracker": p["tracker"], "frames": None if frames is None else
+                                               "poses": p["poses"], "tracker": p["tracker"],
+                                               "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
                                                "output": p["output"]})
     return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from mapping.datasets._common import FileSequence, FrameFiles, intrinsics_candidates, optional_file, \
-    read_intrinsics_file, read_stamped_list, read_text, resolve_intrinsics
+    read_stamped_list, read_text, resolve_intrinsics
 from mapping.metrics import associate_timestamps, interpolate_poses, read_tum_trajectory
 from radiometry.errors import DatasetError, ImageError
 from radiometry.images import read_depth
