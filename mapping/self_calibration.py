@@ -286,7 +286,7 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.self_calibration import coverage_text, self_calibrate
 
-    from mapping.datasets import describe_dataset, open_dataset
+    from mapping.datasets import describe_dataset, intrinsics_text, open_dataset
     from mapping.metrics import format_tum_trajectory
 
     seconds: dict[str, float] = {}
@@ -351,7 +351,8 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         run = SelfCalibrationRun(result=result, indices=indices, timestamps=stamps, sampling=stats,
                                  seconds={k: round(v, 2) for k, v in seconds.items()}, peak_rss_mb=_peak_rss_mb(),
                                  files=files)
-        run.summary = summary_text(run, dataset.name, response_given, str(poses), cov_line)
+        run.summary = summary_text(run, dataset.name, response_given, str(poses), cov_line) + "\n" + \
+            intrinsics_text(dataset)   # which intrinsics, from where
         files["summary"] = atomic_write_text(folder.file("summary.txt"), run.summary + "\n")
         atomic_write_json(folder.file(MARKER), {
             "sequence": describe_dataset(dataset), "poses": str(poses),

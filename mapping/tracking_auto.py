@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 #: condition number of the normalised point-to-plane system above which coloured ICP is tried (docs/tracking.md)
 MAX_CONDITION = 100.0
+#: the condition number is measured on every CONDITION_STEP-th pixel of every CONDITION_STEP-th row (a lamp-shade
+#: frame: 8.09 against 8.11 on every pixel, 20 ms against 185 ms)
+CONDITION_STEP = 3
 #: the photometric tracker of step 3 (docs/tracking.md)
 FALLBACK = "coloured-icp"
 
@@ -150,7 +153,9 @@ class AutoTracker(_PhotometricTracker):
             return failed
         icp = FrameToModelTracker._track(self, depth, K, view, view_pose, init, None)
         T = np.linalg.inv(np.asarray(view_pose, dtype=np.float64)) @ (icp.pose if icp.ok else init)
-        q, normals, r = point_to_plane_association(depth, K, view, invalid_t, T, depth_min=self.depth_min,
+        sparse = np.zeros_like(depth)   # every 3rd pixel of every 3rd row: the same number at a tenth of the cost
+        sparse[::CONDITION_STEP, ::CONDITION_STEP] = depth[::CONDITION_STEP, ::CONDITION_STEP]
+        q, normals, r = point_to_plane_association(sparse, K, view, invalid_t, T, depth_min=self.depth_min,
                                                    depth_max=self.depth_max)
         inl = np.abs(r) <= self.depth_diff
         self.condition = icp_condition(q[:, inl], normals[inl])

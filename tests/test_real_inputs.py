@@ -260,6 +260,7 @@ def test_compare_and_self_calibrate_take_a_pose_file(tmp_path):
     _, poses = read_tum_trajectory(tmp_path / "sc" / "trajectory.txt")
     np.testing.assert_allclose(poses, np.stack([f.pose for f in ds.frames]), atol=1e-6)
     assert (tmp_path / "sc" / "groundtruth_tum.txt").is_file()
+    assert "intrinsics" in res.output and "camera_intrinsic.json" in res.output   # which, and from where
     res = CliRunner().invoke(cli, ["self-calibrate", str(tmp_path / "seq"), "-o", str(tmp_path / "sc2"), "--poses",
                                    "gt", "--tracker", "hybrid"])
     assert res.exit_code == 2 and "applies with --poses icp only" in res.output

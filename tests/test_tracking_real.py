@@ -1,6 +1,6 @@
 """The default tracker on the shared real recordings (issue 30's targets): the RealSense office (with its usual
-D435 intrinsics) and the lamp shade (no options) fuse at least 95 % of their frames; the 7-Scenes kitchen's ATE
-stays where point-to-plane ICP had it. The whole table and its command: docs/tracking.md."""
+D435 intrinsics) fuses at least 95 % of its frames; the 7-Scenes kitchen's ATE stays where point-to-plane ICP had
+it (the lamp shade: tests/test_tracking_real_lampshade.py). The whole table and its command: docs/tracking.md."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from mapping.pipeline import reconstruct
 pytestmark = pytest.mark.slow
 
 
-def _run(dataset, tracker="auto"):
+def run_default(dataset, tracker="auto"):
+    """Track and fuse ``dataset`` as ``radiomap reconstruct`` does by default (no files written)."""
     tracker = make_tracker(tracker, depth_max=3.0)
     run = reconstruct(dataset, backend=make_backend("tsdf", voxel_size=0.01, depth_max=3.0), tracker=tracker,
                       progress=False, write_mesh=False)
@@ -23,13 +24,7 @@ def _run(dataset, tracker="auto"):
 
 def test_the_realsense_office_fuses_95_percent_with_the_default_tracking():
     ds = open_dataset(shared_path("rgbd", "realsense_office_d435"), intrinsics="615,615,320,240")
-    run, tracker = _run(ds)
-    assert run.fused >= 0.95 * len(ds), (run.fused, run.skip_reasons(), tracker.stats())
-
-
-def test_the_lampshade_fuses_95_percent_with_the_default_tracking():
-    ds = open_dataset(shared_path("rgbd", "realsense_lampshade"))
-    run, tracker = _run(ds)
+    run, tracker = run_default(ds)
     assert run.fused >= 0.95 * len(ds), (run.fused, run.skip_reasons(), tracker.stats())
 
 
@@ -37,5 +32,5 @@ def test_the_kitchen_ate_is_not_worse_than_icp_alone():
     """Every third frame of the kitchen: point-to-plane ICP measured 1.19 cm here (tests/test_pipeline.py); the
     default keeps ICP where its system is well-conditioned (the kitchen's condition numbers are 3.6-5.0)."""
     ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, 100, 3))
-    run, tracker = _run(ds)
+    run, tracker = run_default(ds)
     assert run.fused == len(ds) and run.ate.rmse < 0.0125, (run.ate.rmse, tracker.stats())
