@@ -264,9 +264,9 @@ def _colour_model(method: Method, height: int, width: int, brightness: str):
 
 
 def _tracker_label(tracker_options: Mapping[str, Any] | None) -> str:
-    """How the shared poses were tracked, for the table's pose line: ``ICP``, ``hybrid`` or ``coloured-icp``
-    (:data:`mapping.factory.TRACKERS`)."""
-    name = dict(tracker_options or {}).get("name", "icp")
+    """How the shared poses were tracked, for the table's pose line: ``ICP``, ``auto tracking`` (the default),
+    ``hybrid tracking`` or ``coloured-icp tracking`` (:data:`mapping.factory.TRACKERS`)."""
+    name = dict(tracker_options or {}).get("name", "auto")
     return "ICP" if name == "icp" else f"{name} tracking"
 
 
