@@ -381,7 +381,7 @@ def test_the_auto_tracker_keeps_icp_where_geometry_fixes_the_pose():
         results.append(tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4),
                                      colour=_raw_colour(frame)))
     assert results[0].ok and auto.stats()["frames_by_method"]["icp"] == 1
-    np.testing.assert_allclose(results[0].pose, results[1].pose, atol=1e-9)   # ICP's own result
+    np.testing.assert_allclose(results[0].pose, results[1].pose, atol=1e-6)   # ICP's own (threaded sums: ~1e-8)
     assert _error(results[0].pose, MOTION)[0] < 0.004
 
 

@@ -29,8 +29,9 @@ def test_the_realsense_office_fuses_95_percent_with_the_default_tracking():
 
 
 def test_the_kitchen_ate_is_not_worse_than_icp_alone():
-    """Every third frame of the kitchen: point-to-plane ICP measured 1.19 cm here (tests/test_pipeline.py); the
-    default keeps ICP where its system is well-conditioned (the kitchen's condition numbers are 3.6-5.0)."""
+    """Every third frame of the kitchen at 1 cm voxels: point-to-plane ICP measured 1.090-1.090 cm here (2 runs),
+    the default 1.090 cm: it keeps ICP where its system is well-conditioned (the kitchen's condition numbers are
+    3.6-5.0); all 100 frames: 1.09 cm with either (docs/tracking.md)."""
     ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, 100, 3))
     run, tracker = run_default(ds)
-    assert run.fused == len(ds) and run.ate.rmse < 0.0125, (run.ate.rmse, tracker.stats())
+    assert run.fused == len(ds) and run.ate.rmse < 0.0115, (run.ate.rmse, tracker.stats())
