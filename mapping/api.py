@@ -52,7 +52,7 @@ def option_names() -> list[str]:
 
 
 def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | None = None, *, response=None,
-                         vignetting=None, exposure_compensation: bool = True, poses: str = "icp", force: bool = False,
+                         vignetting=None, exposure_compensation: bool = True, poses="icp", force: bool = False,
                          progress: bool = True, **options: Any) -> "Reconstruction":
     """Track (or take ground-truth poses), correct and fuse an RGB-D sequence; returns a :class:`Reconstruction`.
 
@@ -67,7 +67,8 @@ def reconstruct_sequence(path: str | os.PathLike, output: str | os.PathLike | No
     exposure_compensation: estimate every frame's exposure and white balance against the map. It acts on
                  irradiance, so it applies when a response is given; without one the run fuses raw
                  intensities and ``result.exposure_compensation`` is False.
-    poses:       ``icp`` (frame-to-model tracking) or ``gt`` (the sequence's ground truth).
+    poses:       ``icp`` (frame-to-model tracking), ``gt`` (the sequence's ground truth) or a trajectory file (a TUM
+                 file, a Redwood ``.log``, a folder of 7-Scenes pose files: :mod:`mapping.pose_files`).
     force:       overwrite the results of an earlier run in ``output``.
     progress:    a progress bar on stderr when it is a terminal.
     options:     the command's other options: ``voxel_size``, ``frames`` (a slice or frame positions),

@@ -54,8 +54,8 @@ MESH_FORMATS = ("ply", "glb", "obj")
 #: any other file in the folder (the user's notes, say) is left alone.
 RESULT_NAMES = frozenset({
     RUNNING_MARKER, "config.json", "metrics.json", "trajectory.txt", "frames.csv", "summary.txt", "histogram.json",
-    "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz", "surfels.ply",
-    "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", "colour_map.json",
+    "groundtruth_tum.txt", "histogram.npz", "histogram.png", "mesh.ply", "mesh.glb", "mesh.obj", "mesh_colours.npz",
+    "surfels.ply", "surfels_mesh.ply", "exposures.txt", "exposures.json", "compare_method.json", "colour_map.json",
     "mesh_colourmap.ply", "mesh_colourmap.glb", "mesh_colourmap.obj", "mesh_colourmap_colours.npz", "holdout.csv", MANIFEST})
 
 _HELD: dict[str, "FolderLock"] = {}   # resolved folder -> the lock this process holds on it

@@ -25,7 +25,8 @@ class ReconstructConfig:
     output: Path | None = None
     response: Path | None = None
     vignetting: Path | None = None
-    poses: str = "icp"
+    poses: Any = "icp"                          # --poses: icp | gt | a trajectory file or folder (mapping.pose_files)
+    poses_max_difference: float = 0.02         # --poses-max-difference: seconds between a frame and its pose (TUM file)
     voxel_size: float = 0.01
     frames: slice = field(default_factory=lambda: slice(None))
     depth_scale: float | None = None
@@ -37,7 +38,7 @@ class ReconstructConfig:
     block_resolution: int = 16
     trunc_voxel_multiplier: float = 8.0
     motion_model: str = "constant_velocity"
-    tracker: str = "icp"                        # --tracker: icp | hybrid | coloured-icp (mapping.factory.TRACKERS)
+    tracker: str = "auto"                       # --tracker: auto | icp | hybrid | coloured-icp (TRACKERS)
     reference_exposure: float = 1.0             # --display-exposure: the histogram's display reference
     exposure_compensation: bool | None = None   # None: on when a response is given
     exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
@@ -89,16 +90,18 @@ def make_backend(name: str, *, voxel_size: float = 0.01, depth_max: float = 3.0,
                  trunc_voxel_multiplier=trunc_voxel_multiplier, **options)
 
 
-#: trackers by name: point-to-plane ICP (depth only), hybrid RGB-D odometry and coloured ICP (depth and the colour
-#: the map holds; :mod:`mapping.tracking_photometric`)
-TRACKERS = Registry("tracker", {"icp": "mapping.tracking:FrameToModelTracker",
+#: trackers by name: the default, point-to-plane ICP with coloured ICP where its system is ill-conditioned or it
+#: fails (:mod:`mapping.tracking_auto`), point-to-plane ICP alone (depth only), hybrid RGB-D odometry and coloured ICP
+#: (depth and the colour the map holds; :mod:`mapping.tracking_photometric`)
+TRACKERS = Registry("tracker", {"auto": "mapping.tracking_auto:AutoTracker",
+                                "icp": "mapping.tracking:FrameToModelTracker",
                                 "hybrid": "mapping.tracking_photometric:HybridTracker",
                                 "coloured-icp": "mapping.tracking_photometric:ColouredICPTracker"})
 
 
-def make_tracker(name: str = "icp", *, depth_max: float = 3.0, motion_model: str = "constant_velocity", **kwargs):
-    """A frame-to-model tracker by name (:data:`TRACKERS`; default point-to-plane ICP,
-    :class:`mapping.tracking.FrameToModelTracker`)."""
+def make_tracker(name: str = "auto", *, depth_max: float = 3.0, motion_model: str = "constant_velocity", **kwargs):
+    """A frame-to-model tracker by name (:data:`TRACKERS`; default ``auto``, point-to-plane ICP with coloured ICP
+    where it is ill-conditioned, :class:`mapping.tracking_auto.AutoTracker`)."""
     return TRACKERS[name](depth_max=depth_max, motion_model=motion_model, **kwargs)
 
 
@@ -106,13 +109,15 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
     """The keyword arguments of :func:`mapping.pipeline.reconstruct` for a configuration (the dataset opened,
     the models loaded, backend and tracker built)."""
     from mapping.datasets import open_dataset
+    from mapping.pose_files import resolve_poses
     from mapping.validation import check_config, check_run, config_options
     from radiometry.formats import load_response
 
     check_config(config)  # the option ranges (mapping/validation.py), before anything is read
     dataset = open_dataset(config.sequence, format=config.format, depth_scale=config.depth_scale,
                            intrinsics=config.intrinsics, frames=config.frames)
-    check_run(dataset, poses=config.poses, **config_options(config))  # intrinsics, ground truth, memory
+    poses = resolve_poses(config.poses, dataset, max_difference=config.poses_max_difference)  # a file read, matched
+    check_run(dataset, poses=poses, **config_options(config))  # intrinsics, ground truth, memory
     if config.holdout_every is not None:  # 2 .. frames - 1, before anything is written
         from mapping.holdout import check_holdout_every
 
@@ -137,9 +142,9 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
                            block_resolution=config.block_resolution,
                            trunc_voxel_multiplier=config.trunc_voxel_multiplier, surfel_mesh=config.surfel_mesh)
     tracker = make_tracker(config.tracker, depth_max=config.depth_max, motion_model=config.motion_model) \
-        if config.poses == "icp" else None
+        if poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
-            "poses": config.poses, "progress": config.progress, "holdout_every": config.holdout_every,
+            "poses": poses, "progress": config.progress, "holdout_every": config.holdout_every,
             "colour_map": config.colour_map}
 
 

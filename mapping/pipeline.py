@@ -60,6 +60,16 @@ class TrackingError(RadiomapError):
     """Tracking failed on too many consecutive frames: the run stops (skipping frames cannot recover it)."""
 
 
+class TrackingLostError(TrackingError):
+    """Tracking was lost for good after enough frames were fused for a map: the map of the frames fused before
+    the loss was kept and written (``metrics.json`` status ``partial``, with the reason), and the run fails.
+    ``run``: that partial :class:`~mapping.results.RunResult`."""
+
+    def __init__(self, message: str, run: RunResult) -> None:
+        super().__init__(message)
+        self.run = run
+
+
 def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None,
                 backend: FusionBackend, tracker=None, poses: str = "icp", initial_pose: np.ndarray | None = None,
                 output=None, refresh_coverage: float = 0.5, max_consecutive_failures: int = 30,
@@ -72,12 +82,18 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     colour_model:  a :class:`~mapping.colour.ColourModel` (default: raw intensities, no correction).
     backend:       a :class:`~mapping.fusion.base.FusionBackend` (TSDF or surfel).
     tracker:       a :class:`~mapping.tracking.FrameToModelTracker` for ``poses="icp"``.
-    poses:         ``"icp"`` (track) or ``"gt"`` (the dataset's ground truth; frames without it are skipped).
+    poses:         ``"icp"`` (track), ``"gt"`` (the dataset's ground truth; frames without it are skipped) or a
+                   :class:`mapping.pose_files.PoseTable` (poses from a file, one per frame; frames without one are
+                   skipped).
     initial_pose:  the first frame's pose in ICP mode (default: its ground truth when known, else identity).
     output:        None, or a :class:`~mapping.export.ResultsFolder` to write the results into.
     refresh_coverage: re-cast the map after fusion for the tracker when the pre-fusion view covers less than
                    this fraction of the frame's valid depth.
-    max_consecutive_failures: raise :class:`TrackingError` when tracking fails this many frames in a row.
+    max_consecutive_failures: tracking is lost when it fails this many frames in a row: the loop stops; when the
+                   frames fused before make a map (:func:`mapping.validation.check_fused` over the whole sequence)
+                   it is finished and written as usual with ``status: partial`` and the reason in
+                   ``metrics.json``, then :class:`TrackingLostError` is raised; otherwise :class:`TrackingError`
+                   (the folder stays marked unfinished).
     progress:      a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     write_mesh:    export the map's mesh into ``output``.
     holdout_every: None (fuse every frame) or N in ``2 .. len(dataset) - 1``: withhold every N-th frame from fusion and
@@ -88,8 +104,13 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                    folder is marked complete.
     colour_map_options: keywords of :func:`~mapping.colour_map.colour_map_for_run` (``formats``, ``iterations``, ...).
     """
-    if poses not in POSE_SOURCES:
-        raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
+    from mapping.pose_files import PoseTable
+
+    if isinstance(poses, PoseTable):
+        if len(poses) != len(dataset):
+            raise ValueError(f"the pose table of {poses.source} has {len(poses)} entries for {len(dataset)} frames")
+    elif poses not in POSE_SOURCES:
+        raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)} or a PoseTable, got {poses!r}")
     if poses == "icp" and tracker is None:
         raise ValueError("poses='icp' needs a tracker (mapping.tracking.FrameToModelTracker)")
     if not 0 <= refresh_coverage <= 1:
@@ -105,12 +126,23 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                  max_consecutive_failures, histogram_label or colour_model.name, holdout_every)
     bar = _progress_bar(len(dataset), progress, dataset.name)
     status = "failed"
+    lost: TrackingError | None = None
     try:
         for i in range(len(dataset)):
-            loop.step(i)
+            try:
+                loop.step(i)
+            except TrackingError as exc:   # lost for good: keep what was fused if it makes a map (below)
+                loop.advance(bar)
+                lost = exc
+                break
             loop.advance(bar)
-        loop.check_fused()  # a run that fused nothing (or too little) fails: mapping/validation.py
-        status = "complete"
+        try:
+            loop.check_fused(whole_sequence=lost is not None)  # too little fused fails: mapping/validation.py
+        except RadiomapError:
+            if lost is not None:   # lost before a map existed: the loss is the error
+                raise lost from None
+            raise
+        status = "complete" if lost is None else "partial"
     except KeyboardInterrupt:
         status = "interrupted"
         loop.drop_unfinished()
@@ -118,7 +150,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     finally:
         bar.close()
         run = loop.result(status)
-        if status != "complete" and output is not None:
+        if lost is not None:
+            run.partial_reason = str(lost)
+        if status not in ("complete", "partial") and output is not None:
             write_partial(run, backend, output)
     try:   # the rest of the run: until write_results completes the folder, a failure leaves it unfinished
         run.map_stats = backend_stats(backend)
@@ -142,6 +176,10 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         if output is not None:
             write_partial(run, backend, output)
         raise
+    if lost is not None:
+        where = "" if output is None else f"; the map of those frames is in {output.path} (metrics.json status partial)"
+        raise TrackingLostError(f"{lost}; kept the {run.fused} of {len(dataset)} frames fused before the loss{where}",
+                                run)
     return run
 
 
@@ -184,7 +222,7 @@ class _Loop:
         self.records.append(record)
         self._count_far_depth(frame.depth)
         held_out = is_held_out(i, self.holdout_every)
-        pose = self._pose(frame, record, held_out)
+        pose = self._pose(frame, record, held_out, i)
         # withheld after its pose is known (ICP tracks it); by position only, whatever the pose source, so that a
         # comparison's ground-truth runs withhold exactly the frames its tracking run withheld
         if held_out:
@@ -212,16 +250,17 @@ class _Loop:
             with self.timed("render"):
                 self._keep_for_tracking(frame, pose, view)
 
-    def _pose(self, frame, record: FrameRecord, held_out: bool = False) -> np.ndarray | None:
+    def _pose(self, frame, record: FrameRecord, held_out: bool = False, position: int = 0) -> np.ndarray | None:
         """The frame's pose, or None (with the reason recorded) when it must not be fused. Tracking needs a map:
         until a frame has been fused, each frame with depth founds it, except a withheld one (no pose)."""
-        if self.poses == "gt":
-            if frame.pose is None:
-                record.reason = "no ground-truth pose"
+        if self.poses != "icp":   # the ground truth, or a pose table (a file's poses)
+            given = frame.pose if self.poses == "gt" else self.poses[position]
+            if given is None:
+                record.reason = "no ground-truth pose" if self.poses == "gt" else self.poses.reason
             elif self._fusable_depth(frame.depth) == 0:  # nothing to fuse (Open3D would abort the integration)
                 record.reason = "no depth within the fusion range"
                 return None
-            return frame.pose
+            return given
         if self.track_view is None:  # nothing fused yet (none had depth, or its colour was rejected)
             if held_out:
                 return None
@@ -289,11 +328,14 @@ class _Loop:
             bar.set_postfix(skipped=self.skipped, refresh=False)
         bar.update(1)
 
-    def check_fused(self) -> None:
+    def check_fused(self, whole_sequence: bool = False) -> None:
+        """Fail when too little was fused (of the frames processed, or with ``whole_sequence`` of all the
+        sequence's frames: a run cut short by a tracking loss)."""
         from mapping.validation import check_fused
 
         run = self.result("running")   # its counts: the withheld frames are neither fused nor skipped
-        check_fused(run.fused, run.frames - run.held_out, run.skip_reasons(),
+        total = len(self.dataset) if whole_sequence else run.frames
+        check_fused(run.fused, total - run.held_out, run.skip_reasons(),
                     str(getattr(self.dataset, "root", None) or self.dataset.name or "the sequence"))  # a folder, if any
 
     def drop_unfinished(self) -> None:
@@ -343,8 +385,8 @@ def _progress_bar(n: int, enabled: bool, name: str):
     return progress_bar(total=n, desc=f"reconstruct {name}".strip(), enabled=enabled, leave=False)
 
 
-def _ate(run: RunResult, dataset, poses: str) -> ATEResult | None:
-    if poses != "icp" or len(run.stamps) < 3:
+def _ate(run: RunResult, dataset, poses) -> ATEResult | None:
+    if poses == "gt" or len(run.stamps) < 3:   # tracked or from a file: judged against the ground truth
         return None
     gt = dataset.ground_truth()
     if gt is None:
@@ -356,4 +398,4 @@ def _ate(run: RunResult, dataset, poses: str) -> ATEResult | None:
         return None
 
 
-__all__ = ["POSE_SOURCES", "STAGES", "TrackingError", "reconstruct"]
+__all__ = ["POSE_SOURCES", "STAGES", "TrackingError", "TrackingLostError", "reconstruct"]

@@ -21,6 +21,9 @@ from radiometry.tables import format_table
 
 log = logging.getLogger(__name__)
 
+#: the sequence's ground truth beside the estimated trajectory, as a TUM file (when the sequence has one)
+GROUND_TRUTH_FILE = "groundtruth_tum.txt"
+
 
 @dataclass
 class FrameRecord:
@@ -55,6 +58,7 @@ class RunResult:
     held_out_poses: dict[int, np.ndarray | None] = field(default_factory=dict)  # position -> pose, withheld frames
     holdout: HoldoutResult | None = None  # the final map judged by the withheld frames (mapping.holdout)
     colour_map: Any = None              # mapping.colour_map.ColourMapOutcome of the colour-map stage, if it ran
+    partial_reason: str = ""            # status "partial": why the run stopped early (tracking lost)
 
     @property
     def frames(self) -> int:
@@ -90,6 +94,7 @@ class RunResult:
         """The content of ``metrics.json``."""
         return {
             "status": self.status,
+            **({"partial_reason": self.partial_reason} if self.partial_reason else {}),
             "frames": {"total": self.frames, "fused": self.fused, "skipped": self.skipped,
                        **({"held_out": self.held_out} if self.held_out_poses else {}),
                        "skip_reasons": self.skip_reasons(),
@@ -183,6 +188,9 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     if not output.file("config.json").exists():
         files["config"] = output.write_json("config.json", describe_run(dataset, colour_model, backend, tracker))
     files["trajectory"] = output.write_text("trajectory.txt", format_tum_trajectory(run.stamps, run.poses))
+    truth = dataset.ground_truth() if hasattr(dataset, "ground_truth") else None
+    if truth is not None:   # the ground truth as a TUM file beside the estimate (for evo and the like)
+        files["groundtruth"] = output.write_text(GROUND_TRUTH_FILE, format_tum_trajectory(*truth))
     files["frames"] = output.write_text("frames.csv", frames_csv(run.records))
     files["histogram_json"] = run.histogram.save(output.file("histogram.json"))
     files["histogram_npz"] = run.histogram.save(output.file("histogram.npz"))
@@ -198,14 +206,18 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     run.files = files
     metrics = run.metrics()
     metrics["colour_model"] = colour_model.describe()
+    if hasattr(tracker, "stats"):   # the auto tracker: frames tracked by each method
+        metrics["tracking"] = tracker.stats()
     metrics["files"] = {k: Path(v).name for k, v in files.items()}
     summary = format_table([run.summary_row()]) + "\n"
     if run.colour_map is not None:
         summary += run.colour_map.summary_line() + "\n"
+    if run.status == "partial":
+        summary += f"PARTIAL: {run.partial_reason}\n"
     output.write_text("summary.txt", summary)
     output.write_json("metrics.json", metrics)
     output.complete()
 
 
-__all__ = ["FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv", "peak_rss_mb", "reason_kind",
-           "write_partial", "write_results"]
+__all__ = ["GROUND_TRUTH_FILE", "FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv",
+           "peak_rss_mb", "reason_kind", "write_partial", "write_results"]

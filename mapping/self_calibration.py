@@ -51,7 +51,7 @@ class SelfCalibrationFolder(ResultsFolder):
     markers = (MARKER, RUNNING_MARKER, MANIFEST)
     refusal = "already holds a self-calibration; pass --force to overwrite it or choose another output folder"
     result_names = frozenset({MARKER, RUNNING_MARKER, MANIFEST, "vignetting.npz", "exposures.txt", "summary.txt",
-                              "trajectory.txt", *FIGURES})
+                              "trajectory.txt", "groundtruth_tum.txt", *FIGURES})
     status_file = None
 
 
@@ -223,22 +223,28 @@ def collect_observations(frames: list, poses: list[np.ndarray], response: Camera
 # --------------------------------------------------------------------------------------------------
 # the run
 # --------------------------------------------------------------------------------------------------
-def _poses(dataset, frames: list, source: str, *, depth_max: float, progress: bool) -> tuple[list, np.ndarray]:
-    """Camera-to-world pose per frame (ground truth or ICP) and a bool array of the frames that have one."""
-    if source == "gt":
-        poses = [f.pose for f in frames]
+def _poses(dataset, frames: list, source, *, depth_max: float, progress: bool, tracker: str = "auto"
+           ) -> tuple[list, np.ndarray]:
+    """Camera-to-world pose per frame (ground truth, a :class:`mapping.pose_files.PoseTable` or tracked by
+    ``tracker``) and a bool array of the frames that have one."""
+    from mapping.pose_files import PoseTable
+
+    if source == "gt" or isinstance(source, PoseTable):
+        poses = [f.pose for f in frames] if source == "gt" else list(source)
         have = np.array([p is not None for p in poses])
-        if not have.any():
-            raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses; use --poses icp")
         return [p if p is not None else np.eye(4) for p in poses], have
     if source != "icp":
-        raise ValueError(f"poses must be 'gt' or 'icp', got {source!r}")
+        raise ValueError(f"poses must be 'gt', 'icp' or a PoseTable, got {source!r}")
     from mapping.factory import make_backend, make_tracker
-    from mapping.pipeline import reconstruct
+    from mapping.pipeline import TrackingLostError, reconstruct
 
     backend = make_backend("tsdf", voxel_size=0.01, depth_max=depth_max)
-    run = reconstruct(dataset, backend=backend, tracker=make_tracker(depth_max=depth_max), poses="icp",
-                      output=None, progress=progress, write_mesh=False)
+    try:
+        run = reconstruct(dataset, backend=backend, tracker=make_tracker(tracker, depth_max=depth_max),
+                          poses="icp", output=None, progress=progress, write_mesh=False)
+    except TrackingLostError as exc:   # the frames tracked before the loss still calibrate
+        log.warning("%s; self-calibrating from those frames", exc)
+        run = exc.run
     poses = [np.eye(4)] * len(frames)
     have = np.zeros(len(frames), bool)
     position = {f.index: k for k, f in enumerate(frames)}   # frame numbers of the sequence -> places in `frames`
@@ -264,22 +270,23 @@ def _cpu_seconds() -> float:
 
 
 def run_self_calibration(sequence: str | Path, output: str | Path, *, response: CameraResponse | str | Path | None
-                         = None, poses: str = "gt", frames: slice | None = None, format: str | None = None,
+                         = None, poses="gt", frames: slice | None = None, format: str | None = None,
                          depth_scale: float | None = None, intrinsics=None, options: SamplingOptions =
                          SamplingOptions(), solver: dict[str, Any] | None = None, plots: bool = True,
-                         force: bool = False, progress: bool = True, manifest: dict | None = None
-                         ) -> SelfCalibrationRun:
+                         force: bool = False, progress: bool = True, manifest: dict | None = None,
+                         tracker: str = "auto", poses_max_difference: float = 0.02) -> SelfCalibrationRun:
     """``radiomap self-calibrate``: self-calibrate ``sequence`` into the folder ``output`` (module doc).
 
     response: a model or file (default ``CameraResponse.gamma(2.2)``, recorded in the summary as an assumption);
-    poses: ``"gt"`` or ``"icp"``; frames: a slice of the sequence; solver: keyword arguments of
+    poses: ``"gt"``, ``"icp"`` (tracked by ``tracker``) or a trajectory file (:mod:`mapping.pose_files`, matched
+    within ``poses_max_difference`` seconds); frames: a slice of the sequence; solver: keyword arguments of
     :func:`radiometry.self_calibration.self_calibrate`; manifest: the command's options, saved in the summary.
     """
     from radiometry.api import as_response
     from radiometry.fileio import atomic_write_json, atomic_write_text
     from radiometry.self_calibration import coverage_text, self_calibrate
 
-    from mapping.datasets import describe_dataset, open_dataset
+    from mapping.datasets import describe_dataset, intrinsics_text, open_dataset
     from mapping.metrics import format_tum_trajectory
 
     seconds: dict[str, float] = {}
@@ -288,11 +295,28 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     response = as_response(response) if response_given else CameraResponse.gamma(2.2)
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames if frames is not None else slice(None))
+    # everything that can refuse the run before any work, before the folder (and its RUNNING marker) exists
+    from mapping.pose_files import resolve_poses
+
+    poses = resolve_poses(poses, dataset, max_difference=poses_max_difference)
+    if poses == "gt" and dataset.ground_truth() is None:
+        raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses (--poses gt); use "
+                                   "--poses icp or --poses FILE (a trajectory)")
+    if poses != "icp":
+        have = len(dataset.ground_truth()[0]) if poses == "gt" else poses.matched
+        if have < 3:
+            raise SelfCalibrationError(f"{dataset.name}: only {have} frame(s) have a pose (need 3); use more "
+                                       "frames (--frames) or --poses icp")
+    from mapping.factory import TRACKERS
+    from radiometry.registry import validate_name
+
+    validate_name(tracker, TRACKERS, "tracker")   # a ValueError naming the valid trackers
     with SelfCalibrationFolder(output, force=force) as folder:
         loaded = [dataset[i] for i in range(len(dataset))]
         seconds["read"] = time.perf_counter() - t0
         t = time.perf_counter()
-        pose_list, have = _poses(dataset, loaded, poses, depth_max=options.depth_max, progress=progress)
+        pose_list, have = _poses(dataset, loaded, poses, depth_max=options.depth_max, progress=progress,
+                                 tracker=tracker)
         seconds["poses"] = time.perf_counter() - t
         use = np.flatnonzero(have)
         if len(use) < 3:
@@ -309,11 +333,14 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         indices = np.array([loaded[i].index for i in use])
         stamps = np.array([loaded[i].timestamp for i in use])
         cov_line, thin = coverage_text(result.coverage)
+        truth = dataset.ground_truth()
         files = {"vignetting": result.vignetting.save(folder.file("vignetting.npz")),
                  "exposures": atomic_write_text(folder.file("exposures.txt"),
                                                 exposures_text(result, indices, stamps)),
                  "trajectory": atomic_write_text(folder.file("trajectory.txt"), format_tum_trajectory(
                      stamps, np.stack([pose_list[i] for i in use])))}
+        if truth is not None:   # the ground truth beside the trajectory, as a TUM file (evo)
+            files["groundtruth"] = atomic_write_text(folder.file("groundtruth_tum.txt"), format_tum_trajectory(*truth))
         if plots:
             from mapping.self_calibration_plots import save_figures
 
@@ -324,10 +351,11 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         run = SelfCalibrationRun(result=result, indices=indices, timestamps=stamps, sampling=stats,
                                  seconds={k: round(v, 2) for k, v in seconds.items()}, peak_rss_mb=_peak_rss_mb(),
                                  files=files)
-        run.summary = summary_text(run, dataset.name, response_given, poses, cov_line)
+        run.summary = summary_text(run, dataset.name, response_given, str(poses), cov_line) + "\n" + \
+            intrinsics_text(dataset)   # which intrinsics, from where
         files["summary"] = atomic_write_text(folder.file("summary.txt"), run.summary + "\n")
         atomic_write_json(folder.file(MARKER), {
-            "sequence": describe_dataset(dataset), "poses": poses,
+            "sequence": describe_dataset(dataset), "poses": str(poses),
             "response": "given" if response_given else "assumed gamma 2.2 (CameraResponse.gamma(2.2))",
             "frames_used": int(len(use)), "sampling": stats, "options": options.__dict__,
             "solver": result.info, "coverage": cov_line, "thin_regions": thin,

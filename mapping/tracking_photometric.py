@@ -180,6 +180,16 @@ def point_to_plane_fit(depth: np.ndarray, K: np.ndarray, view, invalid_t: np.nda
     ``T`` (frame camera -> view camera) against ``view``: what point-to-plane ICP judges at its finest level
     (inlier: ``|n . (T p - q)| <= depth_diff``), evaluated without solving a step (a single plane would make
     that step singular)."""
+    q, n, r = point_to_plane_association(depth, K, view, invalid_t, T, depth_min=depth_min, depth_max=depth_max)
+    inl = np.abs(r) <= depth_diff
+    count = int(np.count_nonzero(inl))
+    return count, float(np.sqrt(np.mean(r[inl] ** 2))) if count else float("inf")
+
+
+def point_to_plane_association(depth: np.ndarray, K: np.ndarray, view, invalid_t: np.ndarray, T: np.ndarray, *,
+                               depth_min: float, depth_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The projective association of ``depth`` moved by ``T`` against ``view``: the moved points ``(3, M)`` (view
+    camera), the target normals ``(M, 3)`` they meet and the point-to-plane residuals ``(M,)``."""
     valid = (depth > depth_min) & (depth < depth_max)
     v, u = np.nonzero(valid)
     z = depth[v, u].astype(np.float64)
@@ -193,10 +203,9 @@ def point_to_plane_fit(depth: np.ndarray, K: np.ndarray, view, invalid_t: np.nda
     q, ui, vi = q[:, inside], ui[inside], vi[inside]
     keep = ~invalid_t[vi, ui]
     q, ui, vi = q[:, keep], ui[keep], vi[keep]
-    r = np.einsum("ij,ji->i", view.normal[vi, ui].astype(np.float64), q - view.vertex[vi, ui].T.astype(np.float64))
-    inl = np.abs(r) <= depth_diff
-    n = int(np.count_nonzero(inl))
-    return n, float(np.sqrt(np.mean(r[inl] ** 2))) if n else float("inf")
+    normals = view.normal[vi, ui].astype(np.float64)
+    r = np.einsum("ij,ji->i", normals, q - view.vertex[vi, ui].T.astype(np.float64))
+    return q, normals, r
 
 
 class HybridTracker(_PhotometricTracker):
@@ -336,4 +345,5 @@ def hybrid_odometry(depth: np.ndarray, intensity: np.ndarray, K: np.ndarray, tar
 
 
 __all__ = ["ColouredICPTracker", "HybridTracker", "TrackingColour", "estimate_exposure", "fill_holes",
-           "hybrid_odometry", "luminance", "point_to_plane_fit", "tracking_colour"]
+           "hybrid_odometry", "luminance", "point_to_plane_association", "point_to_plane_fit",
+           "tracking_colour"]

@@ -225,8 +225,8 @@ def test_tracking_colour_is_in_the_units_the_map_holds():
 
 
 def test_a_wrong_tracker_name_lists_the_valid_ones():
-    assert tuple(TRACKERS) == ("icp", "hybrid", "coloured-icp")
-    with pytest.raises(ValueError, match="tracker must be one of icp, hybrid, coloured-icp, got 'orb'"):
+    assert tuple(TRACKERS) == ("auto", "icp", "hybrid", "coloured-icp")
+    with pytest.raises(ValueError, match="tracker must be one of auto, icp, hybrid, coloured-icp, got 'orb'"):
         make_tracker("orb")
 
 
@@ -287,7 +287,7 @@ def test_a_wrong_tracker_option_lists_the_valid_ones(tiny_room, tmp_path):
                                        *(["--response", str(tiny_room / "truth" / "response.npz")]
                                          if command == "compare" else [])])
         assert res.exit_code == 2
-        assert "'orb' is not one of 'icp', 'hybrid', 'coloured-icp'" in res.output
+        assert "'orb' is not one of 'auto', 'icp', 'hybrid', 'coloured-icp'" in res.output
         assert not (tmp_path / command).exists()
 
 
@@ -330,3 +330,70 @@ def test_a_tracker_without_tracking_is_a_one_line_error(tiny_room, tmp_path, com
     assert res.exit_code == 2
     assert "--tracker" in res.output and "applies with --poses icp only" in res.output
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the default tracker (issue 30): point-to-plane ICP, hybrid odometry where geometry does not fix the pose
+# ------------------------------------------------------------------------------------------------------------
+def _association(scene, pose):
+    from mapping.tracking_photometric import point_to_plane_association
+
+    depth, _, _, _ = scene.render(pose)
+    view = _raw_view(scene, pose)
+    q, n, r = point_to_plane_association(depth, K, view, view.depth <= 0, np.eye(4), depth_min=0.1, depth_max=5.0)
+    return q, n
+
+
+def test_the_condition_number_tells_a_corner_from_a_wall():
+    """Three planes fix all six motions (a small, size-independent number); one wall leaves three free."""
+    from mapping.tracking_auto import icp_condition
+
+    corner = icp_condition(*_association(Planes(CORNER), np.eye(4)))
+    wall = icp_condition(*_association(Planes(WALL), np.eye(4)))
+    assert corner < 20 and wall > 1e6, (corner, wall)
+    q, n = _association(Planes(CORNER), np.eye(4))
+    assert icp_condition(q * 10, n) == pytest.approx(corner, rel=1e-6)   # metres or decimetres alike
+
+
+def test_the_auto_tracker_uses_colour_where_icp_is_singular():
+    """One textured wall, a sideways motion: ICP's system is singular, the auto tracker takes coloured ICP's pose
+    (within 5 mm of the truth) and counts it; with hybrid odometry as the fallback, the same."""
+    scene = Planes(WALL)
+    true = _pose(t=(0.02, 0.0, 0.0))
+    frame = _frame(scene, true)
+    for fallback in ("coloured-icp", "hybrid"):
+        tracker = make_tracker("auto", depth_max=5.0, motion_model="previous", fallback=fallback)
+        tracker.start(np.eye(4))
+        result = tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4), colour=_raw_colour(frame))
+        assert result.ok, result.reason
+        assert _error(result.pose, true)[0] < 0.005
+        assert tracker.stats()["frames_by_method"] == {"icp": 0, fallback: 1, "failed": 0}
+    assert make_tracker("auto").fallback == "coloured-icp"
+
+
+def test_the_auto_tracker_keeps_icp_where_geometry_fixes_the_pose():
+    scene = Planes(CORNER)
+    frame = _frame(scene, MOTION)
+    auto, icp = make_tracker("auto", depth_max=5.0), make_tracker("icp", depth_max=5.0)
+    results = []
+    for tracker in (auto, icp):
+        tracker.start(np.eye(4))
+        results.append(tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4),
+                                     colour=_raw_colour(frame)))
+    assert results[0].ok and auto.stats()["frames_by_method"]["icp"] == 1
+    np.testing.assert_allclose(results[0].pose, results[1].pose, atol=1e-6)   # ICP's own (threaded sums: ~1e-8)
+    assert _error(results[0].pose, MOTION)[0] < 0.004
+
+
+def test_the_auto_tracker_fails_by_the_rules_on_a_blank_wall():
+    """Nothing fixes a sideways motion on a blank wall: both fail, the frame is rejected with both reasons."""
+    wall = Planes(WALL, textured=False)
+    frame = _frame(wall, _pose(t=(0.03, 0.0, 0.0)))
+    tracker = make_tracker("auto", depth_max=5.0, motion_model="previous")
+    tracker.start(np.eye(4))
+    result = tracker.track(frame.depth, K, _raw_view(wall, np.eye(4)), np.eye(4), colour=_raw_colour(frame))
+    assert not result.ok and "coloured-icp" in result.reason
+    np.testing.assert_array_equal(result.pose, np.eye(4))
+    assert tracker.stats()["frames_by_method"]["failed"] == 1
+    with pytest.raises(ValueError, match="fallback must be one of hybrid, coloured-icp"):
+        make_tracker("auto", fallback="orb")

@@ -34,7 +34,7 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     manifest: config.json's record of the options (the command's replay manifest); ``started`` is set when the
               run starts and the dataset, the colour model and the pipeline's configuration are added.
     settings: the summary's settings line (which value came from where)."""
-    from mapping.datasets import describe_dataset
+    from mapping.datasets import describe_dataset, intrinsics_text
     from mapping.export import ResultsFolder, plain_value
     from mapping.factory import ReconstructConfig, build_run
     from mapping.pipeline import reconstruct
@@ -42,18 +42,29 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
 
     config = ReconstructConfig(**options)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
+    settings += ", " + intrinsics_text(kwargs["dataset"])
     folder = ResultsFolder(config.output, force=config.force)
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
+    from mapping.pipeline import TrackingLostError
+
+    lost = None
     try:
         # with --colour-map the optimised mesh beside the plain one, before the folder is complete (mapping.colour_map)
-        run = reconstruct(**kwargs, output=folder)
+        try:
+            run = reconstruct(**kwargs, output=folder)
+        except TrackingLostError as exc:   # the map of the frames before the loss is written: summarise it, then fail
+            run, lost = exc.run, exc
         summary = format_table([run.summary_row()]) + "\n" + settings
         if run.colour_map is not None:
             summary += "\n" + run.colour_map.summary_line()
+        if lost is not None:
+            summary += f"\nPARTIAL: {run.partial_reason}"
         folder.write_text("summary.txt", summary + "\n")   # the pipeline's table plus the settings used
+        if lost is not None:
+            raise lost
     finally:
         folder.release()  # unlock the folder (locked while this run writes it: a second run is refused)
     return run, summary
@@ -77,7 +88,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
                     format: str | None, views: int, render_width: int, glb: bool, force: bool, progress: bool,
                     manifest: dict, settings: str, notify: Callable[[str], None] = log.warning,
-                    holdout_every: int | None = None, tracker: str = "icp", colour_map: str | None = None):
+                    holdout_every: int | None = None, tracker: str = "auto", colour_map: str | None = None,
+                    poses_max_difference: float = 0.02):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -88,10 +100,14 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     notify:   receives a note on the sequence before the run (a light that changes during a simulation).
     holdout_every: withhold every N-th frame from fusion and judge each map by them (:mod:`mapping.holdout`)."""
     from mapping.compare import compare
-    from mapping.datasets import open_dataset
+    from mapping.datasets import intrinsics_text, open_dataset
 
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
+    settings += ", " + intrinsics_text(dataset)
+    from mapping.pose_files import resolve_poses
+
+    poses = resolve_poses(poses, dataset, max_difference=poses_max_difference)   # a file read and matched
     method_list = compare_methods(response, vignetting_lut=vignetting_lut, vignetting_poly=vignetting_poly,
                                   vignetting_self=vignetting_self, exposure_compensation=exposure_compensation,
                                   methods=methods)

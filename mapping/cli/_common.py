@@ -253,6 +253,58 @@ class RadiomapCommand(click.Command):
         return aliased
 
 
+class PoseSource(click.ParamType):
+    """``--poses``: ``icp``, ``gt`` or a trajectory (a TUM file, a Redwood ``.log``, a folder of 7-Scenes pose files;
+    :mod:`mapping.pose_files`), which becomes a Path (recorded absolute in config.json). A relative path that is not
+    found from the working folder is looked for in the command's SEQUENCE (``--poses CameraTrajectory.txt`` in a
+    batch: each sequence its own file)."""
+
+    name = "icp|gt|FILE"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, os.PathLike) or value in ("icp", "gt"):
+            return value
+        path = Path(str(value))
+        if not path.exists() and path.is_absolute():
+            self.fail(f"{value!r} is neither icp, gt nor an existing trajectory (a TUM file, a Redwood .log, a folder "
+                      "of 7-Scenes pose files); check the path", param, ctx)
+        return path   # a relative path may be the sequence's own file: pose_arguments() resolves it
+
+
+def pose_options(default: str, help_text: str):
+    """``--poses`` (:class:`PoseSource`, ``default``) and ``--poses-max-difference`` (seconds between a frame and the
+    pose of a TUM trajectory file it takes)."""
+    def decorate(f):
+        f = click.option("--poses-max-difference", type=float, default=None, metavar="SECONDS",
+                         help="With --poses FILE (a TUM trajectory): the largest time difference between a frame and "
+                              "the pose it takes, as evo's --t_max_diff [default: 0.02].")(f)
+        return click.option("--poses", type=PoseSource(), default=default, show_default=True, help=help_text)(f)
+    return decorate
+
+
+def pose_arguments(ctx: click.Context) -> tuple[Any, float]:
+    """The checked ``--poses`` and ``--poses-max-difference``: a relative trajectory path not found from the working
+    folder is looked for in SEQUENCE (``--poses CameraTrajectory.txt`` in a batch: each sequence its own file);
+    BadParameter when neither has it, for a negative difference, or a difference without a trajectory file."""
+    poses = ctx.params.get("poses")
+    if isinstance(poses, Path) and not poses.exists():
+        own = Path(ctx.params["sequence"]) / poses if ctx.params.get("sequence") is not None else None
+        if own is None or not own.exists():
+            raise click.BadParameter(f"{str(poses)!r} is neither icp, gt nor an existing trajectory (a TUM file, a "
+                                     "Redwood .log, a folder of 7-Scenes pose files), from here or in SEQUENCE; check "
+                                     "the path", param_hint="--poses")
+        ctx.params["poses"] = poses = own
+    value = ctx.params.get("poses_max_difference")
+    if value is None:
+        return poses, 0.02
+    if not (value >= 0 and value < float("inf")):
+        raise click.BadParameter(f"must be a number of seconds >= 0, got {value}", param_hint="--poses-max-difference")
+    if poses in ("icp", "gt") and not drop_replayed(ctx, "poses_max_difference", None, f"--poses {poses}"):
+        raise click.BadParameter(f"applies with --poses FILE only (got --poses {poses}); drop it",
+                                 param_hint="--poses-max-difference")
+    return poses, float(value)
+
+
 def settings_line(ctx: click.Context, settings: list[tuple]) -> str:
     """``settings: poses gt (compare's default; reconstruct's is icp), ...``: each ``(label, parameter, shown
     value[, what the default is called])`` with where the value came from (given, a config file, the default);
@@ -354,8 +406,7 @@ def evaluation_options(f):
     return f
 
 
-__all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange",
+__all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange", "PoseSource",
            "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
-           "fusion_options",
-           "load_replay_config", "positive", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
-           "warn_far_depth"]
+           "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive", "replay_manifest",
+           "run_manifest", "sequence_options", "settings_line", "warn_far_depth"]

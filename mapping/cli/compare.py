@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, fusion_options,
-                                 replay_manifest, sequence_options, settings_line, warn_far_depth)
+                                 pose_arguments, pose_options, replay_manifest, sequence_options, settings_line,
+                                 warn_far_depth)
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -68,11 +69,12 @@ def _methods(ctx, param, value):
 @click.option("--methods", callback=_methods, default=None, metavar="LIST",
               help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
                    "response, poly, lut, self, and response+ec, poly+ec, lut+ec, self+ec.")
-@click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
-              help="Ground-truth poses, or ICP tracked once and reused by every method (reconstruct's default).")
-@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="icp", show_default=True,
-              help="With --poses icp: point-to-plane ICP, hybrid RGB-D odometry or coloured ICP, on the first "
-                   "method's colour (see reconstruct --help).")
+@pose_options("gt", "gt: ground-truth poses; icp: tracked once and reused by every method (reconstruct's default); "
+                    "or a trajectory (a TUM file, a Redwood .log, a folder of 7-Scenes pose files; see reconstruct "
+                    "--help).")
+@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="auto", show_default=True,
+              help="With --poses icp: auto (ICP, coloured ICP where ICP is ill-conditioned), point-to-plane ICP, "
+                   "hybrid RGB-D odometry or coloured ICP, on the first method's colour (see reconstruct --help).")
 @sequence_options
 @click.option("--brightness", type=click.Choice(["mean", "calibrated"]), default="mean", show_default=True,
               help="mean: compare the corrections at equal brightness (each V rescaled to an image mean of 1); "
@@ -89,7 +91,8 @@ def _methods(ctx, param, value):
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None,
             vignetting_self: Path | None, output: Path,
-            backend: str, exposure_compensation: bool, methods: list[str] | None, poses: str, tracker: str,
+            backend: str, exposure_compensation: bool, methods: list[str] | None, poses, tracker: str,
+            poses_max_difference: float | None,
             frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
             intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
             holdout_every: int | None, colour_map: str | None, force: bool, no_progress: bool) -> None:
@@ -115,6 +118,7 @@ def task_arguments(ctx: click.Context) -> dict:
     from mapping.batch.commands import MethodChoiceError, compare_methods
 
     p = ctx.params
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     methods = p["methods"]
     if methods is not None and p["exposure_compensation"] and \
             not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
@@ -124,8 +128,8 @@ def task_arguments(ctx: click.Context) -> dict:
         method_list = compare_methods(**models, exposure_compensation=p["exposure_compensation"], methods=methods)
     except MethodChoiceError as exc:
         raise click.UsageError(str(exc)) from None
-    if p["tracker"] != "icp" and p["poses"] != "icp" and \
-            not drop_replayed(ctx, "tracker", "icp", f"--poses {p['poses']}"):
+    if p["tracker"] != "auto" and p["poses"] != "icp" and \
+            not drop_replayed(ctx, "tracker", "auto", f"--poses {p['poses']}"):
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
     ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
@@ -143,6 +147,7 @@ def task_arguments(ctx: click.Context) -> dict:
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
                                  "render_width", "glb", "holdout_every", "colour_map", "force")}
     return {**options, **models, "methods": [m.name for m in method_list],
+            "poses_max_difference": max_difference,
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
-            "manifest": replay_manifest(ctx, files=("intrinsics",)),
+            "manifest": replay_manifest(ctx, files=("intrinsics", "poses")),
             "settings": settings}

@@ -7,8 +7,8 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
-                                 fusion_options, positive, replay_manifest, sequence_options, settings_line,
-                                 warn_far_depth)
+                                 fusion_options, pose_arguments, pose_options, positive, replay_manifest,
+                                 sequence_options, settings_line, warn_far_depth)
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -55,11 +55,14 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--vignetting", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Vignetting model (radiomap .npz, radical .vgn, DSO vignette.png) or a V array (.npy, "
                    "H x W x C). Needs --response.")
-@click.option("--poses", type=click.Choice(["icp", "gt"]), default="icp", show_default=True,
-              help="Track with frame-to-model ICP, or take the sequence's ground-truth poses (compare's default).")
-@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="icp", show_default=True,
-              help="With --poses icp: point-to-plane ICP (depth), Open3D's hybrid RGB-D odometry or coloured ICP "
-                   "(depth and the colour the map holds: raw levels, or irradiance at the map's exposure).")
+@pose_options("icp", "icp: track (--tracker); gt: the sequence's ground-truth poses (compare's default); or a "
+                     "trajectory: a TUM file (e.g. an earlier run's trajectory.txt, ORB-SLAM's, evo's), a Redwood "
+                     ".log or a folder of 7-Scenes pose files (frames without a pose are skipped).")
+@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="auto", show_default=True,
+              help="With --poses icp: auto (point-to-plane ICP, and Open3D's coloured ICP for the frames where its "
+                   "system is ill-conditioned or it fails: a wall, a floor; docs/tracking.md), point-to-plane ICP "
+                   "alone (depth), hybrid RGB-D odometry or coloured ICP (depth and the colour the map holds: raw "
+                   "levels, or irradiance at the map's exposure).")
 @sequence_options
 @fusion_options
 @click.option("--surfel-mesh", is_flag=True,
@@ -82,7 +85,8 @@ def _mesh_exposure(ctx, param, value):
 @deprecated_alias("-v", "vignetting", "--vignetting", "-v is radiomap's --verbose: radiomap -v reconstruct ...")
 @deprecated_alias("--reference-exposure", "display_exposure", "--display-exposure")
 @deprecated_alias("--exposure-reference", "mesh_exposure", "--mesh-exposure")
-def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses: str, tracker: str,
+def command(sequence: Path, output: Path, response: Path | None, vignetting: Path | None, poses, tracker: str,
+            poses_max_difference: float | None,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
             exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None,
@@ -108,6 +112,7 @@ def task_arguments(ctx: click.Context) -> dict:
     :func:`mapping.batch.commands.reconstruct_command`: plain values, the replay manifest and the settings line
     (what ``radiomap reconstruct`` runs, and what each task of ``radiomap batch reconstruct`` runs)."""
     p = ctx.params
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     response, backend = p["response"], p["backend"]
     if p["vignetting"] is not None and response is None:
         raise click.UsageError("--vignetting needs --response (vignetting acts on irradiance, not on intensities)")
@@ -123,8 +128,8 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(f"applies to --backend surfel only, got --backend {backend} (the TSDF backend "
                                  "always writes mesh.ply); drop --surfel-mesh or add --backend surfel",
                                  param_hint="--surfel-mesh")
-    if p["tracker"] != "icp" and p["poses"] != "icp" and \
-            not drop_replayed(ctx, "tracker", "icp", f"--poses {p['poses']}"):
+    if p["tracker"] != "auto" and p["poses"] != "icp" and \
+            not drop_replayed(ctx, "tracker", "auto", f"--poses {p['poses']}"):
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
     from mapping.validation import check_colour_map
@@ -134,7 +139,8 @@ def task_arguments(ctx: click.Context) -> dict:
     except ValueError as exc:
         raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
-                   poses=p["poses"], tracker=p["tracker"], voxel_size=p["voxel_size"],
+                   poses=p["poses"], poses_max_difference=max_difference, tracker=p["tracker"],
+                   voxel_size=p["voxel_size"],
                    frames=p["frames"] or slice(None), depth_scale=p["depth_scale"], intrinsics=p["intrinsics"],
                    backend=backend, surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
@@ -146,5 +152,5 @@ def task_arguments(ctx: click.Context) -> dict:
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
         settings.append(("glb", None, "on"))
-    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics",)),
+    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses")),
             "settings": settings_line(ctx, settings)}

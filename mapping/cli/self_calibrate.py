@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from mapping.cli._common import sequence_options
+from mapping.cli._common import pose_arguments, pose_options, sequence_options
+from mapping.factory import TRACKERS
 
 EPILOG = """\b
 No white sheet: every surface point is seen at many image positions and exposures, which constrains V
@@ -24,16 +25,18 @@ Examples:
 @click.argument("sequence", type=click.Path(exists=True, file_okay=False))
 @click.option("-r", "--response", "response_path", type=click.Path(dir_okay=False), default=None,
               help="Camera response (radiomap .npz, radical .crf, DSO pcalib.txt) [default: gamma 2.2, assumed].")
-@click.option("--poses", type=click.Choice(["gt", "icp"]), default="gt", show_default=True,
-              help="Ground-truth poses, or ICP tracked by radiomap's pipeline.")
+@pose_options("gt", "gt: ground-truth poses; icp: tracked by radiomap's pipeline (--tracker); or a trajectory (a TUM "
+                    "file, a Redwood .log, a folder of 7-Scenes pose files; see reconstruct --help).")
+@click.option("--tracker", type=click.Choice(list(TRACKERS)), default="auto", show_default=True,
+              help="With --poses icp: the tracker (see reconstruct --help).")
 @sequence_options
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
               help="Folder for vignetting.npz, exposures.txt, figures and the summary.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite an earlier self-calibration in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def command(sequence: str, response_path: str | None, poses: str, frames, depth_scale, intrinsics, format,
-            output: str, no_plots: bool, force: bool, no_progress: bool) -> None:
+def command(sequence: str, response_path: str | None, poses, poses_max_difference: float | None, tracker: str, frames,
+            depth_scale, intrinsics, format, output: str, no_plots: bool, force: bool, no_progress: bool) -> None:
     """Self-calibrate vignetting and per-frame exposure and white balance from SEQUENCE (RGB-D with poses).
 
     Writes OUTPUT/vignetting.npz (LUT model with its standard error, for reconstruct/compare --vignetting),
@@ -57,10 +60,16 @@ def task_arguments(ctx: click.Context) -> dict:
     if p["response_path"]:
         load_response(p["response_path"])       # a bad file fails here, before anything is written
     frames = p["frames"]
+    if p["tracker"] != "auto" and p["poses"] != "icp":
+        raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
+                                 "drop --tracker or add --poses icp", param_hint="--tracker")
+    poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
-                                               "poses": p["poses"], "frames": None if frames is None else
+                                               "poses": p["poses"], "tracker": p["tracker"],
+                                               "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
                                                "output": p["output"]})
     return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],
+            "tracker": p["tracker"], "poses_max_difference": max_difference,
             "frames": frames, "format": p["format"], "depth_scale": p["depth_scale"], "intrinsics": p["intrinsics"],
             "plots": not p["no_plots"], "force": p["force"], "progress": not p["no_progress"], "manifest": manifest}

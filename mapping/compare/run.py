@@ -120,8 +120,11 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     names = [m.name for m in methods]
     if len(set(names)) != len(names):
         raise ValueError(f"method names must be unique, got {names}")
-    if poses not in POSE_SOURCES:
-        raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)}, got {poses!r}")
+    from mapping.pose_files import PoseTable
+
+    from_file = isinstance(poses, PoseTable)
+    if not from_file and poses not in POSE_SOURCES:
+        raise ValueError(f"poses must be one of {', '.join(POSE_SOURCES)} or a PoseTable, got {poses!r}")
     check_colour_map(colour_map, backend)
     if brightness not in BRIGHTNESS:
         raise ValueError(f"brightness must be one of {', '.join(BRIGHTNESS)}, got {brightness!r}")
@@ -161,19 +164,21 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     fusion = make_backend(backend, voxel_size=voxel_size, depth_max=depth_max,
                                           **dict(backend_options or {}))
                     track = poses == "icp" and fixed is None
-                    view = FixedPoses(dataset, None if (poses == "gt" or track) else fixed,
+                    view = FixedPoses(dataset, None if (poses == "gt" or track or from_file) else fixed,
                                       on_frame=_ticks(bar, reads))
                     folder = folders.enter_context(top.subfolder(method.name))
                     t0 = time.perf_counter()
                     tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
-                                      poses="icp" if track else "gt", output=folder, progress=False,
+                                      poses="icp" if track else poses if from_file else "gt", output=folder,
+                                      progress=False,
                                       histogram_label=method.label, write_mesh=False, holdout_every=holdout_every,
                                       colour_map=colour_map, colour_map_options={"formats": tuple(mesh_formats)})
                     # the method's time without the colour-map stage's (a column of its own)
                     seconds = time.perf_counter() - t0 - (0.0 if run.colour_map is None else run.colour_map.seconds)
                     if track:
                         fixed = _poses_by_frame(run, n)
+                    if track or (from_file and ate is None):   # the shared trajectory against the ground truth
                         ate = run.ate
                     results.append(_method_result(method, run, folder.path, fusion, colour_model, seconds,
                                                   backend=backend, scene=scene, display_response=display_response,
@@ -184,10 +189,11 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
 
         first = results[0].run
         result = CompareResult(results=results, stamps=first.stamps, poses=first.poses,
-                               pose_source="ground truth" if poses == "gt" else
+                               pose_source="ground truth" if poses == "gt" else f"the trajectory {poses}" if from_file
+                               else
                                f"{_tracker_label(tracker_options)} (tracked with '{methods[0].name}')",
                                output=output, files={}, seconds=0.0, ate=ate,
-                               parameters={"backend": backend, "poses": poses, "voxel_size": voxel_size,
+                               parameters={"backend": backend, "poses": str(poses), "voxel_size": voxel_size,
                                            "depth_max": depth_max, "brightness": brightness, "frames": n,
                                            "width": width, "height": height, "holdout_every": holdout_every,
                                            **dict(parameters or {})})
@@ -258,9 +264,9 @@ def _colour_model(method: Method, height: int, width: int, brightness: str):
 
 
 def _tracker_label(tracker_options: Mapping[str, Any] | None) -> str:
-    """How the shared poses were tracked, for the table's pose line: ``ICP``, ``hybrid`` or ``coloured-icp``
-    (:data:`mapping.factory.TRACKERS`)."""
-    name = dict(tracker_options or {}).get("name", "icp")
+    """How the shared poses were tracked, for the table's pose line: ``ICP``, ``auto tracking`` (the default),
+    ``hybrid tracking`` or ``coloured-icp tracking`` (:data:`mapping.factory.TRACKERS`)."""
+    name = dict(tracker_options or {}).get("name", "auto")
     return "ICP" if name == "icp" else f"{name} tracking"
 
 

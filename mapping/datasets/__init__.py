@@ -73,5 +73,19 @@ def describe_dataset(dataset: RGBDDataset) -> dict:
             "intrinsics_source": None if source is None else str(source)}
 
 
+def intrinsics_text(dataset: RGBDDataset) -> str:
+    """``intrinsics 615,615,320,240 (given)``: the intrinsics a run uses and where they came from (the option, a
+    file of the sequence, the folder name, an assumed default), for the printed settings line."""
+    K = np.asarray(dataset.K, dtype=np.float64)
+    source = getattr(dataset, "intrinsics_source", None)
+    source = "given" if source in (None, "option") else str(source)
+    values = ",".join(f"{v:.6g}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    text = f"intrinsics {values} ({source})"
+    scale_source = getattr(dataset, "depth_scale_source", None)
+    if scale_source is not None and scale_source != "given" and "detected" in scale_source:
+        text += f", depth scale {scale_source}"
+    return text
+
+
 __all__ = ["FORMATS", "RGBDDataset", "RGBDFrame", "RedwoodDataset", "SevenScenesDataset", "SimulatedDataset",
-           "TUMDataset", "describe_dataset", "detect_format", "open_dataset"]
+           "TUMDataset", "describe_dataset", "detect_format", "intrinsics_text", "open_dataset"]

@@ -147,6 +147,13 @@ def parse_intrinsics(value) -> np.ndarray | None:
     raise ValueError(f"intrinsics must be a 3x3 matrix, four numbers fx,fy,cx,cy or a file path, got {value!r}")
 
 
+def intrinsics_candidates(root: Path, names: Iterable[str], *, parent: bool = False) -> list[Path]:
+    """The intrinsics files a loader looks for: each of ``names`` in ``root`` (and then in its parent folder with
+    ``parent``), in that order."""
+    folders = (Path(root), Path(root).parent) if parent else (Path(root),)
+    return [folder / name for name in names for folder in folders]
+
+
 def resolve_intrinsics(option, candidates: Iterable[Path], default: Callable[[], tuple[np.ndarray, str]]
                        ) -> tuple[np.ndarray, str]:
     """A loader's intrinsics and where they came from: the ``intrinsics`` option when given ("option"), else the
@@ -155,7 +162,7 @@ def resolve_intrinsics(option, candidates: Iterable[Path], default: Callable[[],
     if K is not None:
         return K, "option"
     for candidate in candidates:
-        if candidate.is_file():
+        if optional_file(candidate, "camera intrinsics") is not None:
             return read_intrinsics_file(candidate), str(candidate)
     return default()
 

@@ -8,32 +8,39 @@
                                                otherwise both folders are paired in sorted order
     SEQ/trajectory.log                         optional ground truth, Redwood .log: per frame a line
                                                'frame_id frame_id n_frames' then a 4 x 4 camera-to-world
-    SEQ/camera_primesense.json | camera.json   optional Open3D camera (intrinsic_matrix column-major);
-                                               otherwise PrimeSense 525, 525, 319.5, 239.5
+    SEQ/camera_intrinsic.json | camera_primesense.json | ...   optional intrinsics (:data:`CAMERA_FILES`: Open3D
+                                               camera JSON, intrinsic_matrix column-major, or a 3 x 3 text
+                                               matrix); otherwise PrimeSense 525, 525, 319.5, 239.5 (a warning)
 
 Redwood has no timestamps: frame N is given ``N / 30`` s.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, check_pose, optional_file, read_text, \
-    resolve_intrinsics
+from mapping.datasets._common import FileSequence, FrameFiles, check_pose, intrinsics_candidates, optional_file, \
+    read_text, resolve_intrinsics
 from radiometry.errors import DatasetError
 from radiometry.fileio import atomic_write_text
 from radiometry.images import IMAGE_EXTENSIONS
 from radiometry.textlists import list_lines
 
+log = logging.getLogger(__name__)
+
 DEFAULT_INTRINSICS = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1.0]])
 DEFAULT_DEPTH_SCALE = 1000.0
 FRAME_RATE = 30.0
 COLOUR_FOLDERS = ("color", "image", "rgb")
-CAMERA_FILES = ("camera_primesense.json", "camera.json", "intrinsic.json", "intrinsics.json")
+#: intrinsics files read from the folder (then its parent), in this order: Open3D's recorder writes
+#: camera_intrinsic.json; tsdf-fusion / 3DMatch layouts hold camera-intrinsics.txt or intrinsics.K.txt
+CAMERA_FILES = ("camera_intrinsic.json", "camera_primesense.json", "camera.json", "intrinsic.json",
+                "intrinsics.json", "intrinsics.K.txt", "camera-intrinsics.txt", "intrinsics.txt")
 
 
 def read_log_trajectory(path: str | os.PathLike) -> dict[int, np.ndarray]:
@@ -81,6 +88,12 @@ def write_log_trajectory(path: str | os.PathLike, poses: Sequence[np.ndarray]) -
         out.append(f"{i} {i} {i + 1}")
         out.extend(" ".join(f"{v:.10g}" for v in row) for row in np.asarray(p, dtype=np.float64))
     return atomic_write_text(path, "\n".join(out) + "\n")
+
+
+def _default_intrinsics(root: Path) -> tuple[np.ndarray, str]:
+    log.warning("%s: no intrinsics file (%s); assuming the PrimeSense default (525, 525, 319.5, 239.5): pass "
+                "--intrinsics fx,fy,cx,cy if this is another camera", root, ", ".join(CAMERA_FILES[:3]) + ", ...")
+    return DEFAULT_INTRINSICS.copy(), "PrimeSense default (525, 525, 319.5, 239.5; assumed)"
 
 
 def _images(folder: Path) -> list[Path]:
@@ -134,7 +147,6 @@ class RedwoodDataset(FileSequence):
         files = [FrameFiles(index=i, timestamp=i / FRAME_RATE, rgb=c, depth=d, pose=gt.get(i))
                  for i, (c, d) in enumerate(pairs)]
         K, self.intrinsics_source = resolve_intrinsics(
-            intrinsics, (folder / name for name in CAMERA_FILES for folder in (root, root.parent)),
-            lambda: (DEFAULT_INTRINSICS.copy(), "PrimeSense default (525, 525, 319.5, 239.5)"))
+            intrinsics, intrinsics_candidates(root, CAMERA_FILES, parent=True), lambda: _default_intrinsics(root))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames)

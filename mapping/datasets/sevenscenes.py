@@ -5,7 +5,8 @@
     SEQ/[frames/]frame-NNNNNN.color.png|jpg   colour (640 x 480)
     SEQ/[frames/]frame-NNNNNN.depth.png       uint16 millimetres (1000 units per metre); 0 and 65535 = none
     SEQ/[frames/]frame-NNNNNN.pose.txt        4 x 4 camera-to-world (the KinectFusion poses shipped as truth)
-    SEQ/camera-intrinsics.txt                 optional 3 x 3 K; otherwise fx = fy = 585, cx = 320, cy = 240
+    SEQ/camera-intrinsics.txt                 optional 3 x 3 K (or intrinsics.K.txt, camera_intrinsic.json);
+                                              otherwise fx = fy = 585, cx = 320, cy = 240 (a warning)
 
 7-Scenes has no timestamps: frame N is given ``N / 30`` s (the Kinect's 30 Hz). Non-finite poses (lost
 KinectFusion frames) count as "no ground truth" for that frame.
@@ -13,6 +14,7 @@ KinectFusion frames) count as "no ground truth" for that frame.
 
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,10 +24,21 @@ import numpy as np
 from mapping.datasets._common import FileSequence, FrameFiles, optional_file, resolve_intrinsics
 from radiometry.errors import DatasetError
 
+log = logging.getLogger(__name__)
+
 DEFAULT_INTRINSICS = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1.0]])
 DEFAULT_DEPTH_SCALE = 1000.0
 FRAME_RATE = 30.0
+#: intrinsics files read from the folder, its frames/ and its parent, in this order (tsdf-fusion's
+#: camera-intrinsics.txt, 3DMatch's / SUN3D's intrinsics.K.txt, Open3D's camera_intrinsic.json)
+INTRINSICS_FILES = ("camera-intrinsics.txt", "intrinsics.K.txt", "camera_intrinsic.json")
 _COLOUR = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
+
+
+def _default_intrinsics(root: Path) -> tuple[np.ndarray, str]:
+    log.warning("%s: no intrinsics file (%s); assuming 7-Scenes' Kinect (585, 585, 320, 240): pass --intrinsics "
+                "fx,fy,cx,cy if this is another camera", root, ", ".join(INTRINSICS_FILES))
+    return DEFAULT_INTRINSICS.copy(), "7-Scenes default (585, 585, 320, 240; assumed)"
 
 
 def _frame_folder(path: Path) -> Path | None:
@@ -70,7 +83,7 @@ class SevenScenesDataset(FileSequence):
         if len(set(numbers)) != len(numbers):
             raise DatasetError(f"{folder}: two colour images share a frame number; keep one format per frame")
         K, self.intrinsics_source = resolve_intrinsics(
-            intrinsics, (base / "camera-intrinsics.txt" for base in (root, folder, root.parent)),
-            lambda: (DEFAULT_INTRINSICS.copy(), "7-Scenes default (585, 585, 320, 240)"))
+            intrinsics, [base / name for name in INTRINSICS_FILES for base in (root, folder, root.parent)],
+            lambda: _default_intrinsics(root))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames, invalid_raw_depth=65535)
