@@ -39,7 +39,8 @@ def test_a_knee_at_exact_2x_steps_is_within_one_percent(radiance, name):
     assert meta["smooth"] == 5e-3 and meta["repaired"] is False
     table = response.inverse_table
     assert np.all(np.diff(table, axis=0) > 0) and table[-1].tolist() == [1.0] * 3
-    assert meta["observed_range"] == [[1, 254]] * 3
+    # the clean ceiling at 255 costs the margin of the level detection (issue 28): the top 2 levels are extrapolated
+    assert all(lo == 1 and 250 <= hi <= 254 for lo, hi in meta["observed_range"]), meta["observed_range"]
     assert all(0 in levels and 255 in levels for levels in meta["extrapolated_levels"])
     assert meta["fit_rms_levels"] < 3.0  # measured 1.2 at 640x480
 

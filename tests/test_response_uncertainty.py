@@ -90,8 +90,11 @@ def test_stderr_and_extrapolated_levels_round_trip_through_the_file(repeated_fit
 def test_debevec_marks_the_levels_no_data_reached():
     radiance = scene(H, W, seed=2)
     images = render_brackets(gamma_curve(), radiance, TIMES, seed=2)
-    full = fit_response_debevec(images, TIMES)
+    full = fit_response_debevec(images, TIMES, levels=(1, 254))
     assert full.meta["extrapolated_levels"] == [[0, 255]] * 3  # 0 and 255 carry no data by construction
+    found = fit_response_debevec(images, TIMES)  # the ceiling found from the data: a margin below 255 (issue 28)
+    for (lo, hi), levels in zip(found.meta["declared_levels"], found.meta["extrapolated_levels"]):
+        assert hi >= 250 and levels == [k for k in range(256) if k < lo or k > hi], (lo, hi, levels)
     clipped = fit_response_debevec(images, TIMES, levels=(20, 230))
     expected = list(range(0, 20)) + list(range(231, 256))
     assert clipped.meta["extrapolated_levels"] == [expected] * 3
