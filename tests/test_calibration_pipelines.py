@@ -120,8 +120,9 @@ def test_a_channel_saturated_in_every_exposure_stops_with_the_fix():
 
 # ------------------------------------------------------------------------------------------------ quality figures
 def test_the_quality_figure_separates_good_from_broken(radiance):
-    """Measured (gamma 2.2, 320x240): a good fit 2.1 levels held-out RMS, split-half 0.3 %; a camera that moved
-    1-2 px between exposures 17.6 levels; the wrong response (the kink curve given for a gamma camera) 40.7."""
+    """Measured (gamma 2.2, 320x240): a good fit 2.1 levels held-out RMS (0.96x the images' noise), split-half
+    0.3 %; a camera that moved 1-2 px between exposures 18.5 levels (8.4x); the wrong response (the kink curve given
+    for a gamma camera) 40.7 (18.6x)."""
     table, images, times, response = _fit("gamma-2.2", "clean", "2x", radiance)
     good = assess(images, times, response, method="auto")
     assert good["grade"] == "good", good["summary"]
@@ -129,7 +130,7 @@ def test_the_quality_figure_separates_good_from_broken(radiance):
     rng = np.random.default_rng(3)
     moved = [np.roll(im, tuple(rng.integers(-2, 3, 2)), axis=(0, 1)) for im in images]
     broken = assess(moved, times, fit_response(moved, times), method=None)
-    assert broken["grade"] == "broken" and broken["holdout_rms_levels"] > 3 * good["holdout_rms_levels"]
+    assert broken["grade"] == "broken" and broken["holdout_over_noise"] > 3 * good["holdout_over_noise"]
     wrong = assess(images, times, CameraResponse.from_table(curves()["kink-4x"]))
     assert wrong["grade"] == "broken" and "do not use" in wrong["summary"]
 
@@ -138,6 +139,24 @@ def test_the_quality_figure_of_a_jpeg_stack_is_good(radiance):
     _, images, times, response = _fit("gamma-2.2", "wb-jpeg92", "2x", radiance)
     q = assess(images, times, response, method=None)
     assert q["grade"] == "good", q["summary"]
+
+
+def test_the_quality_of_real_stacks_is_stated_and_a_moved_one_is_broken():
+    """taipei (a Nikon night scene): 5.96 levels held-out, 2.1x its noise: doubtful (its 32 s exposure predicts at
+    13.4 levels); the same stack with every other exposure moved by 2 px, or with gamma 2.2 given, is worse."""
+    from conftest import shared_path
+
+    from radiometry.response_fit import load_brackets
+
+    images, times, _ = load_brackets(shared_path("brackets", "taipei"), progress=False)
+    response = fit_response(images, times)
+    real = assess(images, times, response, method=None)
+    assert real["grade"] in ("good", "doubtful") and 1.0 < real["holdout_over_noise"] < 4.0, real["summary"]
+    moved = [np.roll(im, 2 * (k % 2), axis=1) for k, im in enumerate(images)]
+    worse = assess(moved, times, fit_response(moved, times), method=None)
+    assert worse["holdout_over_noise"] > real["holdout_over_noise"]
+    wrong = assess(images, times, CameraResponse.gamma(2.2))
+    assert wrong["grade"] == "broken", wrong["summary"]
 
 
 # ------------------------------------------------------------------------------------------------ vignetting sweeps

@@ -159,8 +159,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
     except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
         raise CalibrationError(f"{folder}: {exc}") from None
-    fit_seconds = time.perf_counter() - start
     meta = response.meta
+    fit_seconds = meta.get("fit_seconds", time.perf_counter() - start)  # the fit's own time, not the quality's
     rms = meta["prediction_rms_levels"]
     meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names})
 
