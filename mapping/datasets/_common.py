@@ -407,6 +407,15 @@ def read_pose_matrix_file(path: Path) -> np.ndarray | None:
     return check_pose(np.array(rows), str(path))
 
 
+def data_lines(path: Path, what: str):
+    """``(line number, stripped line, its fields)`` of each line of a text list that is not blank or a ``#``
+    comment (read by :func:`read_text`, which names ``what`` in its errors)."""
+    for lineno, line in enumerate(read_text(path, what).splitlines(), 1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            yield lineno, line, line.split()
+
+
 def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
     """TUM ``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line, ``#`` comments (read by
     :func:`radiometry.textlists.read_list_text`: byte-order marks, CRLF, non-UTF-8 names).
@@ -415,11 +424,7 @@ def read_stamped_list(path: Path) -> list[tuple[float, str, int]]:
     (:func:`tidy_stamped`, which warns with the counts); malformed lines raise :class:`DatasetError` with
     file and line."""
     out = []
-    for lineno, line in enumerate(read_text(path, "the frame list").splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
+    for lineno, line, parts in data_lines(path, "the frame list"):
         if len(parts) != 2:
             raise DatasetError(f"{path}:{lineno}: expected 'timestamp filename', got {len(parts)} entries "
                                f"({line!r})")

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.datasets._common import FileSequence, FrameFiles, intrinsics_candidates, optional_file, \
-    read_stamped_list, read_text, resolve_intrinsics
+from mapping.datasets._common import FileSequence, FrameFiles, data_lines, intrinsics_candidates, optional_file, \
+    read_stamped_list, resolve_intrinsics
 from mapping.metrics import associate_timestamps, interpolate_poses, read_tum_trajectory
 from radiometry.errors import DatasetError, ImageError
 from radiometry.images import read_depth
@@ -102,11 +102,7 @@ def read_associations(path: Path) -> list[tuple[float, str, float, str, int]]:
     """ORB-SLAM2's ``associations.txt``: ``t_rgb rgb_file t_depth depth_file`` per line (``#`` comments), in the
     file's order; malformed lines raise :class:`DatasetError` naming the file and line."""
     rows = []
-    for lineno, line in enumerate(read_text(path, "the frame pairs").splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
+    for lineno, line, parts in data_lines(path, "the frame pairs"):
         if len(parts) != 4:
             raise DatasetError(f"{path}:{lineno}: expected 'rgb_timestamp rgb_file depth_timestamp depth_file' "
                                f"(ORB-SLAM2's associations), got {len(parts)} entries ({line!r}); fix or remove it")
