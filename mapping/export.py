@@ -268,15 +268,20 @@ class ResultsFolder:
                             self.what)
             self.started = time.time()
             self._before = self._inodes()
-            atomic_write_text(self.path / RUNNING_MARKER,
-                              f"{self.what} started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
-                              f"this {self.what} has not finished (interrupted or crashed if no process runs it)\n")
+            self._mark_running()
             if self.status_file is not None:
                 atomic_write_json(self.path / self.status_file, {"status": "running", "pid": os.getpid(), "started":
                                                                  time.strftime("%Y-%m-%dT%H:%M:%S%z")})
         except BaseException:
             self.lock.release()
             raise
+
+    def _mark_running(self) -> None:
+        """Write the ``RUNNING`` marker (a subclass that keeps the previous result until it publishes the new one
+        skips it while that result stands)."""
+        atomic_write_text(self.path / RUNNING_MARKER,
+                          f"{self.what} started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
+                          f"this {self.what} has not finished (interrupted or crashed if no process runs it)\n")
 
     def _holds_anything(self) -> bool:
         return any(entry.name != LOCK_NAME for entry in os.scandir(self.path))

@@ -95,6 +95,27 @@ def check_outputs(pairs: Sequence[tuple[str | os.PathLike, str | os.PathLike]], 
                               f"the other); {fix_shared}")
 
 
+def refuse_inputs(outputs: Sequence[str | os.PathLike], inputs: Sequence[str | os.PathLike], *,
+                  fix: str = "choose another output name (-o); --force never replaces an input") -> None:
+    """Refuse, before anything is written, to write any of ``outputs`` (a command's files, companions included)
+    over one of ``inputs`` (the files it reads), with or without ``--force``: :class:`OutputError` naming both
+    and ``fix``. The same file is recognised through another spelling of its path, a symbolic or a hard link."""
+    names = {_identity(p): Path(p) for p in inputs}
+    inodes = {}
+    for p in inputs:
+        with contextlib.suppress(OSError):
+            st = os.stat(p)
+            inodes[(st.st_dev, st.st_ino)] = Path(p)
+    for out in outputs:
+        original = names.get(_identity(out))
+        if original is None:
+            with contextlib.suppress(OSError):
+                st = os.stat(out)
+                original = inodes.get((st.st_dev, st.st_ino))
+        if original is not None:
+            raise OutputError(f"{out} is the input {original}: writing it would overwrite the original; {fix}")
+
+
 def _identity(path: str | os.PathLike) -> str:
     return os.path.normcase(os.path.realpath(path))
 

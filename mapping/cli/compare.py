@@ -115,6 +115,9 @@ def task_arguments(ctx: click.Context) -> dict:
     from mapping.batch.commands import MethodChoiceError, compare_methods
 
     p = ctx.params
+    from mapping.cli._common import refuse_sequence_as_output
+
+    refuse_sequence_as_output(p["sequence"], p["output"])
     methods = p["methods"]
     if methods is not None and p["exposure_compensation"] and \
             not drop_replayed(ctx, "exposure_compensation", False, "--methods lists the methods"):
