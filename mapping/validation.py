@@ -53,6 +53,7 @@ import logging
 import math
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -315,15 +316,67 @@ def estimate_memory(*, backend: str, K: np.ndarray, width: int, height: int, fra
 
 
 def available_memory() -> int | None:
-    """``MemAvailable`` of ``/proc/meminfo`` in bytes (None where there is no such file)."""
+    """The memory this process may still take, in bytes: ``MemAvailable`` of ``/proc/meminfo``, bounded by the
+    process's address-space limit (``ulimit -v``: the limit minus what the process maps already) and its cgroup's
+    (``memory.max`` minus ``memory.current``, in a container or a batch slot); None where none is known."""
+    import resource
+
+    bounds = []
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
+                    bounds.append(int(line.split()[1]) * 1024)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    soft, _hard = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        bounds.append(max(0, soft - _status_bytes("VmSize")))
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            bounds.append(max(0, int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text())))
+    except (OSError, ValueError):
+        pass
+    return min(bounds) if bounds else None
+
+
+def _status_bytes(key: str) -> int:
+    """``VmSize``/``VmRSS``/... of ``/proc/self/status`` in bytes (0 where unknown)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
                     return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        pass
+    return 0
+
+
+def headroom() -> int | None:
+    """What the process may still allocate, in bytes: ``RADIOMAP_MEMORY_LIMIT`` (bytes for the whole process, for
+    tests and batch systems) minus its resident size when set, else :func:`available_memory`."""
+    limit = os.environ.get("RADIOMAP_MEMORY_LIMIT")
+    if limit:
+        return int(float(limit)) - _status_bytes("VmRSS")
+    return available_memory()
+
+
+#: what a growth must leave free (the rest of a frame's work: images, ray casts, Python)
+GROWTH_RESERVE = 256 * 2 ** 20
+
+
+def check_growth(needed: int, *, what: str, available: int | None = None) -> None:
+    """:class:`MemoryEstimateError` when an allocation of ``needed`` bytes (a map about to grow) would not leave
+    :data:`GROWTH_RESERVE` free: the bound that stops a run before Open3D's allocation fails inside native code
+    (a segfault, or the kernel's OOM killer). ``what`` says what grows."""
+    available = headroom() if available is None else available
+    if available is None or needed + GROWTH_RESERVE <= available:
+        return
+    raise MemoryEstimateError(
+        f"{what} needs {needed / 2 ** 30:,.2f} GiB more but {max(available, 0) / 2 ** 30:.2f} GiB are available; use "
+        "a larger --voxel-size, a smaller --depth-max or a shorter --frames range")
 
 
 def check_memory(estimate: MemoryEstimate, *, available: int | None = None) -> None:
@@ -433,6 +486,6 @@ __all__ = ["BLOCK_RESOLUTION", "DEPTH_MAX_M", "DEPTH_MIN_M", "DEPTH_SCALE", "EXP
            "MIN_FUSED_FRAMES", "MemoryEstimate", "MemoryEstimateError", "PIXEL_ASPECT", "SMOOTH_SIGMA_PX",
            "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory", "check_config",
            "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_finite", "check_fused",
-           "check_fusion", "FLICKER", "GAMMA", "QUOTE_MAX", "SMOOTHNESS", "quote",
+           "check_fusion", "check_growth", "headroom", "FLICKER", "GAMMA", "GROWTH_RESERVE", "QUOTE_MAX", "SMOOTHNESS", "quote",
            "check_intrinsics", "check_memory", "check_range", "check_run", "check_voxel_size", "config_options",
            "estimate_memory", "option_range", "principal_point_problem", "scene_depth", "too_little_fused"]
