@@ -299,6 +299,9 @@ def _poses(dataset, frames: list, source: str, *, depth_max: float, progress: bo
         have = np.array([p is not None for p in poses])
         if not have.any():
             raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses; use --poses icp")
+        from mapping.pose_convention import refuse_inverted_poses
+
+        refuse_inverted_poses(frames, name=str(dataset.name))    # camera-to-world expected
         return [p if p is not None else np.eye(4) for p in poses], have
     if source != "icp":
         raise ValueError(f"poses must be 'gt' or 'icp', got {source!r}")

@@ -451,6 +451,10 @@ def check_run(dataset, *, poses: str = "icp", **fusion) -> MemoryEstimate:
         raise DatasetError(f"{name}: has no ground-truth poses for the selected frames (--poses gt); track with "
                            "--poses icp, or add the trajectory (TUM groundtruth.txt, 7-Scenes pose files, "
                            "Redwood trajectory.log)")
+    if poses == "gt":   # camera-to-world expected; world-to-camera given is refused with the fix
+        from mapping.pose_convention import refuse_inverted_poses
+
+        refuse_inverted_poses(dataset, name=str(name))
     estimate = estimate_memory(K=dataset.K, width=dataset.width, height=dataset.height, frames=len(dataset),
                                scene_depth=scene_depth(dataset), **{"backend": "tsdf", **fusion})
     check_memory(estimate)
