@@ -48,8 +48,15 @@ os.umask(_UMASK)
 def _os_error_message(path: Path, exc: OSError) -> str:
     if exc.errno == errno.ENOSPC:
         return f"cannot write {path}: the disk is full; free some space or choose another output folder"
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+    if exc.errno in (errno.EACCES, errno.EPERM):
         return f"cannot write {path}: permission denied; choose a writable output folder"
+    if exc.errno == errno.EROFS:
+        return f"cannot write {path}: the file system is read-only; choose a writable output folder"
+    if exc.errno == errno.ENAMETOOLONG:
+        return f"cannot write {path}: the name or path is too long; choose a shorter one"
+    if exc.errno in (errno.EMFILE, errno.ENFILE):
+        return (f"cannot write {path}: too many open files; raise the limit (ulimit -n) or close other programs, "
+                "then run again")
     return f"cannot write {path}: {exc.strerror or exc}; choose another output folder"
 
 
@@ -228,9 +235,22 @@ def pid_alive(pid: int) -> bool:
         return False
     except PermissionError:
         return True
-    except OverflowError:
+    except (OverflowError, ValueError):
         return False
-    return True
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    """True when ``pid`` has exited but its parent has not reaped it yet (``State: Z`` in /proc, Linux): it holds
+    nothing (a batch worker killed a moment ago), so its locks and temporaries are stale."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("State:"):
+                    return line.split()[1] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+    return False
 
 
 def remove_strays(folder: str | os.PathLike) -> list[str]:

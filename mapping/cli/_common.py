@@ -25,7 +25,7 @@ from mapping.factory import BACKENDS
 from mapping.export import plain_value
 from mapping.validation import DEPTH_MAX_M, DEPTH_SCALE, ImplausibleValueError, VOXEL_SIZE_M
 from radiometry import __version__
-from radiometry.errors import RadiomapError
+from radiometry.errors import RadiomapError, shorten
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
 CONFIG_VERSION = 1
@@ -151,8 +151,12 @@ def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[
     except OSError as exc:
         raise ConfigFileError(f"{path}: cannot read it ({exc.strerror or exc}); pass RUN/config.json of an earlier "
                               "run") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigFileError(f"{path}: not a JSON file ({exc}); pass the config.json a radiomap run wrote") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        # JSONDecodeError, and what Python's reader refuses for structural reasons: numbers of more than 4300
+        # digits (ValueError), nesting deeper than the recursion limit (RecursionError)
+        why = "nested too deeply for Python's JSON reader" if isinstance(exc, RecursionError) else shorten(str(exc))
+        raise ConfigFileError(f"{path}: not a JSON file radiomap can read ({why}); pass the config.json a radiomap "
+                              "run wrote") from None
     if not isinstance(doc, dict):
         raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
                               "pass the config.json a reconstruct or compare run wrote")
