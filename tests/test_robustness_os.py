@@ -148,7 +148,10 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
-def test_an_error_caused_by_ctrl_c_is_reported_as_the_interruption(tmp_path):
+@pytest.mark.parametrize("sig, code, line", [(signal.SIGINT, 130, "radiomap: interrupted"),
+                                             (signal.SIGTERM, 143, "radiomap: terminated (SIGTERM)")],
+                         ids=["SIGINT", "SIGTERM"])
+def test_an_error_caused_by_ctrl_c_is_reported_as_the_interruption(tmp_path, sig, code, line):
     read_end, write_end = os.pipe()
     proc = subprocess.Popen([sys.executable, "-c", _IMPORT_CUT, str(write_end), "response", "--gamma", "2.2", "-o",
                              str(tmp_path / "r.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -158,13 +161,13 @@ def test_an_error_caused_by_ctrl_c_is_reported_as_the_interruption(tmp_path):
     try:
         ready, _, _ = select.select([read_end], [], [], 300)
         assert ready and os.read(read_end, 16) == b"paused"
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=300)
     finally:
         os.close(read_end)
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "radiomap: interrupted", err
+    assert proc.returncode == code and err.strip().splitlines()[-1] == line, err
     assert "Traceback" not in err and not (tmp_path / "r.npz").exists()
 
 

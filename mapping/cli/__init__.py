@@ -75,6 +75,11 @@ class LazyGroup(click.Group):
             return super().invoke(ctx)
         except RadiomapError as exc:
             _error(ctx, str(exc))
+        except click.ClickException as exc:   # click's usage errors quote the value given: cut it too
+            from radiometry.errors import shorten
+
+            exc.message = shorten(exc.message)
+            raise
         except KeyboardInterrupt:
             _interrupted(ctx)
         except MemoryError:
@@ -103,13 +108,16 @@ class LazyGroup(click.Group):
             raise
 
 
-#: set by the SIGINT handler: an exception raised after Ctrl-C is a consequence of it, reported as the interruption
-_INTERRUPTED = False
+#: set by the SIGINT/SIGTERM handlers (the signal's number): an exception raised after the signal is a consequence of
+#: it, reported as the interruption
+_INTERRUPTED = 0
 
 
 def _on_sigint(signum, frame):
+    """Ctrl-C (and SIGTERM, where it had its default action) unwind the command like KeyboardInterrupt, so that
+    locks are released and staged files removed; the signal is noted for the message and the exit code."""
     global _INTERRUPTED
-    _INTERRUPTED = True
+    _INTERRUPTED = signum
     raise KeyboardInterrupt
 
 
@@ -121,6 +129,11 @@ def _error(ctx: click.Context, message: str) -> None:
 
 
 def _interrupted(ctx: click.Context) -> None:
+    import signal
+
+    if _INTERRUPTED == signal.SIGTERM:
+        click.echo("radiomap: terminated (SIGTERM)", err=True)
+        ctx.exit(128 + signal.SIGTERM)
     click.echo("radiomap: interrupted", err=True)
     ctx.exit(130)
 
@@ -176,17 +189,22 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread() and \
             signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _on_sigint)     # not where SIGINT is ignored (a shell's background job)
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _on_sigint)
     try:
         cli.main(args=argv, prog_name="radiomap", standalone_mode=True)
     except SystemExit as exc:
         return int(exc.code or 0) if not isinstance(exc.code, str) else 1
     except KeyboardInterrupt:       # outside a command (click's own handling): still one line
-        click.echo("radiomap: interrupted", err=True)
-        return 130
+        terminated = _INTERRUPTED == signal.SIGTERM
+        click.echo("radiomap: terminated (SIGTERM)" if terminated else "radiomap: interrupted", err=True)
+        return 128 + signal.SIGTERM if terminated else 130
     finally:
         if signal.getsignal(signal.SIGINT) is _on_sigint:
             # the run is over: as the program (argv from the command line), a late Ctrl-C at exit is ignored
             signal.signal(signal.SIGINT, signal.SIG_IGN if argv is None else signal.default_int_handler)
+        if signal.getsignal(signal.SIGTERM) is _on_sigint:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN if argv is None else signal.SIG_DFL)
     return 0
 
 

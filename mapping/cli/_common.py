@@ -81,18 +81,24 @@ class FrameRange(click.ParamType):
             return value
         parts = str(value).split(":")
         if len(parts) > 3:
-            self.fail(f"{value!r} is not A:B:S (e.g. 0:100:2)", param, ctx)
+            self.fail(f"{_quote(value)} is not A:B:S (e.g. 0:100:2)", param, ctx)
         try:
             nums = [int(p) if p.strip() else None for p in parts]
         except ValueError:
-            self.fail(f"{value!r} is not A:B:S with whole numbers (e.g. 0:100:2)", param, ctx)
+            self.fail(f"{_quote(value)} is not A:B:S with whole numbers (e.g. 0:100:2)", param, ctx)
         while len(nums) < 3:
             nums.append(None)
         if len(parts) == 1 and nums[0] is not None:  # a single number N means the first N frames
             nums = [0, nums[0], None]
         if nums[2] is not None and nums[2] <= 0:
-            self.fail(f"the step in {value!r} must be positive", param, ctx)
+            self.fail(f"the step in {_quote(value)} must be positive", param, ctx)
         return slice(*nums)
+
+
+def _quote(value) -> str:
+    from mapping.validation import quote
+
+    return quote(value)
 
 
 def run_manifest(command: str, params: dict[str, Any]) -> dict[str, Any]:
