@@ -38,6 +38,7 @@ from typing import Callable
 REPO = Path(__file__).resolve().parents[1]
 KITCHEN = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
 LINE_MAX = 2100
+RADIOMAP = ["radiomap"]          # the command under test (set by main)
 
 
 @dataclass
@@ -433,6 +434,17 @@ def catalogue(f: dict[str, Path]) -> list[Case]:
              ["reconstruct", f["room"], "-o", w / "run2", "--poses", "gt", "--force", "--no-progress"],
              expect=(-9, 0), setup=copy(f["run"], w / "run2"), interrupt=(appears(w / "run2", "RUNNING"), signal.SIGKILL),
              check=lambda r: reconstruct_never_neither(w / "run2")),
+        Case("reconstruct --force over a finished run, SIGINT once it stages files", "interrupt",
+             ["reconstruct", f["room"], "-o", w / "run3", "--poses", "gt", "--force", "--no-progress"],
+             expect=(130, 0), setup=copy(f["run"], w / "run3"),
+             interrupt=(appears(w / "run3", ".tmp-radiomap"), signal.SIGINT),
+             check=lambda r: reconstruct_never_neither(w / "run3")),
+        Case("compare --force over a finished comparison, SIGKILL once RUNNING is written", "interrupt",
+             ["compare", f["room"], "-r", f["room"] / "truth" / "response.npz", "--methods", "none", "-o", w / "cmp2",
+              "--force", "--no-progress", "--views", "0"], expect=(-9, 0),
+             setup=lambda: fresh_comparison(f, w / "cmp2"), interrupt=(appears(w / "cmp2", "RUNNING"), signal.SIGKILL),
+             check=lambda r: None if (w / "cmp2" / "compare.json").is_file() and not (w / "cmp2" / "RUNNING").exists()
+             else f"{w / 'cmp2'}: neither the previous comparison nor a new one"),
     ]
     # ---- error lines of a readable length; bad inputs of the earlier catalogue, rechecked
     b3 = w / "b3"
@@ -468,6 +480,14 @@ def catalogue(f: dict[str, Path]) -> list[Case]:
              ["reconstruct", f["room"], "-o", out / "ds", "--depth-scale", "1", "--poses", "gt"], absent=(out / "ds",)),
     ]
     return cases
+
+
+def fresh_comparison(f: dict, dest: Path) -> None:
+    if dest.exists():
+        shutil.rmtree(dest)
+    subprocess.run([RADIOMAP[0], "compare", str(f["room"]), "-r",
+                    str(f["room"] / "truth" / "response.npz"), "--methods", "none", "-o", str(dest), "--no-progress",
+                    "--views", "0"], capture_output=True, check=True)
 
 
 def reconstruct_never_neither(folder: Path) -> str | None:
@@ -581,6 +601,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.radiomap:
         parser.error("no radiomap command on PATH; pip install the project or pass --radiomap")
+    RADIOMAP[0] = args.radiomap
     work = args.work or Path(tempfile.mkdtemp(prefix="radiomap-catalogue-"))
     work.mkdir(parents=True, exist_ok=True)
     try:

@@ -30,7 +30,8 @@ exposure compensation at --mesh-exposure; with --backend surfel surfels.ply, and
 --surfel-mesh), trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9
 of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --config) and summary.txt;
 with exposure compensation exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source
-map|frame|fallback). A RUNNING file marks a run that has not finished.
+map|frame|fallback). A RUNNING file marks a run that has not finished. With --force over a complete run,
+that run stays in OUT until the new one is complete and replaces it (never neither).
 """
 
 
