@@ -4,6 +4,8 @@ Layout (``radiomap reconstruct ... -o OUT``)::
 
     OUT/LOCK                         present while a process writes the folder: its pid (FolderLock)
     OUT/RUNNING                      present while the run is in progress (or was interrupted / crashed)
+    OUT/.tmp-radiomap-PID-*/         with --force over a complete run: the new run, staged until it is complete and
+                                     published as one set (ReconstructionFolder; the previous run stands till then)
     OUT/.radiomap-files.json         the files the run wrote (removed by the next --force run)
     OUT/config.json                  the configuration the run started with (cli/_common.run_manifest)
     OUT/metrics.json                 "status": "running" -> "complete" | "interrupted" | "failed"
