@@ -5,7 +5,7 @@ Layout (``radiomap reconstruct ... -o OUT``)::
     OUT/LOCK                         present while a process writes the folder: its pid (FolderLock)
     OUT/RUNNING                      present while the run is in progress (or was interrupted / crashed)
     OUT/.tmp-radiomap-PID-*/         with --force over a complete run: the new run, staged until it is complete and
-                                     published as one set (ReconstructionFolder; the previous run stands till then)
+                                     published as one set (mapping.publication; the previous run stands till then)
     OUT/.radiomap-files.json         the files the run wrote (removed by the next --force run)
     OUT/config.json                  the configuration the run started with (cli/_common.run_manifest)
     OUT/metrics.json                 "status": "running" -> "complete" | "interrupted" | "failed"
@@ -354,94 +354,6 @@ class ResultsFolder:
 
     def write_text(self, name: str, text: str) -> Path:
         return atomic_write_text(self.path / name, text)
-
-
-class ReconstructionFolder(ResultsFolder):
-    """The results folder of ``radiomap reconstruct``: a :class:`ResultsFolder` that, when ``force`` replaces a
-    COMPLETE previous run, keeps that run in place until the new one is complete and then publishes the new run as
-    one set (:func:`radiometry.fileio.publish_set`: the run writes into a staging folder inside OUT, :attr:`path`,
-    and :meth:`complete` renames every file into OUT, ``metrics.json`` last, with a journal that the next run rolls
-    back after a SIGKILL). An interruption at any moment (Ctrl-C, SIGKILL, a failure) leaves the previous run or the
-    new one, never neither; the previous run's files that the new one does not replace are removed after the
-    commit. A first run, or one over an incomplete folder, is written in place as before (``RUNNING`` marker,
-    ``"status": "running"``)."""
-
-    primary = "metrics.json"
-
-    def __init__(self, path: str | os.PathLike, *, force: bool = False) -> None:
-        self._publication = None
-        self._set = None
-        self._staging = False
-        self._completed = False
-        self.final_path = Path(path)
-        super().__init__(path, force=force)
-        if self._staging:
-            from radiometry.fileio import publish_set
-
-            try:
-                self._publication = publish_set(self.final_path / self.primary)
-                self._set = self._publication.__enter__()
-                self.path = self._set.path(self.final_path / self.primary).parent
-                self._before = {}
-                super()._mark_running()   # inside the staging folder: the run sees the layout it always sees
-            except BaseException:
-                self.release()
-                raise
-
-    def _previous_complete(self) -> bool:
-        return is_complete(self.path)
-
-    def _remove_previous_run(self) -> None:
-        if self._previous_complete():
-            self._staging = True          # kept until the new run is published (complete)
-            return
-        super()._remove_previous_run()
-
-    def _mark_running(self) -> None:
-        if not self._staging:
-            super()._mark_running()
-
-    def complete(self) -> None:
-        if not self._staging:
-            super().complete()
-            self._completed = True
-            return
-        stage, final = self.path, self.final_path
-        with contextlib.suppress(FileNotFoundError):
-            (stage / RUNNING_MARKER).unlink()
-        published = sorted(e.name for e in os.scandir(stage) if e.is_file(follow_symlinks=False)
-                           and TEMP_TAG not in e.name)
-        record = {"files": published}
-        if self.folders:
-            record["folders"] = sorted(self.folders)
-        atomic_write_json(stage / MANIFEST, record)
-        previous = (set(self.result_names) | _manifest_entries(final)[0]) - set(published) - {RUNNING_MARKER,
-                                                                                               MANIFEST}
-        publication, self._publication, self._set = self._publication, None, None
-        publication.__exit__(None, None, None)        # the commit: the new run replaces the previous one
-        self.path = final
-        self._completed = True
-        # the folder's MANIFEST (rewritten on release) lists the published files and those written since, not the
-        # user's files beside them
-        self._before = {name: ident for name, ident in self._inodes().items() if name not in published}
-        for name in sorted(previous):                  # the previous run's files the new one did not replace
-            try:
-                (final / name).unlink()
-            except FileNotFoundError:
-                pass
-            except OSError as exc:
-                log.warning("could not remove %s of the previous run: %s", final / name, exc)
-
-    def release(self) -> None:
-        if self._publication is not None:   # not completed: the staged files go, the previous run stands
-            publication, self._publication, self._set = self._publication, None, None
-            with contextlib.suppress(RuntimeError):
-                publication.__exit__(RuntimeError, RuntimeError("run not completed"), None)
-            self.path = self.final_path
-        if self._staging and not self._completed:
-            self.lock.release()             # the previous run's file list stays: its files are the ones in place
-            return
-        super().release()
 
 
 def _own_name(name) -> bool:

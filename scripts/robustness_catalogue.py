@@ -216,6 +216,9 @@ FLOAT_OPTIONS = {
 
 
 def catalogue(f: dict[str, Path]) -> list[Case]:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from robustness_force_cases import force_cases, staged
+
     w = f["work"]
     out = w / "out"
     first_frame = sorted(f["sweep"].iterdir())[0].name
@@ -430,22 +433,17 @@ def catalogue(f: dict[str, Path]) -> list[Case]:
              interrupt=(appears(out / "int", "RUNNING"), signal.SIGINT),
              check=lambda r: None if r.returncode == 0 or r.stderr.strip().endswith("radiomap: interrupted")
              else "no 'radiomap: interrupted' line"),
-        Case("reconstruct --force over a finished run, SIGKILL once RUNNING is written", "interrupt",
+        Case("reconstruct --force over a finished run, SIGKILL once its staging folder holds RUNNING", "interrupt",
              ["reconstruct", f["room"], "-o", w / "run2", "--poses", "gt", "--force", "--no-progress"],
-             expect=(-9, 0), setup=copy(f["run"], w / "run2"), interrupt=(appears(w / "run2", "RUNNING"), signal.SIGKILL),
+             expect=(-9, 0), setup=copy(f["run"], w / "run2"), interrupt=(staged(w / "run2", "RUNNING"), signal.SIGKILL),
              check=lambda r: reconstruct_never_neither(w / "run2")),
         Case("reconstruct --force over a finished run, SIGINT once it stages files", "interrupt",
              ["reconstruct", f["room"], "-o", w / "run3", "--poses", "gt", "--force", "--no-progress"],
              expect=(130, 0), setup=copy(f["run"], w / "run3"),
              interrupt=(appears(w / "run3", ".tmp-radiomap"), signal.SIGINT),
              check=lambda r: reconstruct_never_neither(w / "run3")),
-        Case("compare --force over a finished comparison, SIGKILL once RUNNING is written", "interrupt",
-             ["compare", f["room"], "-r", f["room"] / "truth" / "response.npz", "--methods", "none", "-o", w / "cmp2",
-              "--force", "--no-progress", "--views", "0"], expect=(-9, 0),
-             setup=lambda: fresh_comparison(f, w / "cmp2"), interrupt=(appears(w / "cmp2", "RUNNING"), signal.SIGKILL),
-             check=lambda r: None if (w / "cmp2" / "compare.json").is_file() and not (w / "cmp2" / "RUNNING").exists()
-             else f"{w / 'cmp2'}: neither the previous comparison nor a new one"),
     ]
+    cases += force_cases(f, sys.modules[__name__])
     # ---- error lines of a readable length; bad inputs of the earlier catalogue, rechecked
     b3 = w / "b3"
 
@@ -482,11 +480,11 @@ def catalogue(f: dict[str, Path]) -> list[Case]:
     return cases
 
 
-def fresh_comparison(f: dict, dest: Path) -> None:
+def fresh_comparison(f: dict, dest: Path, methods: str = "none") -> None:
     if dest.exists():
         shutil.rmtree(dest)
     subprocess.run([RADIOMAP[0], "compare", str(f["room"]), "-r",
-                    str(f["room"] / "truth" / "response.npz"), "--methods", "none", "-o", str(dest), "--no-progress",
+                    str(f["room"] / "truth" / "response.npz"), "--methods", methods, "-o", str(dest), "--no-progress",
                     "--views", "0"], capture_output=True, check=True)
 
 

@@ -333,8 +333,11 @@ def test_a_simulation_folder_with_force_removes_only_an_earlier_simulation(tmp_p
         SequenceFolder(seq)
     assert sorted(p.name for p in seq.iterdir()) == ["exposure_00.png", "notes.txt", SEQUENCE_MANIFEST, "rgb",
                                                      "rgb.txt", "truth"]
-    with SequenceFolder(seq, force=True) as folder:
-        assert sorted(p.name for p in seq.iterdir()) == [LOCK_NAME, "RUNNING", "notes.txt"]
+    with SequenceFolder(seq, force=True) as folder:   # the complete earlier simulation stands until this one is out
+        assert folder.path.parent == seq and folder.path.name.startswith(".tmp-radiomap-")
+        assert sorted(p.name for p in seq.iterdir() if p != folder.path) == [
+            LOCK_NAME, "exposure_00.png", "notes.txt", SEQUENCE_MANIFEST, "rgb", "rgb.txt", "truth"]
+        assert sorted(p.name for p in folder.path.iterdir()) == ["RUNNING"]
         folder.complete()
     assert sorted(p.name for p in seq.iterdir()) == ["notes.txt"]        # no MANIFEST: the layout is fixed
     (seq / "rgb").mkdir()

@@ -35,7 +35,8 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
               run starts and the dataset, the colour model and the pipeline's configuration are added.
     settings: the summary's settings line (which value came from where)."""
     from mapping.datasets import describe_dataset
-    from mapping.export import ReconstructionFolder, plain_value
+    from mapping.export import plain_value
+    from mapping.publication import ReconstructionFolder
     from mapping.factory import ReconstructConfig, build_run
     from mapping.pipeline import reconstruct
     from radiometry.tables import format_table
