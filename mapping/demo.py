@@ -38,7 +38,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from mapping.export import RUNNING_MARKER, ResultsFolder
+from mapping.export import RUNNING_MARKER
+from mapping.publication import StagedResultsFolder
 
 MARKER = "demo.json"
 DEMO_CAMERAS = ("asymmetric", "xtion", "mild")
@@ -76,9 +77,11 @@ QUICK = DemoSize(width=160, height=120, room_frames=15, paper_frames=60, voxel_s
                  render_width=160, speed=4.0)
 
 
-class DemoFolder(ResultsFolder):
+class DemoFolder(StagedResultsFolder):
     """The demo's folder (OUT; the module doc's layout and policy): an empty or new folder, or with ``force`` one
-    whose earlier demo outputs (its folders whole, its files) are removed first; other files are left alone."""
+    whose earlier demo outputs (its folders whole, its files) are replaced; other files are left alone. A complete
+    earlier demo stands until the new one is complete and published as one set, ``demo.json`` last
+    (:class:`mapping.publication.StagedResultsFolder`); an interrupted one is removed first."""
 
     what = "demo"
     markers = (MARKER, RUNNING_MARKER)
@@ -89,6 +92,10 @@ class DemoFolder(ResultsFolder):
     owned_folders = frozenset({"calibration", "sequence", "compare"})
     listing = False
     status_file = None
+    primary = MARKER
+
+    def _previous_complete(self) -> bool:
+        return (self.path / MARKER).is_file() and not (self.path / RUNNING_MARKER).exists()
 
 
 @dataclass
@@ -176,7 +183,16 @@ def run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int 
                             time.perf_counter() - t_start, timings, size, seed, spec.name)
         _write_records(result, quick=quick)
         folder.complete()
+    _published(result, folder)
     return result
+
+
+def _published(result: DemoResult, folder: DemoFolder) -> None:
+    """The paths of ``result`` under their published names (a staged demo was written elsewhere)."""
+    from mapping.compare.run import _published as comparison_published
+
+    result.output = folder.published(result.output)
+    comparison_published(result.comparison, folder)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -241,12 +257,13 @@ def _simulate_room(out: Path, spec, *, seed: int, size: DemoSize, timings: dict[
     """4. The room sequence with auto exposure and white balance."""
     from mapping.simulation.sequences import simulate_room
     from mapping.simulation.trajectory import HandheldMotion
+    from radiometry.fileio import published_path
 
     t0 = time.perf_counter()
     seq = simulate_room(out / "sequence", camera=spec, seed=seed + 2, n_frames=size.room_frames, auto_exposure=True,
                         motion=HandheldMotion(speed=size.speed), force=True, progress=False)
     timings["room"] = time.perf_counter() - t0
-    say(f"room: {size.room_frames} frames with auto exposure and white balance -> {seq}")
+    say(f"room: {size.room_frames} frames with auto exposure and white balance -> {published_path(seq)}")
     return seq
 
 
@@ -385,6 +402,7 @@ def exposure_accuracy(comparison, dataset) -> dict[str, Any] | None:
 
 def summary_text(result: DemoResult) -> str:
     """What the demo prints: calibration accuracy, the comparison table, where the report is."""
+    from radiometry.fileio import published_path
     from radiometry.tables import format_table
 
     calib = [{"quantity": r["quantity"], "R": round(r["R"], 2), "G": round(r["G"], 2), "B": round(r["B"], 2),
@@ -404,7 +422,7 @@ def summary_text(result: DemoResult) -> str:
         c.table_text(),
         "",
         f"ranking by L1 mean (best first): {', '.join(c.ranking())}",
-        f"report: {c.files['report']}",
+        f"report: {published_path(c.files['report'])}",
         f"wall time: {result.seconds:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items()) + ")",
     ]
     return "\n".join(lines)

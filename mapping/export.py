@@ -4,6 +4,8 @@ Layout (``radiomap reconstruct ... -o OUT``)::
 
     OUT/LOCK                         present while a process writes the folder: its pid (FolderLock)
     OUT/RUNNING                      present while the run is in progress (or was interrupted / crashed)
+    OUT/.tmp-radiomap-PID-*/         with --force over a complete run: the new run, staged until it is complete and
+                                     published as one set (mapping.publication; the previous run stands till then)
     OUT/.radiomap-files.json         the files the run wrote (removed by the next --force run)
     OUT/config.json                  the configuration the run started with (cli/_common.run_manifest)
     OUT/metrics.json                 "status": "running" -> "complete" | "interrupted" | "failed"
@@ -268,15 +270,20 @@ class ResultsFolder:
                             self.what)
             self.started = time.time()
             self._before = self._inodes()
-            atomic_write_text(self.path / RUNNING_MARKER,
-                              f"{self.what} started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
-                              f"this {self.what} has not finished (interrupted or crashed if no process runs it)\n")
-            if self.status_file is not None:
-                atomic_write_json(self.path / self.status_file, {"status": "running", "pid": os.getpid(), "started":
-                                                                 time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+            self._mark_running()
         except BaseException:
             self.lock.release()
             raise
+
+    def _mark_running(self) -> None:
+        """Write the ``RUNNING`` marker and the status file saying "running" (a subclass that keeps the previous
+        result until it publishes the new one skips them while that result stands)."""
+        atomic_write_text(self.path / RUNNING_MARKER,
+                          f"{self.what} started {time.strftime('%Y-%m-%dT%H:%M:%S%z')} pid {os.getpid()}\n"
+                          f"this {self.what} has not finished (interrupted or crashed if no process runs it)\n")
+        if self.status_file is not None:
+            atomic_write_json(self.path / self.status_file, {"status": "running", "pid": os.getpid(), "started":
+                                                             time.strftime("%Y-%m-%dT%H:%M:%S%z")})
 
     def _holds_anything(self) -> bool:
         return any(entry.name != LOCK_NAME for entry in os.scandir(self.path))

@@ -45,7 +45,14 @@ FIGURES = ("vignetting.png", "stderr.png", "coverage.png", "exposures.png", "res
 
 class SelfCalibrationFolder(ResultsFolder):
     """The folder ``radiomap self-calibrate`` writes (OUT): refused without ``--force`` when it holds an earlier
-    self-calibration; ``--force`` removes that run's files only."""
+    self-calibration; ``--force`` replaces that run's files only.
+
+    Published as one set (:func:`radiometry.fileio.publish_set`): every file is written to a staging folder inside
+    OUT (:meth:`file`) and renamed into place by :meth:`complete`, ``self_calibration.json`` last. Until then the
+    previous self-calibration stands untouched, complete (no ``RUNNING`` marker is written over it): a run that is
+    interrupted (Ctrl-C, SIGKILL, a failure) at any moment leaves the previous result or the new one, never
+    neither (a SIGKILL during the renames leaves a journal that the next run rolls back). The previous run's files
+    that the new set does not replace (figures of a run without ``--no-plots``) are removed after the commit."""
 
     what = "self-calibration"
     markers = (MARKER, RUNNING_MARKER, MANIFEST)
@@ -53,6 +60,68 @@ class SelfCalibrationFolder(ResultsFolder):
     result_names = frozenset({MARKER, RUNNING_MARKER, MANIFEST, "vignetting.npz", "exposures.txt", "summary.txt",
                               "trajectory.txt", "groundtruth_tum.txt", *FIGURES})
     status_file = None
+
+    def __init__(self, path, *, force: bool = False) -> None:
+        self._publication = None     # the open publish_set context
+        self._set = None             # its FileSet
+        self._completed = False
+        super().__init__(path, force=force)
+
+    def _remove_previous_run(self) -> None:
+        """Nothing is removed before the new set is published (:meth:`complete`)."""
+
+    def _mark_running(self) -> None:
+        if not self_calibration_complete(self.path):   # a complete previous result stays complete until replaced
+            super()._mark_running()
+
+    def file(self, name: str) -> Path:
+        """Where to write ``name``: in the staging folder of the set (published by :meth:`complete`)."""
+        from radiometry.fileio import publish_set
+
+        if self._set is None:
+            self._publication = publish_set(self.path / MARKER)
+            self._set = self._publication.__enter__()
+        return self._set.path(self.path / name)
+
+    def staging(self) -> Path:
+        """The staging folder (for writers that take a folder)."""
+        return self.file(MARKER).parent
+
+    def final(self, path) -> Path:
+        """The published name of a staged path."""
+        return self._set.final(path) if self._set is not None else Path(path)
+
+    def complete(self) -> None:
+        from mapping.export import _manifest_entries
+
+        published: set[str] = set()
+        if self._publication is not None:
+            published = {p.name for p in self.staging().iterdir() if p.is_file()}
+            previous = (set(self.result_names) | _manifest_entries(self.path)[0]) - published - {
+                RUNNING_MARKER, MANIFEST}
+            publication, self._publication, self._set = self._publication, None, None
+            publication.__exit__(None, None, None)        # the commit: the new set replaces the old one
+            for name in sorted(previous):                  # the old run's files the new set did not replace
+                try:
+                    (self.path / name).unlink()
+                except FileNotFoundError:
+                    pass
+                except OSError as exc:
+                    log.warning("could not remove %s of the previous self-calibration: %s", self.path / name, exc)
+        self._completed = True
+        super().complete()
+
+    def release(self) -> None:
+        if self._publication is not None:   # not completed: the staged files go, the previous set stands
+            publication, self._publication, self._set = self._publication, None, None
+            try:
+                publication.__exit__(RuntimeError, RuntimeError("self-calibration not completed"), None)
+            except RuntimeError:
+                pass
+        if not self._completed:
+            self.lock.release()     # the previous run's file list stays: its files are the ones in place
+            return
+        super().release()
 
 
 @dataclass(frozen=True)
@@ -232,6 +301,10 @@ def _poses(dataset, frames: list, source, *, depth_max: float, progress: bool, t
     if source == "gt" or isinstance(source, PoseTable):
         poses = [f.pose for f in frames] if source == "gt" else list(source)
         have = np.array([p is not None for p in poses])
+        if source == "gt" and have.any():
+            from mapping.pose_convention import refuse_inverted_poses
+
+            refuse_inverted_poses(frames, name=str(dataset.name))    # camera-to-world expected
         return [p if p is not None else np.eye(4) for p in poses], have
     if source != "icp":
         raise ValueError(f"poses must be 'gt', 'icp' or a PoseTable, got {source!r}")
@@ -344,7 +417,8 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         if plots:
             from mapping.self_calibration_plots import save_figures
 
-            files.update(save_figures(folder.path, result, indices))
+            files.update(save_figures(folder.staging(), result, indices))
+        files = {k: folder.final(v) for k, v in files.items()}    # the names they are published under
         seconds["total"] = time.perf_counter() - t0
         seconds["cpu"] = _cpu_seconds() - cpu0
         seconds["cpu_per_100_frames"] = 100.0 * seconds["cpu"] / len(use)
@@ -353,7 +427,7 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
                                  files=files)
         run.summary = summary_text(run, dataset.name, response_given, str(poses), cov_line) + "\n" + \
             intrinsics_text(dataset)   # which intrinsics, from where
-        files["summary"] = atomic_write_text(folder.file("summary.txt"), run.summary + "\n")
+        files["summary"] = folder.final(atomic_write_text(folder.file("summary.txt"), run.summary + "\n"))
         atomic_write_json(folder.file(MARKER), {
             "sequence": describe_dataset(dataset), "poses": str(poses),
             "response": "given" if response_given else "assumed gamma 2.2 (CameraResponse.gamma(2.2))",

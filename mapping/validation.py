@@ -31,7 +31,14 @@ exposure time (simulate)      1 us .. 60 s      global shutters 1 us; Debevec's 
 light change (simulate)       0.01 .. 100 x     a light switched to 1 % .. 100x of its brightness
 lens (simulate --lensfun)     1..2000 mm, f/0.7..f/64   phone lenses to super-telephotos; the fastest lenses
 LUT smoothing (vignetting)    0 .. 50 px        default 1, 2-3 for thin sweeps; OpenCV fails on huge kernels
+gamma (response --gamma)      0.2 .. 5          sRGB ~2.2, Rec. 709 ~1.9-2.4; the extremes of display curves
+flicker (simulate)            0 .. 0.5 (excl.)  relative amplitude of a light's flicker (mains: 0.05-0.3)
+smoothness (response)         1e-6 .. 1e6       Debevec's default 10, the log-log prior's 0.1
 ============================  ================  ===========================================================
+
+Every number given on the command line is finite: ``inf``, ``-inf`` and ``nan`` are refused by the same
+:func:`check_range` (click's own ranges let ``nan`` through, as every comparison with it is false); the CLI's
+option type :class:`mapping.cli._common.Number` applies these checks to every float option of every command.
 
 Memory (:func:`estimate_memory`) is estimated before a run starts and compared with ``MemAvailable`` of
 ``/proc/meminfo``: a run that cannot fit raises :class:`MemoryEstimateError` in one line.
@@ -46,6 +53,7 @@ import logging
 import math
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -73,6 +81,9 @@ LIGHT_CHANGE = (0.01, 100.0)        # a light switched to 1 % .. 100x of its bri
 LENS_FOCAL_MM = (1.0, 2000.0)       # phone lenses 1.5-9 mm .. super-telephoto 800 mm (lensfun's range)
 LENS_APERTURE = (0.7, 64.0)         # f-numbers: f/0.7 (the fastest lenses made) .. f/64
 SMOOTH_SIGMA_PX = (0.0, MAX_SMOOTH_SIGMA)  # LUT denoising (radiometry.vignetting_calibration): default 1, 2-3 thin
+GAMMA = (0.2, 5.0)                  # standard responses: sRGB ~2.2, Rec. 709 1.9-2.4
+FLICKER = (0.0, 0.5)                # relative flicker amplitude, 0.5 excluded (the light would go out)
+SMOOTHNESS = (1e-6, 1e6)            # response smoothness / prior weights (debevec 10, loglog 0.1)
 
 #: a run fails when it fuses fewer frames than this (or all of a shorter sequence), or fewer than this fraction of
 #: its frames: the rule of radiometry/quorum.py, which vignetting calibration shares
@@ -120,19 +131,50 @@ def _label(name: str) -> str:
     return _OPTION_NAMES.get(name, "--" + name.replace("_", "-"))
 
 
-def check_range(name: str, value, limits: tuple[float, float], unit: str = "", why: str = "") -> float:
-    """``value`` as a float when it is a finite number within ``limits`` (inclusive), else
-    :class:`ImplausibleValueError` naming the option, the value and the range."""
+def check_range(name: str, value, limits: tuple[float, float], unit: str = "", why: str = "", *,
+                open_max: bool = False) -> float:
+    """``value`` as a float when it is a finite number within ``limits`` (inclusive; the upper limit excluded
+    with ``open_max``), else :class:`ImplausibleValueError` naming the option, the value and the range."""
     lo, hi = limits
     u = f" {unit}" if unit else ""
+    span = f"{lo:g}..{hi:g}{u}" + (f" ({hi:g} excluded)" if open_max else "")
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ImplausibleValueError(f"{_label(name)} must be a number in {lo:g}..{hi:g}{u}, got {value!r}")
-    v = float(value)
-    if not (math.isfinite(v) and lo <= v <= hi):
-        hint = f" ({why})" if why else ""
-        raise ImplausibleValueError(f"{_label(name)} {v:g}{u} is outside the sensible range {lo:g}..{hi:g}{u}"
+        raise ImplausibleValueError(f"{_label(name)} must be a number in {span}, got {quote(value)}")
+    try:
+        v = float(value)
+    except OverflowError:       # an integer beyond float's range
+        v = math.inf if value > 0 else -math.inf
+    hint = f" ({why})" if why else ""
+    if not math.isfinite(v):
+        raise ImplausibleValueError(f"{_label(name)} {v:g} is not a finite number; pass a value in the sensible "
+                                    f"range {span}{hint}")
+    if not (lo <= v <= hi) or (open_max and v >= hi):
+        raise ImplausibleValueError(f"{_label(name)} {v:g}{u} is outside the sensible range {span}"
                                     f"{hint}; pass a value in that range")
     return v
+
+
+def check_finite(name: str, value) -> float:
+    """``value`` as a float when it is a finite number (any size), else :class:`ImplausibleValueError`."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        v = math.nan
+    if isinstance(value, bool) or not math.isfinite(v):
+        raise ImplausibleValueError(f"{_label(name)} must be a finite number, got {quote(value)}")
+    return v
+
+
+#: the longest piece of user input an error line quotes (a 60 MB token of a broken list once filled a terminal)
+QUOTE_MAX = 80
+
+
+def quote(value, limit: int = QUOTE_MAX) -> str:
+    """``repr(value)`` cut to ``limit`` characters (the length said): what error lines quote of user input."""
+    if isinstance(value, str) and len(value) > limit:
+        return f"{value[:limit]!r}... ({len(value):,} characters)"
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
 
 
 def option_range(limits: tuple[float, float], unit: str = "", why: str = ""):
@@ -274,15 +316,67 @@ def estimate_memory(*, backend: str, K: np.ndarray, width: int, height: int, fra
 
 
 def available_memory() -> int | None:
-    """``MemAvailable`` of ``/proc/meminfo`` in bytes (None where there is no such file)."""
+    """The memory this process may still take, in bytes: ``MemAvailable`` of ``/proc/meminfo``, bounded by the
+    process's address-space limit (``ulimit -v``: the limit minus what the process maps already) and its cgroup's
+    (``memory.max`` minus ``memory.current``, in a container or a batch slot); None where none is known."""
+    import resource
+
+    bounds = []
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
+                    bounds.append(int(line.split()[1]) * 1024)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    soft, _hard = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        bounds.append(max(0, soft - _status_bytes("VmSize")))
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            bounds.append(max(0, int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text())))
+    except (OSError, ValueError):
+        pass
+    return min(bounds) if bounds else None
+
+
+def _status_bytes(key: str) -> int:
+    """``VmSize``/``VmRSS``/... of ``/proc/self/status`` in bytes (0 where unknown)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
                     return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        pass
+    return 0
+
+
+def headroom() -> int | None:
+    """What the process may still allocate, in bytes: ``RADIOMAP_MEMORY_LIMIT`` (bytes for the whole process, for
+    tests and batch systems) minus its resident size when set, else :func:`available_memory`."""
+    limit = os.environ.get("RADIOMAP_MEMORY_LIMIT")
+    if limit:
+        return int(float(limit)) - _status_bytes("VmRSS")
+    return available_memory()
+
+
+#: what a growth must leave free (the rest of a frame's work: images, ray casts, Python)
+GROWTH_RESERVE = 256 * 2 ** 20
+
+
+def check_growth(needed: int, *, what: str, available: int | None = None) -> None:
+    """:class:`MemoryEstimateError` when an allocation of ``needed`` bytes (a map about to grow) would not leave
+    :data:`GROWTH_RESERVE` free: the bound that stops a run before Open3D's allocation fails inside native code
+    (a segfault, or the kernel's OOM killer). ``what`` says what grows."""
+    available = headroom() if available is None else available
+    if available is None or needed + GROWTH_RESERVE <= available:
+        return
+    raise MemoryEstimateError(
+        f"{what} needs {needed / 2 ** 30:,.2f} GiB more but {max(available, 0) / 2 ** 30:.2f} GiB are available; use "
+        "a larger --voxel-size, a smaller --depth-max or a shorter --frames range")
 
 
 def check_memory(estimate: MemoryEstimate, *, available: int | None = None) -> None:
@@ -357,6 +451,10 @@ def check_run(dataset, *, poses: str = "icp", **fusion) -> MemoryEstimate:
         raise DatasetError(f"{name}: has no ground-truth poses for the selected frames (--poses gt); track with "
                            "--poses icp, or add the trajectory (TUM groundtruth.txt, 7-Scenes pose files, "
                            "Redwood trajectory.log)")
+    if poses == "gt":   # camera-to-world expected; world-to-camera given is refused with the fix
+        from mapping.pose_convention import refuse_inverted_poses
+
+        refuse_inverted_poses(dataset, name=str(name))
     estimate = estimate_memory(K=dataset.K, width=dataset.width, height=dataset.height, frames=len(dataset),
                                scene_depth=scene_depth(dataset), **{"backend": "tsdf", **fusion})
     check_memory(estimate)
@@ -391,6 +489,7 @@ __all__ = ["BLOCK_RESOLUTION", "DEPTH_MAX_M", "DEPTH_MIN_M", "DEPTH_SCALE", "EXP
            "FOV_DEG", "ImplausibleValueError", "LENS_APERTURE", "LENS_FOCAL_MM", "LIGHT_CHANGE", "MIN_FUSED_FRACTION",
            "MIN_FUSED_FRAMES", "MemoryEstimate", "MemoryEstimateError", "PIXEL_ASPECT", "SMOOTH_SIGMA_PX",
            "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory", "check_config",
-           "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_fused", "check_fusion",
+           "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_finite", "check_fused",
+           "check_fusion", "check_growth", "headroom", "FLICKER", "GAMMA", "GROWTH_RESERVE", "QUOTE_MAX", "SMOOTHNESS", "quote",
            "check_intrinsics", "check_memory", "check_range", "check_run", "check_voxel_size", "config_options",
            "estimate_memory", "option_range", "principal_point_problem", "scene_depth", "too_little_fused"]

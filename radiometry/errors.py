@@ -9,6 +9,28 @@ message must name the file or parameter at fault and say how to fix it.
 
 from __future__ import annotations
 
+import re
+
+#: an error line is cut to this many characters, and every run of non-blank characters in it to TOKEN_MAX (a
+#: broken list once put a 60 MB "token" into a one-line error)
+LINE_MAX = 2000
+TOKEN_MAX = 160
+
+
+def shorten(message: str, *, line_max: int = LINE_MAX, token_max: int = TOKEN_MAX) -> str:
+    """``message`` on one readable line: newlines become spaces, a token longer than ``token_max`` keeps its
+    start and end around ``...(N characters)...``, and the whole is cut to ``line_max`` characters."""
+    def cut(match: re.Match) -> str:
+        token = match.group(0)
+        return f"{token[:token_max // 2]}...({len(token):,} characters)...{token[-token_max // 4:]}"
+
+    text = " ".join(str(message).split("\n")).replace("\r", " ")
+    if len(text) > token_max:
+        text = re.sub(r"\S{%d,}" % (token_max + 1), cut, text)
+    if len(text) > line_max:
+        text = f"{text[:line_max - 40]} ... ({len(text):,} characters in all)"
+    return text
+
 
 class RadiomapError(Exception):
     """Base class of every error the project raises on bad input or a failed run."""

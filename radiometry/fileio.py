@@ -48,8 +48,15 @@ os.umask(_UMASK)
 def _os_error_message(path: Path, exc: OSError) -> str:
     if exc.errno == errno.ENOSPC:
         return f"cannot write {path}: the disk is full; free some space or choose another output folder"
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+    if exc.errno in (errno.EACCES, errno.EPERM):
         return f"cannot write {path}: permission denied; choose a writable output folder"
+    if exc.errno == errno.EROFS:
+        return f"cannot write {path}: the file system is read-only; choose a writable output folder"
+    if exc.errno == errno.ENAMETOOLONG:
+        return f"cannot write {path}: the name or path is too long; choose a shorter one"
+    if exc.errno in (errno.EMFILE, errno.ENFILE):
+        return (f"cannot write {path}: too many open files; raise the limit (ulimit -n) or close other programs, "
+                "then run again")
     return f"cannot write {path}: {exc.strerror or exc}; choose another output folder"
 
 
@@ -93,6 +100,27 @@ def check_outputs(pairs: Sequence[tuple[str | os.PathLike, str | os.PathLike]], 
         if first != Path(source):
             raise OutputError(f"{first} and {source} would both be written to {target} (one result would replace "
                               f"the other); {fix_shared}")
+
+
+def refuse_inputs(outputs: Sequence[str | os.PathLike], inputs: Sequence[str | os.PathLike], *,
+                  fix: str = "choose another output name (-o); --force never replaces an input") -> None:
+    """Refuse, before anything is written, to write any of ``outputs`` (a command's files, companions included)
+    over one of ``inputs`` (the files it reads), with or without ``--force``: :class:`OutputError` naming both
+    and ``fix``. The same file is recognised through another spelling of its path, a symbolic or a hard link."""
+    names = {_identity(p): Path(p) for p in inputs}
+    inodes = {}
+    for p in inputs:
+        with contextlib.suppress(OSError):
+            st = os.stat(p)
+            inodes[(st.st_dev, st.st_ino)] = Path(p)
+    for out in outputs:
+        original = names.get(_identity(out))
+        if original is None:
+            with contextlib.suppress(OSError):
+                st = os.stat(out)
+                original = inodes.get((st.st_dev, st.st_ino))
+        if original is not None:
+            raise OutputError(f"{out} is the input {original}: writing it would overwrite the original; {fix}")
 
 
 def _identity(path: str | os.PathLike) -> str:
@@ -207,9 +235,22 @@ def pid_alive(pid: int) -> bool:
         return False
     except PermissionError:
         return True
-    except OverflowError:
+    except (OverflowError, ValueError):
         return False
-    return True
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    """True when ``pid`` has exited but its parent has not reaped it yet (``State: Z`` in /proc, Linux): it holds
+    nothing (a batch worker killed a moment ago), so its locks and temporaries are stale."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("State:"):
+                    return line.split()[1] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+    return False
 
 
 def remove_strays(folder: str | os.PathLike) -> list[str]:
@@ -234,7 +275,7 @@ def remove_strays(folder: str | os.PathLike) -> list[str]:
             if entry.is_dir(follow_symlinks=False):
                 if (path / _JOURNAL).is_file():
                     _roll_back(path, folder)
-                    log.warning("%s: a calibration interrupted while it was being published was rolled back "
+                    log.warning("%s: a result interrupted while it was being published was rolled back "
                                 "(the previous files are in place again)", folder)
                 shutil.rmtree(path)
             else:
@@ -250,22 +291,50 @@ def remove_strays(folder: str | os.PathLike) -> list[str]:
 
 def _roll_back(stage: Path, dest: Path) -> None:
     """Undo the renames of a staging folder whose journal lists them: every replaced file is restored from its
-    backup, every file the set added is removed."""
+    backup, every file the set added is removed; a moved entry (a folder, or a name the set retired) is moved back
+    from the backups, the new one it was replaced by back into the staging folder."""
     try:
         entries = json.loads((stage / _JOURNAL).read_text("utf-8"))["files"]
     except FileNotFoundError:  # the journal was never written: no rename had begun
         return
     except (ValueError, KeyError, TypeError):  # cut short while written: no rename had begun
         entries = []
-    for name, existed in reversed(entries):
+    for name, existed, *moved in reversed(entries):
         backup = stage / _BACKUPS / name
-        if existed:
+        if moved:
+            if existed and not os.path.lexists(backup):   # not moved yet: the previous entry is in place
+                continue
+            if os.path.lexists(dest / name) and not os.path.lexists(stage / name):  # the new one was moved in
+                os.rename(dest / name, stage / name)
+            if existed:
+                os.rename(backup, dest / name)
+        elif existed:
             if backup.exists():
                 os.replace(backup, dest / name)
         elif not (stage / name).exists():  # it was renamed into place: the set added it
             with contextlib.suppress(FileNotFoundError):
                 (dest / name).unlink()
     (stage / _JOURNAL).unlink()
+
+
+def published_path(path: str | os.PathLike) -> Path:
+    """``path`` under the name it is (or will be) published as: a path inside a staging folder of this process
+    (at any depth, through nested staging folders) is named by its destination, relative if it was given
+    relative; any other path is returned as is."""
+    path = Path(path)
+    for _ in range(8):
+        for stage, dest in list(_STAGES.items()):
+            for form in (lambda p: Path(os.path.normpath(p)), lambda p: Path(os.path.abspath(p))):
+                inside, top = form(path), form(stage)
+                if inside == top or top in inside.parents:
+                    path = form(dest) / inside.relative_to(top)
+                    break
+            else:
+                continue
+            break
+        else:
+            break
+    return path
 
 
 def _fsync_path(path: Path, *, directory: bool = False) -> None:
@@ -284,6 +353,7 @@ class FileSet:
         self._stages: dict[Path, Path] = {}   # destination folder -> staging folder
         self._committed: list[tuple[Path, Path]] = []
         self._kept: set[Path] = set()         # staging folders whose roll-back failed: the next run finishes it
+        self._retired: dict[Path, set[str]] = {}   # staging folder -> names its commit moves out of the destination
 
     def path(self, final: str | os.PathLike) -> Path:
         """Where to write the file (or file-name prefix) ``final``: the same name in a staging folder beside it."""
@@ -303,15 +373,27 @@ class FileSet:
         return stage / final.name
 
     def final(self, staged: str | os.PathLike) -> Path:
-        """The destination of a path :meth:`path` returned (for records that name the published files)."""
+        """The destination of a path :meth:`path` returned, or of any path inside a staging folder (for records
+        that name the published files)."""
         staged = Path(staged)
         dest = _STAGES.get(staged.parent)
-        return dest / staged.name if dest is not None else staged
+        if dest is not None:
+            staged = dest / staged.name
+        return published_path(staged) if any(TEMP_TAG in part for part in staged.parts) else staged
+
+    def retire(self, final: str | os.PathLike) -> None:
+        """Remove ``final`` (a file or a folder of the previous set that the new one does not replace) as part of
+        the commit: moved away with the renames, put back if they are rolled back."""
+        final = Path(final)
+        stage = self.path(final).parent
+        self._retired.setdefault(stage, set()).add(final.name)
 
     # ---- commit / abort
     def _names(self, stage: Path) -> list[str]:
-        names = sorted(e.name for e in os.scandir(stage) if e.is_file(follow_symlinks=False)
-                       and not _TEMP_RE.match(e.name) and e.name != _JOURNAL)
+        """The files and folders staged in ``stage`` (the model last)."""
+        names = sorted(e.name for e in os.scandir(stage) if (e.is_file(follow_symlinks=False) or
+                       e.is_dir(follow_symlinks=False)) and not _TEMP_RE.match(e.name)
+                       and e.name not in (_JOURNAL, _BACKUPS))
         if self.primary is not None and _same_folder(_STAGES[stage], self.primary.parent) and \
                 self.primary.name in names:  # the model last: its companions are in place before it changes
             names.remove(self.primary.name)
@@ -326,29 +408,41 @@ class FileSet:
         return stages
 
     def commit(self) -> None:
+        """Rename the staged files into place (a folder, or a name replaced by one, is moved: the previous entry
+        into the backups first), after the names :meth:`retire` moves away, the model last; a journal lists them
+        until the last rename (the commit point)."""
         current = None
         try:
             plans = []
             for stage in self._order():
                 dest = _STAGES[stage]
-                names = self._names(stage)
-                entries = []
-                for name in names:
+                entries = [[name, True, "moved"] for name in sorted(self._retired.get(stage, ()))
+                           if os.path.lexists(dest / name)]
+                for name in self._names(stage):
                     current = dest / name
+                    if (stage / name).is_dir() or ((dest / name).is_dir() and not (dest / name).is_symlink()):
+                        entries.append([name, os.path.lexists(dest / name), "moved"])
+                        continue
                     _fsync_path(stage / name)
-                    existed = _backup(dest / name, stage / _BACKUPS / name)
-                    entries.append([name, existed])
-                plans.append((stage, dest, names, entries))
-            for stage, dest, names, entries in plans:
-                current = dest / names[0] if names else dest
+                    entries.append([name, _backup(dest / name, stage / _BACKUPS / name)])
+                plans.append((stage, dest, entries))
+            for stage, dest, entries in plans:
+                current = dest / entries[0][0] if entries else dest
                 self._committed.append((stage, dest))
                 with open(stage / _JOURNAL, "w", encoding="utf-8") as fh:
                     json.dump({"pid": os.getpid(), "files": entries}, fh)
                     fh.flush()
                     os.fsync(fh.fileno())
-                for name in names:
+                for name, existed, *moved in entries:
                     current = dest / name
-                    os.replace(stage / name, dest / name)
+                    if not moved:
+                        os.replace(stage / name, dest / name)
+                        continue
+                    if existed:
+                        (stage / _BACKUPS).mkdir(exist_ok=True)
+                        os.rename(dest / name, stage / _BACKUPS / name)
+                    if os.path.lexists(stage / name):
+                        os.rename(stage / name, dest / name)
                 current = dest
                 _fsync_path(dest, directory=True)
         except OSError as exc:

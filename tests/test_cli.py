@@ -216,4 +216,7 @@ def test_range_errors_name_the_option_the_user_typed(field, option):
 
     with pytest.raises(ValueError) as exc:
         check_exposure_factor(float("inf"), field)
-    assert str(exc.value).startswith(f"{option} inf is outside")
+    assert str(exc.value).startswith(f"{option} inf is not a finite number")
+    with pytest.raises(ValueError) as exc:
+        check_exposure_factor(1e9, field)
+    assert str(exc.value).startswith(f"{option} 1e+09 is outside")

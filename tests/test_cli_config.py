@@ -212,6 +212,6 @@ def test_old_spellings_still_work_and_warn(room, tmp_path):
     assert res.exit_code == 2 and "--reference-exposure is the old spelling of --display-exposure" in res.output
     # an old spelling's value is checked like the new one's
     res = invoke("reconstruct", room, "-o", tmp_path / "neg", "--reference-exposure", "-1")
-    assert res.exit_code == 2 and "--reference-exposure" in res.output and "must be positive" in res.output
+    assert res.exit_code == 1 and "--reference-exposure" in res.output and "outside the sensible range" in res.output
     res = invoke("reconstruct", room, "-o", tmp_path / "raw", "--mesh-exposure", "first")
     assert res.exit_code == 2 and "applies with exposure compensation only" in res.output

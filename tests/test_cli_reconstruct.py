@@ -88,7 +88,7 @@ def test_errors_are_one_line(tmp_path):
     res = run(str(seq), "-o", str(tmp_path / "c"), "--vignetting", str(seq / "camera-intrinsics.txt"))
     assert res.exit_code == 2 and "--vignetting needs --response" in res.output
     res = run(str(seq), "-o", str(tmp_path / "d"), "--voxel-size", "-1")
-    assert res.exit_code == 2 and "must be positive" in res.output
+    assert res.exit_code == 1 and "--voxel-size -1 m is outside the sensible range" in res.output
     res = run(str(seq), "-o", str(tmp_path / "e"), "--intrinsics", "585,585,900,240", "--no-progress")
     assert res.exit_code == 1 and "principal point" in res.output
 

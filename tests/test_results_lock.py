@@ -233,21 +233,31 @@ def test_results_subfolders_are_listed_and_removed_by_the_next_force_run(tmp_pat
 
 
 def test_a_killed_run_never_says_complete(long_seq, room, tmp_path):
-    """SIGKILL of a --force run over a finished one: metrics.json says "running" (not the previous run's
-    "complete"), RUNNING stays, the previous run's mesh is gone; the next run takes the stale lock over."""
+    """SIGKILL of a --force run over a finished one (issue 31): the previous run stands byte for byte (the new run
+    writes into a staging folder inside OUT, published only when complete); a killed run on an empty folder never
+    says complete (RUNNING stays); the next run takes the stale lock over and removes the killed run's staging."""
     seq = tum_copy(room, tmp_path / "seq", indices=range(3))
     out = tmp_path / "run"
     assert reconstruct(seq, out).exit_code == 0 and is_complete(out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     victim = start_reconstruct(long_seq, out, "--force", "--depth-max", "5")
-    wait_for(lambda: running_status(out), victim, "metrics.json saying 'running'")
+    wait_for(lambda: any(running_status(d) for d in out.glob(".tmp-radiomap-*")), victim,
+             "a staged metrics.json saying 'running'")
     victim.kill()
     victim.communicate(timeout=60)
-    assert json.loads((out / "metrics.json").read_text())["status"] == "running"
-    assert (out / "RUNNING").is_file() and not is_complete(out) and not (out / "mesh.ply").exists()
-    assert (out / LOCK_NAME).is_file()                                  # left by the killed process
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file() and p.name != LOCK_NAME} == before
+    assert is_complete(out) and (out / LOCK_NAME).is_file()             # the lock left by the killed process
     error_line(reconstruct(seq, out), out, "already holds the results of a run", "pass --force")
     result = reconstruct(seq, out, "--force")
     assert result.exit_code == 0 and is_complete(out) and not (out / LOCK_NAME).exists()
+    assert not list(out.glob(".tmp-radiomap-*"))
+    # a first run killed mid-way: marked incomplete, never complete
+    fresh = tmp_path / "fresh"
+    victim = start_reconstruct(long_seq, fresh, "--depth-max", "5")
+    wait_for(lambda: running_status(fresh), victim, "metrics.json saying 'running'")
+    victim.kill()
+    victim.communicate(timeout=60)
+    assert (fresh / "RUNNING").is_file() and not is_complete(fresh)
 
 
 def test_results_folder_refusals_release_the_lock(tmp_path):
@@ -323,8 +333,11 @@ def test_a_simulation_folder_with_force_removes_only_an_earlier_simulation(tmp_p
         SequenceFolder(seq)
     assert sorted(p.name for p in seq.iterdir()) == ["exposure_00.png", "notes.txt", SEQUENCE_MANIFEST, "rgb",
                                                      "rgb.txt", "truth"]
-    with SequenceFolder(seq, force=True) as folder:
-        assert sorted(p.name for p in seq.iterdir()) == [LOCK_NAME, "RUNNING", "notes.txt"]
+    with SequenceFolder(seq, force=True) as folder:   # the complete earlier simulation stands until this one is out
+        assert folder.path.parent == seq and folder.path.name.startswith(".tmp-radiomap-")
+        assert sorted(p.name for p in seq.iterdir() if p != folder.path) == [
+            LOCK_NAME, "exposure_00.png", "notes.txt", SEQUENCE_MANIFEST, "rgb", "rgb.txt", "truth"]
+        assert sorted(p.name for p in folder.path.iterdir()) == ["RUNNING"]
         folder.complete()
     assert sorted(p.name for p in seq.iterdir()) == ["notes.txt"]        # no MANIFEST: the layout is fixed
     (seq / "rgb").mkdir()

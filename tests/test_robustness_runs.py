@@ -186,13 +186,14 @@ def test_vignetting_failing_half_way_keeps_the_old_model(paper, tmp_path, monkey
 
 def test_reconstruct_failing_half_way_never_mixes_two_runs(room, tmp_path, monkeypatch):
     """--force over a finished run; the mesh export dies half-way: one-line error, no half mesh, and nothing of the
-    previous run left beside the new one (--force removed it before the run began: mapping.export.ResultsFolder);
-    the folder is marked incomplete and metrics.json does not say "complete"."""
+    new run beside the previous one: the previous run stands byte for byte (issue 31: the new run is staged and
+    published only when complete, mapping.export.ReconstructionFolder); the lock is released."""
     import trimesh
 
     seq = tum_copy(room, tmp_path / "seq", indices=range(8))
     out = tmp_path / "run"
     assert reconstruct(seq, out).exit_code == 0
+    before = snapshot(out)
     export = trimesh.Trimesh.export
 
     def half_then_full_disk(self, file_obj=None, file_type=None, **kwargs):
@@ -202,10 +203,11 @@ def test_reconstruct_failing_half_way_never_mixes_two_runs(room, tmp_path, monke
 
     monkeypatch.setattr(trimesh.Trimesh, "export", half_then_full_disk)
     error_line(reconstruct(seq, out, "--force"), out / "mesh.ply", "the disk is full")
-    assert not (out / "mesh.ply").exists()
-    assert json.loads((out / "metrics.json").read_text())["status"] != "complete"
-    assert (out / "RUNNING").is_file() and not (out / "LOCK").exists()
+    assert snapshot(out) == before
+    assert json.loads((out / "metrics.json").read_text())["status"] == "complete"
+    assert not (out / "RUNNING").exists() and not (out / "LOCK").exists()
     no_temporaries(out)
+    assert not list(out.glob(".tmp-radiomap-*"))
 
 
 # ==================================================================================================

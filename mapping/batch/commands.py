@@ -35,7 +35,8 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
               run starts and the dataset, the colour model and the pipeline's configuration are added.
     settings: the summary's settings line (which value came from where)."""
     from mapping.datasets import describe_dataset, intrinsics_text
-    from mapping.export import ResultsFolder, plain_value
+    from mapping.export import plain_value
+    from mapping.publication import ReconstructionFolder
     from mapping.factory import ReconstructConfig, build_run
     from mapping.pipeline import reconstruct
     from radiometry.tables import format_table
@@ -43,7 +44,7 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
     config = ReconstructConfig(**options)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
     settings += ", " + intrinsics_text(kwargs["dataset"])
-    folder = ResultsFolder(config.output, force=config.force)
+    folder = ReconstructionFolder(config.output, force=config.force)   # --force keeps a complete run until replaced
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}

@@ -74,24 +74,82 @@ class LazyGroup(click.Group):
         try:
             return super().invoke(ctx)
         except RadiomapError as exc:
-            click.echo(f"radiomap: error: {exc}", err=True)
-            ctx.exit(1)
+            _error(ctx, str(exc))
+        except click.ClickException as exc:   # click's usage errors quote the value given: cut it too
+            from radiometry.errors import shorten
+
+            exc.message = shorten(exc.message)
+            raise
         except KeyboardInterrupt:
-            click.echo("radiomap: interrupted", err=True)
-            ctx.exit(130)
+            _interrupted(ctx)
         except MemoryError:
-            click.echo("radiomap: error: out of memory; use a larger --voxel-size, a shorter --frames range or a "
-                       "smaller --depth-max", err=True)
-            ctx.exit(1)
+            _error(ctx, "out of memory; use a larger --voxel-size, a shorter --frames range or a smaller --depth-max")
+        except RecursionError:   # a structure nested too deeply for Python (a JSON file, say): one line, not 1000
+            _error(ctx, "input nested too deeply to read (Python's recursion limit); check the files given")
+        except OSError as exc:
+            if _INTERRUPTED:
+                _interrupted(ctx)
+            # an operating-system limit that no reader turned into a RadiomapError: the path and the reason
+            where = exc.filename if exc.filename is not None else "a file"
+            _error(ctx, f"cannot use {where}: {exc.strerror or exc}; {_os_fix(exc)}")
         except RuntimeError as exc:
+            if _INTERRUPTED:
+                _interrupted(ctx)
             if "[Open3D Error]" not in str(exc):
                 raise
             from mapping._open3d import open3d_message  # open3d is loaded: it raised
 
             logging.getLogger("radiomap").debug("Open3D error", exc_info=True)
-            click.echo(f"radiomap: error: Open3D failed: {open3d_message(exc)} (check the input and the options; "
-                       "-vv logs the details)", err=True)
-            ctx.exit(1)
+            _error(ctx, f"Open3D failed: {open3d_message(exc)} (check the input and the options; -vv logs the "
+                        "details)")
+        except Exception:
+            if _INTERRUPTED:  # whatever Ctrl-C broke on its way (an import cut half-way raises ImportError later)
+                _interrupted(ctx)
+            raise
+
+
+#: set by the SIGINT/SIGTERM handlers (the signal's number): an exception raised after the signal is a consequence of
+#: it, reported as the interruption
+_INTERRUPTED = 0
+
+
+def _on_sigint(signum, frame):
+    """Ctrl-C (and SIGTERM, where it had its default action) unwind the command like KeyboardInterrupt, so that
+    locks are released and staged files removed; the signal is noted for the message and the exit code."""
+    global _INTERRUPTED
+    _INTERRUPTED = signum
+    raise KeyboardInterrupt
+
+
+def _error(ctx: click.Context, message: str) -> None:
+    from radiometry.errors import shorten
+
+    click.echo(f"radiomap: error: {shorten(message)}", err=True)
+    ctx.exit(1)
+
+
+def _interrupted(ctx: click.Context) -> None:
+    import signal
+
+    if _INTERRUPTED == signal.SIGTERM:
+        click.echo("radiomap: terminated (SIGTERM)", err=True)
+        ctx.exit(128 + signal.SIGTERM)
+    click.echo("radiomap: interrupted", err=True)
+    ctx.exit(130)
+
+
+def _os_fix(exc: OSError) -> str:
+    import errno
+
+    return {errno.ENAMETOOLONG: "use a shorter name or path",
+            errno.EMFILE: "raise the limit of open files (ulimit -n) or give fewer files",
+            errno.ENFILE: "the system has too many files open; close some programs and retry",
+            errno.EACCES: "check the path and its permissions", errno.EPERM: "check the path and its permissions",
+            errno.EROFS: "the file system is read-only; choose another output folder",
+            errno.ENOSPC: "the disk is full; free some space or choose another output folder",
+            errno.ELOOP: "a symbolic link loops; fix the link",
+            errno.ENOTDIR: "a part of the path is a file, not a folder; check the path"}.get(
+        exc.errno, "check the path and the system's limits")
 
 
 def _print_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
@@ -125,10 +183,28 @@ def cli(verbose: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _on_sigint)     # not where SIGINT is ignored (a shell's background job)
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _on_sigint)
     try:
         cli.main(args=argv, prog_name="radiomap", standalone_mode=True)
     except SystemExit as exc:
         return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+    except KeyboardInterrupt:       # outside a command (click's own handling): still one line
+        terminated = _INTERRUPTED == signal.SIGTERM
+        click.echo("radiomap: terminated (SIGTERM)" if terminated else "radiomap: interrupted", err=True)
+        return 128 + signal.SIGTERM if terminated else 130
+    finally:
+        if signal.getsignal(signal.SIGINT) is _on_sigint:
+            # the run is over: as the program (argv from the command line), a late Ctrl-C at exit is ignored
+            signal.signal(signal.SIGINT, signal.SIG_IGN if argv is None else signal.default_int_handler)
+        if signal.getsignal(signal.SIGTERM) is _on_sigint:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN if argv is None else signal.SIG_DFL)
     return 0
 
 

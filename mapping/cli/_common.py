@@ -23,8 +23,9 @@ from click.core import ParameterSource
 from mapping.datasets import FORMATS
 from mapping.factory import BACKENDS
 from mapping.export import plain_value
+from mapping.validation import DEPTH_MAX_M, DEPTH_SCALE, ImplausibleValueError, VOXEL_SIZE_M
 from radiometry import __version__
-from radiometry.errors import RadiomapError
+from radiometry.errors import RadiomapError, shorten
 
 # the version of config.json's replay contract ("parameters" = the command's options by their Python names)
 CONFIG_VERSION = 1
@@ -42,6 +43,34 @@ class ConfigFileError(RadiomapError):
     """A ``--config`` file cannot be replayed (not JSON, another command or version, an unknown key)."""
 
 
+class Number(click.ParamType):
+    """A float option checked by :mod:`mapping.validation` as it is parsed: finite (``inf``, ``-inf`` and ``nan``
+    are refused, which click's ``float`` and ``FloatRange`` let through) and, with ``limits``, within the sensible
+    range (:func:`mapping.validation.check_range`; ``open_max`` excludes the upper limit). Every float option of
+    every command is of this type (``tests/test_robustness_options.py`` walks them all). A refusal is one line
+    (``radiomap: error: --voxel-size inf is not a finite number; ...``, exit 1), before anything is read or
+    written."""
+
+    name = "FLOAT"
+
+    def __init__(self, limits: tuple[float, float] | None = None, unit: str = "", why: str = "", *,
+                 open_max: bool = False) -> None:
+        self.limits, self.unit, self.why, self.open_max = limits, unit, why, open_max
+
+    def convert(self, value, param, ctx):
+        from mapping.validation import check_finite, check_range, quote
+
+        label = max(param.opts, key=len) if isinstance(param, click.Option) else (param.name if param else "value")
+        if isinstance(value, str):
+            try:
+                value = float(value.strip())
+            except ValueError:
+                self.fail(f"{quote(value)} is not a valid float", param, ctx)
+        if self.limits is None:
+            return check_finite(label, value)
+        return check_range(label, value, self.limits, self.unit, self.why, open_max=self.open_max)
+
+
 class FrameRange(click.ParamType):
     """``A:B:S`` (Python slice syntax, each part optional) -> ``slice``."""
 
@@ -52,18 +81,24 @@ class FrameRange(click.ParamType):
             return value
         parts = str(value).split(":")
         if len(parts) > 3:
-            self.fail(f"{value!r} is not A:B:S (e.g. 0:100:2)", param, ctx)
+            self.fail(f"{_quote(value)} is not A:B:S (e.g. 0:100:2)", param, ctx)
         try:
             nums = [int(p) if p.strip() else None for p in parts]
         except ValueError:
-            self.fail(f"{value!r} is not A:B:S with whole numbers (e.g. 0:100:2)", param, ctx)
+            self.fail(f"{_quote(value)} is not A:B:S with whole numbers (e.g. 0:100:2)", param, ctx)
         while len(nums) < 3:
             nums.append(None)
         if len(parts) == 1 and nums[0] is not None:  # a single number N means the first N frames
             nums = [0, nums[0], None]
         if nums[2] is not None and nums[2] <= 0:
-            self.fail(f"the step in {value!r} must be positive", param, ctx)
+            self.fail(f"the step in {_quote(value)} must be positive", param, ctx)
         return slice(*nums)
+
+
+def _quote(value) -> str:
+    from mapping.validation import quote
+
+    return quote(value)
 
 
 def run_manifest(command: str, params: dict[str, Any]) -> dict[str, Any]:
@@ -122,8 +157,12 @@ def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[
     except OSError as exc:
         raise ConfigFileError(f"{path}: cannot read it ({exc.strerror or exc}); pass RUN/config.json of an earlier "
                               "run") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigFileError(f"{path}: not a JSON file ({exc}); pass the config.json a radiomap run wrote") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        # JSONDecodeError, and what Python's reader refuses for structural reasons: numbers of more than 4300
+        # digits (ValueError), nesting deeper than the recursion limit (RecursionError)
+        why = "nested too deeply for Python's JSON reader" if isinstance(exc, RecursionError) else shorten(str(exc))
+        raise ConfigFileError(f"{path}: not a JSON file radiomap can read ({why}); pass the config.json a radiomap "
+                              "run wrote") from None
     if not isinstance(doc, dict):
         raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
                               "pass the config.json a reconstruct or compare run wrote")
@@ -213,6 +252,15 @@ class RadiomapCommand(click.Command):
         aliased = self._resolve_aliases(ctx, args)
         try:
             rest = super().parse_args(ctx, args)
+        except ImplausibleValueError as exc:   # a Number option: name the config key when the value came from it
+            config = ctx.meta.get(_META_CONFIG)
+            name = next((p.name for p in self.params if isinstance(p.type, Number) and
+                         ctx.get_parameter_source(p.name) is ParameterSource.DEFAULT_MAP and
+                         max(p.opts, key=len) in str(exc)), None) if config is not None else None
+            if name is None:
+                raise
+            raise ConfigFileError(f"{config}: key 'parameters.{name}': {exc} (fix it there or give it on the "
+                                  "command line)") from None
         except click.BadParameter as exc:
             if exc.param is not None and exc.param.name in aliased:
                 raise click.BadParameter(exc.message, ctx=ctx, param_hint=aliased[exc.param.name]) from None
@@ -338,6 +386,18 @@ DIFFERENT_DEFAULTS = {
 }
 
 
+def refuse_sequence_as_output(sequence, output) -> None:
+    """A results folder is never the sequence it is made from (``--force`` would clean result names in the input,
+    and results would mix with the frames): :class:`radiometry.errors.OutputError` in one line."""
+    from radiometry.errors import OutputError
+
+    if sequence is not None and output is not None and \
+            os.path.realpath(os.fspath(sequence)) == os.path.realpath(os.fspath(output)):
+        raise OutputError(f"-o {output} is the input sequence {sequence}: the results would be written among its "
+                          "frames; choose another output folder (e.g. a folder beside it); --force never writes into "
+                          "an input")
+
+
 def warn_far_depth(fraction: float, depth_max: float, *, threshold: float = 0.2) -> None:
     """Warn on stderr when more than ``threshold`` of the valid depth lay beyond ``--depth-max`` (ICP then
     sees fewer surfaces and may slide along what is left)."""
@@ -360,7 +420,9 @@ def sequence_options(f):
     """--frames, --depth-scale, --intrinsics and --format: which frames of SEQUENCE and how to read them."""
     options = [
         click.option("--frames", type=FrameRange(), default=None, help="Frame range and stride A:B:S (e.g. 0:300:2)."),
-        click.option("--depth-scale", type=float, default=None, callback=positive,
+        click.option("--depth-scale", type=Number(DEPTH_SCALE, "raw units per metre",
+                                                  "1 for float metres, 1000 for millimetres, 5000 for TUM"),
+                     default=None,
                      help="Raw depth units per metre [format default: TUM 5000, 7-Scenes/Redwood 1000]."),
         click.option("--intrinsics", type=str, default=None,
                      help="fx,fy,cx,cy or a file (3x3 matrix, 'fx fy cx cy', Open3D camera JSON) "
@@ -378,9 +440,11 @@ def fusion_options(f):
     options = [
         click.option("--backend", type=click.Choice(list(BACKENDS)), default="tsdf", show_default=True,
                      help="Fusion backend."),
-        click.option("--voxel-size", type=float, default=0.01, show_default=True, callback=positive,
+        click.option("--voxel-size", type=Number(VOXEL_SIZE_M, "m", "1 mm for small objects, 5 mm-2 cm for rooms"),
+                     default=0.01, show_default=True,
                      help="TSDF voxel size in metres."),
-        click.option("--depth-max", type=float, default=3.0, show_default=True, callback=positive,
+        click.option("--depth-max", type=Number(DEPTH_MAX_M, "m", "RGB-D cameras measure up to 4-10 m, 20 m at most"),
+                     default=3.0, show_default=True,
                      help="Depth beyond this many metres is neither tracked nor fused."),
     ]
     for option in reversed(options):
@@ -406,7 +470,8 @@ def evaluation_options(f):
     return f
 
 
-__all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange", "PoseSource",
-           "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
-           "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive", "replay_manifest",
-           "run_manifest", "sequence_options", "settings_line", "warn_far_depth"]
+__all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange", "Number",
+           "PoseSource", "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
+           "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive",
+           "refuse_sequence_as_output", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
+           "warn_far_depth"]

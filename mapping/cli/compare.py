@@ -118,6 +118,9 @@ def task_arguments(ctx: click.Context) -> dict:
     from mapping.batch.commands import MethodChoiceError, compare_methods
 
     p = ctx.params
+    from mapping.cli._common import refuse_sequence_as_output
+
+    refuse_sequence_as_output(p["sequence"], p["output"])
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     methods = p["methods"]
     if methods is not None and p["exposure_compensation"] and \

@@ -7,8 +7,9 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
-                                 fusion_options, pose_arguments, pose_options, positive, replay_manifest,
+                                 fusion_options, Number, pose_arguments, pose_options, replay_manifest,
                                  sequence_options, settings_line, warn_far_depth)
+from mapping.validation import EXPOSURE_FACTOR
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -29,7 +30,8 @@ exposure compensation at --mesh-exposure; with --backend surfel surfels.ply, and
 --surfel-mesh), trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9
 of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --config) and summary.txt;
 with exposure compensation exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source
-map|frame|fallback). A RUNNING file marks a run that has not finished.
+map|frame|fallback). A RUNNING file marks a run that has not finished. With --force over a complete run,
+that run stays in OUT until the new one is complete and replaces it (never neither).
 """
 
 
@@ -68,7 +70,8 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--surfel-mesh", is_flag=True,
               help="With --backend surfel: also write surfels_mesh.ply, a Poisson mesh of the stable surfels "
                    "(Open3D; beside surfels.ply).")
-@click.option("--display-exposure", type=float, default=1.0, show_default=True, callback=positive, metavar="K",
+@click.option("--display-exposure", type=Number(EXPOSURE_FACTOR, "", "an exposure factor: 13 stops either way"),
+              default=1.0, show_default=True, metavar="K",
               help="Exposure k at which map irradiance becomes display levels: the histogram's units and, without "
                    "exposure compensation, the mesh colours (with it, k relative to the first frame; the mesh "
                    "then follows --mesh-exposure).")
@@ -112,6 +115,9 @@ def task_arguments(ctx: click.Context) -> dict:
     :func:`mapping.batch.commands.reconstruct_command`: plain values, the replay manifest and the settings line
     (what ``radiomap reconstruct`` runs, and what each task of ``radiomap batch reconstruct`` runs)."""
     p = ctx.params
+    from mapping.cli._common import refuse_sequence_as_output
+
+    refuse_sequence_as_output(p["sequence"], p["output"])
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
     response, backend = p["response"], p["backend"]
     if p["vignetting"] is not None and response is None:

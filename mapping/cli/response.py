@@ -7,20 +7,26 @@ from pathlib import Path
 
 import click
 
+from mapping.cli._common import Number
+from mapping.validation import GAMMA, SMOOTHNESS
+
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
 #: the names of radiometry.response_fit.FITTERS (listed here so that --help imports no NumPy)
 RESPONSE_METHODS = ("auto", "debevec", "engel", "loglog", "opencv-debevec", "robertson")
 
 
-class LambdaType(click.ParamType):
-    """A positive number or ``auto``."""
+class LambdaType(Number):
+    """A positive number (:data:`mapping.validation.SMOOTHNESS`) or ``auto``."""
 
     name = "LAMBDA|auto"
+
+    def __init__(self) -> None:
+        super().__init__(SMOOTHNESS, "", "Debevec's default 10, the log-log prior's 0.1")
 
     def convert(self, value, param, ctx):
         if isinstance(value, str) and value.strip().lower() == "auto":
             return "auto"
-        return click.FloatRange(min=0, min_open=True).convert(value, param, ctx)
+        return super().convert(value, param, ctx)
 
 EPILOG = """\b
 Examples:
@@ -69,7 +75,7 @@ the 1/t column of image_list.txt, are ignored). Beside OUT the command writes OU
 @click.option("--channel", type=click.Choice(["mean", "R", "G", "B"], case_sensitive=False), default=None,
               help="For a .txt (pcalib, one channel) OUTPUT of colour images: the channel to write [default: "
                    "mean, with a warning].")
-@click.option("--gamma", type=click.FloatRange(min=0.2, max=5.0), default=None,
+@click.option("--gamma", type=Number(GAMMA, "", "sRGB is about 2.2"), default=None,
               help="Instead of calibrating, write the standard response f^-1(I) = (I/255)^GAMMA (2.2: the "
                    "assumption for a camera whose response is unknown). No FOLDER.")
 @click.option("--linear", is_flag=True, help="Instead of calibrating, write the linear response f^-1(I) = I/255. "
@@ -94,7 +100,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from mapping.cli._common import run_manifest
     from radiometry.tables import format_table
     from radiometry.errors import CalibrationError, DatasetError, OutputError
-    from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set
+    from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set, refuse_inputs
     from radiometry.api import calibrate_response
     from radiometry.response_fit import blue_fill_mask, find_times_file, load_brackets
 
@@ -145,6 +151,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     used_times = times_file if times_file is not None else find_times_file(folder)
+    refuse_inputs([output, output.with_suffix(".png"), output.with_suffix(".json")],
+                  [used_times, *(p for p in folder.iterdir() if p.is_file())])
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     if mask_blue:
         mask = blue_fill_mask(images)

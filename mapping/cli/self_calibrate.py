@@ -57,6 +57,9 @@ def task_arguments(ctx: click.Context) -> dict:
     from radiometry.formats import load_response
 
     p = ctx.params
+    from mapping.cli._common import refuse_sequence_as_output
+
+    refuse_sequence_as_output(p["sequence"], p["output"])
     if p["response_path"]:
         load_response(p["response_path"])       # a bad file fails here, before anything is written
     frames = p["frames"]

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import RadiomapCommand, deprecated_alias
-from mapping.validation import EXPOSURE_TIME_S, LENS_APERTURE, LENS_FOCAL_MM, LIGHT_CHANGE, option_range
+from mapping.cli._common import Number, RadiomapCommand, deprecated_alias
+from mapping.validation import EXPOSURE_TIME_S, FLICKER, LENS_APERTURE, LENS_FOCAL_MM, LIGHT_CHANGE
 
 KIND_DEFAULT_FRAMES = {"room": 100, "paper": 300, "brackets": 9}
 
@@ -55,23 +55,21 @@ DIR/truth/; DIR/radiomap_sequence.json describes the sequence.
               help="Use a DSO 16-bit vignette.png (resampled to the image size) as the vignetting.")
 @click.option("--lensfun", "lensfun_lens", default=None, metavar="LENS",
               help="Use the vignetting of a lensfun lens (part of its name).")
-@click.option("--lens-focal", type=float, default=None, help="Focal length (mm) for --lensfun.",
-              callback=option_range(LENS_FOCAL_MM, "mm"))
-@click.option("--lens-aperture", type=float, default=None, help="Aperture (f-number) for --lensfun.",
-              callback=option_range(LENS_APERTURE, "(f-number)"))
+@click.option("--lens-focal", type=Number(LENS_FOCAL_MM, "mm"), default=None, help="Focal length (mm) for --lensfun.")
+@click.option("--lens-aperture", type=Number(LENS_APERTURE, "(f-number)"), default=None,
+              help="Aperture (f-number) for --lensfun.")
 @click.option("--lensfun-db", type=click.Path(exists=True, path_type=Path), default=None,
               help="lensfun database folder (default: $RADIOMAP_LENSFUN_DB or ../shared/data/lensfun/db).")
 @click.option("--crf", default=None, metavar="FAMILY|FILE",
               help="Response: linear, gamma, s_curve, or a pcalib.txt / radiomap .npz response file.")
 @click.option("--auto-exposure/--fixed-exposure", default=True, show_default=True,
               help="Room: auto exposure and white balance, or both fixed (metered on the first frame).")
-@click.option("--exposure-time", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
-              callback=option_range(EXPOSURE_TIME_S, "s"),
+@click.option("--exposure-time", type=Number(EXPOSURE_TIME_S, "s"), default=None, metavar="SECONDS",
               help="Exposure time in seconds (room: the start or fixed value; paper: the fixed value).")
-@click.option("--light-change", type=click.FloatRange(min=0, min_open=True), default=None,
-              callback=option_range(LIGHT_CHANGE, "x"),
+@click.option("--light-change", type=Number(LIGHT_CHANGE, "x"), default=None,
               help="Room: the light switches to this factor of its brightness halfway through.")
-@click.option("--flicker", type=click.FloatRange(0.0, 0.5, max_open=True), default=0.0, show_default=True,
+@click.option("--flicker", type=Number(FLICKER, "", "a relative amplitude", open_max=True), default=0.0,
+              show_default=True,
               help="Paper: relative amplitude of a smooth light flicker (recorded in truth).")
 @click.option("--scene", "bracket_scene", type=click.Choice(["chart", "room"]), default="chart",
               show_default=True, help="Brackets: an HDR chart or a view of the room.")

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from mapping.validation import SMOOTH_SIGMA_PX, option_range
+from mapping.cli._common import Number
+from mapping.validation import SMOOTH_SIGMA_PX
 from radiometry.vignetting_calibration import MODELS
 
 EPILOG = """\b
@@ -41,8 +42,8 @@ DEFAULT_SMOOTH_SIGMA = 1.0
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Read at most this many frames.")
 @click.option("--no-drift-correction", is_flag=True,
               help="Do not estimate per-frame brightness drift (plain average as in radical).")
-@click.option("--smooth-sigma", type=float, default=DEFAULT_SMOOTH_SIGMA, show_default=True,
-              callback=option_range(SMOOTH_SIGMA_PX, "px", "0 disables the smoothing, 2-3 suits thin sweeps"),
+@click.option("--smooth-sigma", type=Number(SMOOTH_SIGMA_PX, "px", "0 disables the smoothing, 2-3 suits thin sweeps"),
+              default=DEFAULT_SMOOTH_SIGMA, show_default=True,
               help="LUT only: denoise the per-pixel residual to the radial fit with a Gaussian of this many "
                    "pixels (0 = off). Raise it (2-3) for short or noisy sweeps with few samples per pixel; "
                    "lower it to keep fine non-radial detail when every pixel has many samples.")
@@ -64,7 +65,8 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
     """
     from radiometry.errors import OutputError
-    from radiometry.fileio import atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set
+    from radiometry.fileio import (atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set,
+                                   refuse_inputs)
     from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
     from radiometry.plots_vignetting import save_calibration_figures, save_coverage_png
     from radiometry.vignetting_calibration import calibration_summary, collect_vignetting, fit_vignetting
@@ -80,6 +82,13 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     if out.suffix.lower() not in VIGNETTING_WRITERS:
         raise OutputError(f"{out}: unknown model format {out.suffix!r}; use .npz (radiomap), .vgn (radical) "
                           "or .png (DSO vignette)")
+    prefix = out.with_name(out.stem)
+    outputs = [out, *(prefix.with_name(f"{prefix.name}_{name}") for name in (
+        "coverage.png", "vignetting.png", "stderr.png", "profiles.png", "residuals.png", "summary.txt",
+        "summary.json"))] + ([Path(save_accumulation)] if save_accumulation else [])
+    source = Path(frames)
+    inputs = [response_path] + ([p for p in source.iterdir() if p.is_file()] if source.is_dir() else [source])
+    refuse_inputs(outputs, inputs)   # with or without --force: never over a frame of the sweep or the response
     check_overwrite(out, force=force)
     if save_accumulation:
         check_overwrite(save_accumulation, force=force)
@@ -111,7 +120,6 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
         lines.append(budget_text(facts["error_budget"], model.channels))
     lines.extend(_truth_free_lines(acc, response, model_name, fit_options, facts, not no_drift_correction))
     text = "\n".join(lines)
-    prefix = out.with_name(out.stem)
     # the model, its figures, summaries and the accumulation: all published together or none (the old set stays)
     with publish_set(out) as files:
         save_vignetting(model, files.path(out))

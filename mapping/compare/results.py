@@ -33,6 +33,7 @@ from mapping.compare.colour_error import ColourError
 from mapping.compare.geometry import MapGeometry
 from mapping.compare.methods import METHOD_NAMES, Method
 from mapping.export import MANIFEST, RUNNING_MARKER, ResultsFolder
+from mapping.publication import StagedResultsFolder
 from radiometry.tables import format_table
 
 TABLE_COLUMNS = ["method", "description", "frames fused", "pairs", "L1 mean", "L1 median", "L1 p90",
@@ -142,11 +143,13 @@ class CompareResult:
 
 
 
-class ComparisonFolder(ResultsFolder):
+class ComparisonFolder(StagedResultsFolder):
     """The comparison's folder (``OUT``): a :class:`~mapping.export.ResultsFolder` whose results are the files of
-    the module doc's layout and one results folder per method (:meth:`subfolder`). ``force`` removes the previous
-    comparison's files and method folders (those its ``.radiomap-files.json`` lists, and folders named like a
-    method) before the new one starts; the user's other files are left alone."""
+    the module doc's layout and one results folder per method (:meth:`subfolder`). ``force`` over a complete
+    comparison stages the new one and publishes it as one set, ``compare.json`` last
+    (:class:`mapping.publication.StagedResultsFolder`: the previous comparison stands until then); over anything else
+    it removes the previous comparison's files and method folders (those its ``.radiomap-files.json`` lists, and
+    folders named like a method) before the new one starts. The user's other files are left alone."""
 
     what = "comparison"
     markers = (MARKER, *ResultsFolder.markers)
@@ -157,3 +160,7 @@ class ComparisonFolder(ResultsFolder):
                               "summary.txt", "holdout.csv", RUNNING_MARKER, MANIFEST})
     result_folders = frozenset(METHOD_NAMES)
     status_file = None
+    primary = MARKER
+
+    def _previous_complete(self) -> bool:
+        return (self.path / MARKER).is_file() and not (self.path / RUNNING_MARKER).exists()

@@ -149,7 +149,8 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
 
     # the comparison's folder, then each method's: released (their files listed) in reverse when it ends
     with contextlib.ExitStack() as folders:
-        top = folders.enter_context(ComparisonFolder(output, force=force))  # the previous comparison removed
+        # the previous comparison removed, or (complete) kept until this one is published: written to top.path
+        top = folders.enter_context(ComparisonFolder(output, force=force))
         start = time.perf_counter()
         reads = n + (n // holdout_every if holdout_every else 0)   # the withheld frames are read again to judge
         bar = progress_bar(total=reads * len(methods), desc="compare", enabled=progress)
@@ -192,7 +193,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                                pose_source="ground truth" if poses == "gt" else f"the trajectory {poses}" if from_file
                                else
                                f"{_tracker_label(tracker_options)} (tracked with '{methods[0].name}')",
-                               output=output, files={}, seconds=0.0, ate=ate,
+                               output=top.path, files={}, seconds=0.0, ate=ate,
                                parameters={"backend": backend, "poses": str(poses), "voxel_size": voxel_size,
                                            "depth_max": depth_max, "brightness": brightness, "frames": n,
                                            "width": width, "height": height, "holdout_every": holdout_every,
@@ -202,13 +203,23 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
         write_outputs(result, dataset, scene, views=views, render_width=render_width, title=title,
                       report_sections=report_sections)
         if config is not None:
-            result.files["config"] = atomic_write_json(output / "config.json", config)
+            result.files["config"] = atomic_write_json(top.path / "config.json", config)
         if summary is not None:
-            result.files["summary"] = atomic_write_text(output / "summary.txt", summary(result))
+            result.files["summary"] = atomic_write_text(top.path / "summary.txt", summary(result))
         result.seconds = time.perf_counter() - start
         write_compare_json(result)
         top.complete()
+        _published(result, top)
     return result
+
+
+def _published(result: CompareResult, top: ComparisonFolder) -> None:
+    """The paths of ``result`` under their published names (a staged comparison was written elsewhere)."""
+    result.output = top.published(result.output)
+    result.files = {k: top.published(v) for k, v in result.files.items()}
+    for r in result.results:
+        r.folder = top.published(r.folder)
+        r.files = {k: top.published(v) for k, v in r.files.items()}
 
 
 def _method_result(method: Method, run, folder: Path, fusion, colour_model, seconds: float, *, backend: str,

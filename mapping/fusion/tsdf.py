@@ -376,6 +376,7 @@ class TSDFBackend:
         in the block list of :meth:`_known_blocks`, which is dropped when the hash map grows."""
         hashmap = self.grid.hashmap()
         capacity = hashmap.capacity()
+        self._check_growth(int(hashmap.size()), capacity, int(blocks.shape[0]))
         slots, new = hashmap.activate(blocks)
         if hashmap.capacity() != capacity or self._blocks_known is None or self._blocks_known[2] != capacity:
             self._blocks_known = None
@@ -385,6 +386,21 @@ class TSDFBackend:
                 keys, known, _ = self._blocks_known
                 self._blocks_known = (np.concatenate([keys, blocks.numpy()[new].astype(np.int32)]),
                                       np.concatenate([known, slots.numpy()[new].astype(np.int32)]), capacity)
+
+    def _check_growth(self, size: int, capacity: int, count: int) -> None:
+        """Before Open3D's hash map grows (when ``size + count`` exceeds its ``capacity``, to at least twice it,
+        the old buffers held while the blocks are copied), refuse in one line if the new buffers would not fit
+        (:func:`mapping.validation.check_growth`): Open3D does not survive a failed allocation. The bound holds
+        for any voxel size, depth range or sequence length, since every growth passes here first."""
+        if size + count <= capacity:
+            return
+        from mapping.validation import check_growth
+
+        grown = max(2 * capacity, size + count)
+        per_block = self.block_resolution ** 3 * COLOUR_STORAGE[self.colour_storage] + 64   # + key, hash entry
+        check_growth(grown * per_block, what=f"the map ({size:,} blocks of {self.block_resolution}^3 voxels of "
+                                             f"{self.voxel_size * 1000:.3g} mm, {count:,} in view) growing to "
+                                             f"{grown:,} blocks")
 
     def _refine(self, table, K: np.ndarray, pose: np.ndarray, depth: np.ndarray, vertex: np.ndarray) -> int:
         """Move each rendered point to the zero crossing of the trilinear TSDF along its ray (the block table of
@@ -474,6 +490,8 @@ class TSDFBackend:
             self._integrate_u16(prepared, colour, K)
         else:
             self._activate(prepared.blocks)   # Open3D's integrate finds them all present
+            hashmap = self.grid.hashmap()     # ... but grows if size + keys asked exceeds the capacity: bound it too
+            self._check_growth(int(hashmap.size()), int(hashmap.capacity()), int(prepared.blocks.shape[0]))
             colour_image = o3d.t.geometry.Image(_tensor(colour))
             Kt = o3d.core.Tensor(self._integration_intrinsics(K))
             self.grid.integrate(prepared.blocks, prepared.depth_image, colour_image, Kt, prepared.extrinsic_t, 1.0,

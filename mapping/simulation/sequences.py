@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from mapping.export import RUNNING_MARKER, ResultsFolder
+from mapping.export import RUNNING_MARKER
+from mapping.publication import StagedResultsFolder
 from mapping.simulation.render import Renderer, RenderResult
 from mapping.simulation.room import Room, make_room
 from mapping.simulation.sensor import DepthSensor
@@ -257,7 +258,7 @@ def simulate_room(out_dir: str | os.PathLike, *, camera: CameraSpec | SimulatedC
             "depth_sensor": None if depth_sensor is None else _dc(depth_sensor),
             "motion": _dc(motion or HandheldMotion())})
         folder.complete()
-    return out
+    return folder.final_path
 
 
 # ==================================================================================================
@@ -349,7 +350,7 @@ def simulate_paper(out_dir: str | os.PathLike, *, camera: CameraSpec | Simulated
             "sheet_coverage_median": float(np.median(coverage)), "sweep": _dc(sweep or PaperSweep()),
             "depth": write_depth_images})
         folder.complete()
-    return out
+    return folder.final_path
 
 
 # ==================================================================================================
@@ -426,18 +427,20 @@ def simulate_brackets(out_dir: str | os.PathLike, *, camera: CameraSpec | Simula
             "images": names, "times": times.tolist(), "times_file": "times.txt", "scene": scene,
             "exposure": "bracketed", "white_balance": "fixed"})
         folder.complete()
-    return out
+    return folder.final_path
 
 
 # ==================================================================================================
 # writing
 # ==================================================================================================
-class SequenceFolder(ResultsFolder):
+class SequenceFolder(StagedResultsFolder):
     """A simulated sequence's folder (the layout in the module doc), locked while it is written and marked
     ``RUNNING`` until it is complete (:class:`mapping.export.ResultsFolder`). A non-empty folder is refused unless
     ``force``; with ``force`` an earlier simulation there (its manifest, or ``RUNNING`` if it was interrupted) is
-    removed first so that no stale frame survives, other content is left alone, and a folder that holds no
-    simulation is written into as it is (with a warning)."""
+    replaced so that no stale frame survives (a complete one stands until the new one is complete and published
+    as one set, its manifest last: :class:`mapping.publication.StagedResultsFolder`; an interrupted one is removed
+    first), other content is left alone, and a folder that holds no simulation is written into as it is (with a
+    warning)."""
 
     what = "simulation"
     markers = (MANIFEST, RUNNING_MARKER)
@@ -448,6 +451,10 @@ class SequenceFolder(ResultsFolder):
     clean_unmarked = False
     listing = False
     status_file = None
+    primary = MANIFEST
+
+    def _previous_complete(self) -> bool:
+        return (self.path / MANIFEST).is_file() and not (self.path / RUNNING_MARKER).exists()
 
 
 def _check_frames(n_frames: int) -> None:
