@@ -147,8 +147,9 @@ def channel_levels(values: np.ndarray, times: np.ndarray, limits: tuple[int, int
         count, share = _stalled_share(values, pairs_down, up=False)
         judged = count >= MIN_COUNT
         stuck = np.flatnonzero(judged & (share >= STUCK) & (np.arange(256) < 64) & (np.arange(256) >= 1))
-        if stuck.size:
-            # the highest level of the run of clamped levels that starts at the bottom of the observed levels
+        bottom = np.flatnonzero(judged & (np.arange(256) >= 1))
+        if stuck.size and bottom.size and stuck[0] == bottom[0]:
+            # the highest level of the run of clamped levels that starts at the bottom of the judged levels
             run = stuck[0]
             for level in stuck[1:]:
                 if level > run + 1:

@@ -2,7 +2,8 @@
 
 A user with a real camera has no true curve to compare with. Two figures need none:
 
-- **held-out prediction** (levels RMS, and its ratio to the images' own noise): each exposure in turn is left out, the response is fitted on the others
+- **held-out prediction** (levels RMS, and its ratio to the images' own noise): each exposure in turn (at most six,
+  spread over the stack; with five exposures or more) is left out, the response is fitted on the others
   (or, for a response given rather than fitted, used as it is), the others are merged into radiance and the
   left-out exposure is predicted through the response. A response that is right predicts an image it has not
   seen to the image's noise; a wrong curve, wrong exposure times or a camera that moved between exposures do
@@ -37,7 +38,11 @@ HOLDOUT_BROKEN = 4.0
 #: split-half uncertainty (% of the range) up to which a response is trusted (more makes it doubtful, not broken)
 SPLIT_GOOD = 1.5
 #: pixels per channel in the held-out and split-half fits (fewer than the fit itself: they are many)
-QUALITY_PIXELS = 40_000
+QUALITY_PIXELS = 20_000
+#: refits need this many exposures (with fewer, leaving one out can leave a gap the rest cannot bridge: the response
+#: is then used as it is); at most HELD_OUT exposures, spread over the stack, are held out
+MIN_REFIT_EXPOSURES = 5
+HELD_OUT = 6
 #: the held-out prediction's expected RMS over the image noise (the merged radiance adds its own)
 MERGE_FACTOR = 1.2
 BLOCK = 32
@@ -123,13 +128,13 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
     levels."""
     from radiometry.response_fit import _as_stack
 
-    from radiometry.response_levels import edge_mask
+    from radiometry.response_levels import BLOCKY, blockiness, edge_mask
 
     stack, t = _as_stack(images, times)
     n_img, h, w, n_ch = stack.shape
     flat = stack.reshape(n_img, h * w, n_ch)
     valid = None if mask is None else np.asarray(mask, bool).ravel()
-    keep, _ = edge_mask(stack, valid)  # the pixels the fit itself uses: JPEG's edges predict nothing
+    keep = edge_mask(stack, valid)[0] if blockiness(stack) > BLOCKY else None  # the pixels the fit itself uses
     if keep is not None:
         valid = keep.ravel() if valid is None else valid & keep.ravel()
     pixels = np.arange(h * w) if valid is None else np.flatnonzero(valid)
@@ -137,18 +142,29 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
         pixels = np.sort(np.random.default_rng(seed).choice(pixels, max_pixels, replace=False))
     usable = _usable(flat, t, declared(response, n_ch))
     per, sq_all, n_all = [], 0.0, 0
-    for j in range(n_img):
+    if refit is not None and n_img < MIN_REFIT_EXPOSURES:
+        refit = None
+    order = np.argsort(t)
+    held = sorted(int(order[k]) for k in np.unique(np.linspace(0, n_img - 1, min(n_img, HELD_OUT)).round()
+                                                   .astype(int)))
+    refitted = 0
+    for j in held:
         model = response
         if refit is not None:
             keep = [k for k in range(n_img) if k != j]
-            model = refit([stack[k] if n_ch == 3 else stack[k, :, :, 0] for k in keep], t[keep])
+            try:
+                model = refit([stack[k] if n_ch == 3 else stack[k, :, :, 0] for k in keep], t[keep])
+                refitted += 1
+            except (ValueError, RadiomapError):  # the others alone do not calibrate: judge the response as it is
+                model = response
         sq, count = _predict_rms(flat, t, usable, model, j, pixels)
         per.append(math.sqrt(sq / count) if count else float("nan"))
         sq_all += sq
         n_all += count
     rms = math.sqrt(sq_all / n_all) if n_all else float("nan")
     noise = image_noise(stack, declared(response, n_ch))
-    return {"rms": rms, "per_exposure": per, "refit": refit is not None, "noise": noise,
+    return {"rms": rms, "per_exposure": per, "held_out": [float(t[j]) for j in held], "refit": refitted,
+            "noise": noise,
             "ratio": rms / (MERGE_FACTOR * noise) if noise and math.isfinite(noise) else float("nan")}
 
 
@@ -181,7 +197,10 @@ def verdict(holdout: float, split: Sequence[float] | None, ratio: float) -> tupl
     """``(grade, sentence)``: ``good``, ``doubtful`` or ``broken``, with what to do. ``ratio``: the held-out RMS
     over the noise the images themselves carry (:func:`image_noise`, times :data:`MERGE_FACTOR`)."""
     worst_split = None if split is None else float(np.max(split))
-    broken = not math.isfinite(ratio) or ratio > HOLDOUT_BROKEN
+    if not (math.isfinite(holdout) and math.isfinite(ratio)):
+        return "unknown", ("quality not computed: too few pixels within the declared levels to predict an exposure or "
+                           "measure the images' noise; check the plot")
+    broken = ratio > HOLDOUT_BROKEN
     good = ratio <= HOLDOUT_GOOD and (worst_split is None or worst_split <= SPLIT_GOOD)
     figures = (f"held-out prediction {holdout:.2f} levels RMS, {ratio:.2f}x the images' noise" +
                ("" if worst_split is None else f", split-half uncertainty {worst_split:.2f} %"))
@@ -204,7 +223,8 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     verdict. Saved in the response's meta as ``quality``."""
     from radiometry.response_fit import fit_response
 
-    n_ch = 3 if np.asarray(images[0]).ndim == 3 else 1
+    first = np.asarray(images[0])
+    n_ch = 3 if first.ndim == 3 and first.shape[2] == 3 else 1
     levels = declared(response, n_ch)
     refit = None
     split = None
@@ -229,7 +249,8 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     grade, sentence = verdict(hold["rms"], split, hold["ratio"])
     out = {"holdout_rms_levels": hold["rms"], "holdout_per_exposure": hold["per_exposure"],
            "image_noise_levels": hold["noise"], "holdout_over_noise": hold["ratio"],
-           "holdout_refit": hold["refit"], "split_half_percent": split, "grade": grade, "summary": sentence,
+           "holdout_refit": hold["refit"], "holdout_exposures": hold["held_out"], "split_half_percent": split,
+           "grade": grade, "summary": sentence,
            "thresholds": {"holdout_over_noise_good": HOLDOUT_GOOD, "holdout_over_noise_broken": HOLDOUT_BROKEN,
                           "split_good": SPLIT_GOOD}}
     if method is not None and split is None:

@@ -211,7 +211,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
                    "(meta 'extrapolated_levels')")
     if "quality" in meta:
         q = meta["quality"]
-        click.echo(q["summary"] if q["grade"] == "good" else f"warning: {q['summary']}", err=q["grade"] != "good")
+        if q["grade"] == "good":  # otherwise radiometry.api has said it as a warning (stderr)
+            click.echo(q["summary"])
     click.echo(f"wrote {output} ({FORMATS[suffix]}), {plot_path}, {output.with_suffix('.json')}")
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "

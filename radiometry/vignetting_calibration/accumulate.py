@@ -387,9 +387,10 @@ class VignettingAccumulation:
                       skipped={str(k): int(v) for k, v in dict(meta.get("skipped", {})).items()},
                       source=str(meta.get("source", "")), response_table=arrays.get("response_table"),
                       response_stderr=arrays.get("response_stderr"),
-                      odd=(tuple(arrays[k] for k in ("odd_count", "odd_sum", "odd_sumsq"))
+                      odd=((arrays["odd_count"].astype(np.int32), arrays["odd_sum"].astype(np.float64),
+                            arrays["odd_sumsq"].astype(np.float64))
                            if all(k in arrays for k in ("odd_count", "odd_sum", "odd_sumsq")) else None),
-                      level_hist=arrays.get("level_hist"))
+                      level_hist=None if "level_hist" not in arrays else arrays["level_hist"].astype(np.int64))
         except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:
@@ -409,8 +410,9 @@ class VignettingAccumulation:
                                        f"count {acc.count.shape}, cells {acc.cell_sums.shape}); re-collect it")
         if acc.response_table is not None:
             validate_inverse_table(acc.response_table, source=str(path))
-        if acc.odd is not None and any(np.shape(a) != acc.count.shape for a in acc.odd):
+        if acc.odd is not None and (any(np.shape(a) != acc.count.shape for a in acc.odd)
+                                    or np.any(acc.odd[0] < 0) or np.any(acc.odd[0] > acc.count)):
             raise CalibrationFileError(f"{path}: the odd frames' arrays do not match the counts; re-collect it")
-        if acc.level_hist is not None and np.shape(acc.level_hist) != (ch, 256):
+        if acc.level_hist is not None and (np.shape(acc.level_hist) != (ch, 256) or np.any(acc.level_hist < 0)):
             raise CalibrationFileError(f"{path}: the level histogram is not (channels, 256); re-collect it")
         return acc
