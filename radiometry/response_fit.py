@@ -374,7 +374,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                          f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
-    from radiometry.response_levels import prepare, stalled_observations
+    from radiometry.response_levels import _pile, prepare, stalled_observations
 
     if not isinstance(levels, str):
         levels = _check_levels(levels)
@@ -397,7 +397,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
             raise CalibrationError(f"channel {c}: every pixel is saturated, empty or masked in every image (no "
                                    f"level in {lo}..{hi}); use shorter or longer exposures or check the mask")
         sampled.append(values[:, idx])
-        stalls.append(stalled_observations(values[:, idx], t) if isinstance(levels, str) else None)
+        stalls.append(stalled_observations(values[:, idx], t, _pile(level_meta, c)) if levels == "auto" else None)
     scores = None
     if auto:
         from radiometry.response_lambda import cross_validate_lambda

@@ -43,6 +43,8 @@ STUCK = 0.8
 ONSET = 0.05
 #: how far below the ceiling (levels) saturated pixels may spread and still be cut
 SPREAD = 16
+#: share of the saturated readings on one level for an exact pile (a clean ceiling: no margin needed below it)
+PILE_SHARE = 0.995
 #: levels kept clear of the ceiling's onset and the floor, plus NOISE_MARGIN times the saturated readings' noise
 MARGIN = 2
 NOISE_MARGIN = 3.0
@@ -73,9 +75,13 @@ class ChannelLevels:
     high: int
     ceiling: int | None
     floor: int | None
+    #: the one level every saturated pixel reads, when they all read one (no noise after the response): then a pixel
+    #: below it is responding, however close
+    pile: int | None = None
 
     def as_dict(self) -> dict:
-        return {"low": self.low, "high": self.high, "saturates_at": self.ceiling, "floor_at": self.floor}
+        return {"low": self.low, "high": self.high, "saturates_at": self.ceiling, "floor_at": self.floor,
+                "pile": self.pile}
 
 
 def _pairs(times: np.ndarray, longer: bool) -> list[tuple[int, int]]:
@@ -107,6 +113,22 @@ def _stalled_share(values: np.ndarray, pairs: list[tuple[int, int]], up: bool) -
     return count, share
 
 
+def exact_pile(values: np.ndarray, pairs: list[tuple[int, int]], ceiling: int) -> int | None:
+    """The level that (nearly) every saturated reading takes, or None when they spread (noise, JPEG): the most common
+    longer-exposure level of the pairs stalled at or above ``ceiling``, if it holds :data:`PILE_SHARE` of them."""
+    tops = []
+    for j, k in pairs:
+        a = values[j].astype(np.int16)
+        b = values[k].astype(np.int16)
+        tops.append(b[(a >= ceiling) & (b <= a + 1)])
+    top = np.concatenate(tops) if tops else np.empty(0, np.int16)
+    if top.size < MIN_COUNT:
+        return None
+    counts = np.bincount(top, minlength=256)
+    level = int(np.argmax(counts))
+    return level if counts[level] >= PILE_SHARE * top.size else None
+
+
 def ceiling_noise(values: np.ndarray, pairs: list[tuple[int, int]], ceiling: int) -> float:
     """The noise (levels, a robust standard deviation) of the saturated readings: of the level differences between
     two exposures of pixels saturated in both (at or above ``ceiling`` and not rising), divided by sqrt 2. Zero for
@@ -127,7 +149,7 @@ def ceiling_noise(values: np.ndarray, pairs: list[tuple[int, int]], ceiling: int
 def channel_levels(values: np.ndarray, times: np.ndarray, limits: tuple[int, int] = (1, 254)) -> ChannelLevels:
     """The usable levels of one channel: ``values`` ``(P, N)`` uint8 (P exposures of N pixels), within ``limits``."""
     lo, hi = limits
-    ceiling = floor = None
+    ceiling = floor = pile = None
     pairs_up = _pairs(times, longer=True)
     if pairs_up:
         count, share = _stalled_share(values, pairs_up, up=True)
@@ -140,8 +162,12 @@ def channel_levels(values: np.ndarray, times: np.ndarray, limits: tuple[int, int
                 if not judged[level] or share[level] < ONSET:  # too few to judge: no evidence of saturation
                     break
                 onset = level
-            noise = ceiling_noise(values, pairs_up, ceiling)
-            hi = min(hi, onset - MARGIN - int(math.ceil(NOISE_MARGIN * noise)))
+            pile = exact_pile(values, pairs_up, ceiling)
+            if pile is not None:  # every saturated pixel reads `pile`: the levels below it are all responding
+                hi = min(hi, pile - 1)
+            else:
+                noise = ceiling_noise(values, pairs_up, ceiling)
+                hi = min(hi, onset - MARGIN - int(math.ceil(NOISE_MARGIN * noise)))
     pairs_down = _pairs(times, longer=False)
     if pairs_down:
         count, share = _stalled_share(values, pairs_down, up=False)
@@ -157,20 +183,25 @@ def channel_levels(values: np.ndarray, times: np.ndarray, limits: tuple[int, int
                 run = level
             floor = int(run)
             lo = max(lo, floor + 1 + MARGIN)
-    return ChannelLevels(int(lo), int(hi), ceiling, floor)
+    return ChannelLevels(int(lo), int(hi), ceiling, floor, pile)
 
 
-def stalled_observations(values: np.ndarray, times: np.ndarray) -> np.ndarray:
+def stalled_observations(values: np.ndarray, times: np.ndarray, pile: int | None = None) -> np.ndarray:
     """``(P, N)`` boolean, True where a pixel has stopped responding: from the shortest exposure in which its level
     (at least :data:`STALL_FROM`) rises by no more than :data:`STALL_TOLERANCE` in an exposure at least
     :data:`MIN_RATIO` longer, in that exposure and every longer one. This catches the saturated pixels that a level
     cut cannot: under JPEG's chroma subsampling a saturated channel beside an unsaturated one reads well below its
-    ceiling, and it reads so in every longer exposure too."""
+    ceiling, and it reads so in every longer exposure too. ``pile``: the level every saturated pixel reads (an exact
+    ceiling, :func:`exact_pile`): a pixel whose longer exposure reads it has reached the ceiling there, not before,
+    and is not taken as stalled."""
     n_img, n_pix = values.shape
     first = np.full(n_pix, np.inf)
     for j, k in _pairs(times, longer=True):
         a = values[j].astype(np.int16)
-        stall = (a >= STALL_FROM) & (values[k].astype(np.int16) <= a + STALL_TOLERANCE)
+        b = values[k].astype(np.int16)
+        stall = (a >= STALL_FROM) & (b <= a + STALL_TOLERANCE)
+        if pile is not None:
+            stall &= b != pile
         first = np.where(stall, np.minimum(first, times[j]), first)
     return times[:, None] >= first[None, :]
 
@@ -202,6 +233,12 @@ def detect_levels(stack: np.ndarray, times: np.ndarray, valid: np.ndarray | None
                 "longer ones if most are dark)")
         out.append(levels)
     return out
+
+
+def _pile(meta: dict, channel: int) -> int | None:
+    """Channel ``channel``'s exact ceiling from :func:`prepare`'s meta (None without detection)."""
+    found = meta.get("level_detection")
+    return None if not found else found[channel].get("pile")
 
 
 def describe(levels: list[ChannelLevels]) -> str:

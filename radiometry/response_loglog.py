@@ -250,7 +250,7 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
     subsampling; :func:`radiometry.response_levels.edge_mask`): True, False, or ``"auto"`` (default) when the stack
     looks JPEG-compressed.
     """
-    from radiometry.response_levels import prepare, stalled_observations
+    from radiometry.response_levels import _pile, prepare, stalled_observations
 
     if pixels is not None and (int(pixels) != pixels or pixels < 2):
         raise ValueError(f"pixels must be a whole number >= 2 (pixels used per channel) or None for all, "
@@ -275,7 +275,7 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
     for c in range(n_ch):
         rng = np.random.default_rng(seed + c)
         values = np.ascontiguousarray(flat[:, :, c])
-        stalled = stalled_observations(values, t) if stall_test else None
+        stalled = stalled_observations(values, t, _pile(level_meta, c)) if stall_test else None
         pix, img, z, n_pix = _observations(values, t, channel_levels[c],
                                            None if pixels is None else int(pixels), valid_flat, rng, stalled)
         sol = _solve_channel(pix, img, z, n_pix, log_t, float(lam), float(smooth))

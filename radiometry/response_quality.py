@@ -168,7 +168,8 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
         n_all += count
     rms = math.sqrt(sq_all / n_all) if n_all else float("nan")
     noise = image_noise(stack, declared(response, n_ch))
-    return {"rms": rms, "compressed": compressed, "per_exposure": per, "held_out": [float(t[j]) for j in held], "refit": refitted,
+    return {"rms": rms, "compressed": compressed, "per_exposure": per, "held_out": [float(t[j]) for j in held],
+            "refit": refitted,
             "noise": noise,
             "ratio": rms / (MERGE_FACTOR * noise) if noise and math.isfinite(noise) else float("nan")}
 
