@@ -22,3 +22,30 @@ def shared_path(*parts: str) -> Path:
 @pytest.fixture
 def shared_data() -> Path:
     return shared_path()
+
+
+def run_paused(script: str, argv: list, sig: int, *, env: dict | None = None):
+    """Run ``python -c script FD ARGV...`` where ``script`` writes ``paused`` to the pipe FD once it has stopped at the
+    moment under test, then send it ``sig`` and wait for it: a child interrupted at an event, never after a sleep
+    that races it. Returns a ``subprocess.CompletedProcess`` with its output."""
+    import os
+    import select
+    import subprocess
+    import sys
+
+    read_end, write_end = os.pipe()
+    proc = subprocess.Popen([sys.executable, "-c", script, str(write_end), *map(str, argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1], env=env,
+                            pass_fds=(write_end,))
+    os.close(write_end)
+    try:
+        ready, _, _ = select.select([read_end], [], [], 600)   # ends a hung test only; the pause comes in seconds
+        assert (os.read(read_end, 16) if ready else b"") == b"paused", ("the run ended before", argv[:1], proc.poll())
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=600)
+        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    finally:
+        os.close(read_end)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()

@@ -11,7 +11,6 @@ turn (the child kills itself from inside ``os.rename``): the next run in the fol
 from __future__ import annotations
 
 import os
-import select
 import shutil
 import signal
 import subprocess
@@ -19,6 +18,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_paused
 from click.testing import CliRunner
 
 from mapping.cli import cli
@@ -54,23 +54,8 @@ sys.exit(main(sys.argv[3:]))
 
 def paused_run(target: str, args: list, sig: int) -> subprocess.CompletedProcess:
     """``radiomap ARGS`` in a child paused at ``target`` and sent ``sig`` there (the run cannot end first)."""
-    read_end, write_end = os.pipe()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen([sys.executable, "-c", _PAUSE_AT, str(write_end), target, *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env,
-                            pass_fds=(write_end,))
-    os.close(write_end)
-    try:
-        ready, _, _ = select.select([read_end], [], [], 600)   # ends a hung test only; the pause comes in seconds
-        assert (os.read(read_end, 16) if ready else b"") == b"paused", ("the run ended before", target, proc.poll())
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=600)
-        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-    finally:
-        os.close(read_end)
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    return run_paused(_PAUSE_AT, [target, *args], sig, env=env)
 
 
 def tree(folder: Path) -> dict[str, bytes | None]:

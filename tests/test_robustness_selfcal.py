@@ -9,13 +9,13 @@ test waits for that event, not for a time, and only then sends the signal.
 from __future__ import annotations
 
 import os
-import select
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_paused
 from test_robustness import REPO, snapshot
 
 #: a child that runs radiomap with the function at STAGE replaced by a pause (announced on the pipe FD)
@@ -44,21 +44,7 @@ sys.exit(main(sys.argv[3:]))
 
 
 def paused_run(stage: str, args: list[str], sig: int) -> subprocess.CompletedProcess:
-    read_end, write_end = os.pipe()
-    proc = subprocess.Popen([sys.executable, "-c", _PAUSE_AT, str(write_end), stage, *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=REPO, pass_fds=(write_end,))
-    os.close(write_end)
-    try:
-        ready, _, _ = select.select([read_end], [], [], 600)   # ends a hung test only; the pause comes in seconds
-        assert (os.read(read_end, 16) if ready else b"") == b"paused", ("the run ended before", stage, proc.poll())
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=600)
-        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-    finally:
-        os.close(read_end)
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    return run_paused(_PAUSE_AT, [stage, *args], sig)
 
 
 @pytest.fixture(scope="module")
