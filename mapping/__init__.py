@@ -6,11 +6,21 @@ needs loadable (:mod:`mapping._libusb`), so ``import mapping`` before ``import o
 without the system library.
 """
 
-from radiometry import __version__  # noqa: F401  (one version for the distribution)
-
 from mapping._libusb import preload_libusb as _preload_libusb
-from mapping.api import Reconstruction, reconstruct_sequence  # noqa: F401  (re-exported)
 
 _preload_libusb()
+
+#: re-exported names, imported when first used: ``import mapping`` stays light (no NumPy), so that the command's entry
+#: point (:mod:`mapping._entry`) can catch a Ctrl-C during the heavy imports and end with one line
+_LAZY = {"Reconstruction": "mapping.api", "reconstruct_sequence": "mapping.api", "__version__": "radiometry"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'mapping' has no attribute {name!r}")
+
 
 __all__ = ["Reconstruction", "reconstruct_sequence"]

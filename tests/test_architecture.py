@@ -53,6 +53,7 @@ def test_no_source_file_is_over_700_lines(folder):
 def test_only_the_cli_imports_the_cli():
     offenders = [str(p.relative_to(ROOT)) for p in _sources(*PACKAGES, "scripts", "docs")
                  if "cli" not in p.relative_to(ROOT).parts[1:2]
+                 and p.relative_to(ROOT).as_posix() != "mapping/_entry.py"   # the command's entry point: it starts it
                  and any(m == "mapping.cli" or m.startswith("mapping.cli.") for m in _imported_modules(p))]
     assert not offenders, f"the CLI parses options and calls the library; move what these need into it: {offenders}"
 

@@ -132,7 +132,7 @@ def test_the_folders_an_uninstall_leaves_behind(tmp_path):
     site = fake_site(tmp_path, {"open3d_cpu-0.20.0.dist-info": "open3d/__init__.py,,\n"})
     (site / "open3d" / "labextension").mkdir(parents=True)
     # the fake site instead of site-packages for open3d and its metadata (mapping, numpy, libusb_package loaded)
-    block = f"import mapping, libusb_package; sys.path[:] = [{str(site)!r}] + [p for p in sys.path if " \
+    block = f"import mapping, radiometry, libusb_package; sys.path[:] = [{str(site)!r}] + [p for p in sys.path if " \
             "not p.endswith(('site-packages', 'dist-packages'))]"
     result = run_probe(block, tmp_path)
     assert result["type"] == "RadiomapError" and not result["loaded"]

@@ -60,3 +60,23 @@ def test_compare_into_its_sequence_is_refused(room, tmp_path):  # noqa: F811
     error_line(run("compare", seq, "-r", seq / "truth" / "response.npz", "--methods", "none", "-o", seq, "--force"),
                "is the input sequence")
     assert snapshot(seq) == before
+
+
+def test_ctrl_c_while_the_command_is_still_importing_is_one_line():
+    """The entry point catches a Ctrl-C that arrives while the heavy libraries load (simulated: the import of
+    mapping.cli raises KeyboardInterrupt, as a SIGINT at that moment does); ``import mapping`` itself loads no NumPy."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "class Stop:\n"
+              "    def find_spec(self, name, path=None, target=None):\n"
+              "        if name == 'mapping.cli':\n"
+              "            raise KeyboardInterrupt\n"
+              "sys.meta_path.insert(0, Stop())\n"
+              "import mapping\n"
+              "assert 'numpy' not in sys.modules, 'import mapping loaded NumPy'\n"
+              "from mapping._entry import main\n"
+              "sys.exit(main())\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 130 and res.stderr == "radiomap: interrupted\n", (res.returncode, res.stderr)
