@@ -273,9 +273,14 @@ def test_vignetting_smooth_sigma(sweep, tmp_path):
 def test_vignetting_smooth_sigma_out_of_range(sweep, tmp_path, value):
     result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.npz", "--smooth-sigma",
                     value)
-    assert one_line_error(result) == (f"radiomap: error: --smooth-sigma {float(value):g} px is outside the sensible "
-                                      "range 0..50 px (0 disables the smoothing, 2-3 suits thin sweeps); pass a value "
-                                      "in that range")
+    if value == "nan":  # issue 31: not a number at all, said so
+        assert one_line_error(result) == ("radiomap: error: --smooth-sigma nan is not a finite number; pass a value in "
+                                          "the sensible range 0..50 px (0 disables the smoothing, 2-3 suits thin "
+                                          "sweeps)")
+    else:
+        assert one_line_error(result) == (f"radiomap: error: --smooth-sigma {float(value):g} px is outside the "
+                                          "sensible range 0..50 px (0 disables the smoothing, 2-3 suits thin sweeps); "
+                                          "pass a value in that range")
     assert not (tmp_path / "v.npz").exists()
 
 
