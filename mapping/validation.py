@@ -70,6 +70,7 @@ FOV_DEG = (10.0, 140.0)
 PIXEL_ASPECT = (0.5, 2.0)
 VOXEL_SIZE_M = (0.001, 0.2)
 DEPTH_MAX_M = (0.2, 20.0)
+POSE_TIME_DIFFERENCE_S = (0.0, 10.0)  # --poses-max-difference: evo's --t_max_diff is 0.01-0.02 s; 10 s is absurd
 DEPTH_MIN_M = (0.0, 5.0)
 DEPTH_SCALE = (1.0, 100000.0)
 EXPOSURE_FACTOR = (1e-4, 1e4)
@@ -486,10 +487,11 @@ def check_fused(fused: int, frames: int, reasons: dict[str, int], name: str = "t
 
 
 __all__ = ["BLOCK_RESOLUTION", "DEPTH_MAX_M", "DEPTH_MIN_M", "DEPTH_SCALE", "EXPOSURE_FACTOR", "EXPOSURE_TIME_S",
-           "FOV_DEG", "ImplausibleValueError", "LENS_APERTURE", "LENS_FOCAL_MM", "LIGHT_CHANGE", "MIN_FUSED_FRACTION",
-           "MIN_FUSED_FRAMES", "MemoryEstimate", "MemoryEstimateError", "PIXEL_ASPECT", "SMOOTH_SIGMA_PX",
-           "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory", "check_config",
-           "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_finite", "check_fused",
-           "check_fusion", "check_growth", "headroom", "FLICKER", "GAMMA", "GROWTH_RESERVE", "QUOTE_MAX", "SMOOTHNESS", "quote",
-           "check_intrinsics", "check_memory", "check_range", "check_run", "check_voxel_size", "config_options",
-           "estimate_memory", "option_range", "principal_point_problem", "scene_depth", "too_little_fused"]
+           "FLICKER", "FOV_DEG", "GAMMA", "GROWTH_RESERVE", "ImplausibleValueError", "LENS_APERTURE",
+           "LENS_FOCAL_MM", "LIGHT_CHANGE", "MIN_FUSED_FRACTION", "MIN_FUSED_FRAMES", "MemoryEstimate",
+           "MemoryEstimateError", "PIXEL_ASPECT", "POSE_TIME_DIFFERENCE_S", "QUOTE_MAX", "SMOOTHNESS",
+           "SMOOTH_SIGMA_PX", "TRUNC_VOXEL_MULTIPLIER", "TooLittleFusedError", "VOXEL_SIZE_M", "available_memory",
+           "check_config", "check_depth_max", "check_depth_scale", "check_exposure_factor", "check_finite",
+           "check_fused", "check_fusion", "check_growth", "check_intrinsics", "check_memory", "check_range",
+           "check_run", "check_voxel_size", "config_options", "estimate_memory", "headroom", "option_range",
+           "principal_point_problem", "quote", "scene_depth", "too_little_fused"]

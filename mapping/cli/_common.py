@@ -23,7 +23,7 @@ from click.core import ParameterSource
 from mapping.datasets import FORMATS
 from mapping.factory import BACKENDS
 from mapping.export import plain_value
-from mapping.validation import DEPTH_MAX_M, DEPTH_SCALE, ImplausibleValueError, VOXEL_SIZE_M
+from mapping.validation import DEPTH_MAX_M, DEPTH_SCALE, POSE_TIME_DIFFERENCE_S, ImplausibleValueError, VOXEL_SIZE_M
 from radiometry import __version__
 from radiometry.errors import RadiomapError, shorten
 
@@ -323,7 +323,8 @@ def pose_options(default: str, help_text: str):
     """``--poses`` (:class:`PoseSource`, ``default``) and ``--poses-max-difference`` (seconds between a frame and the
     pose of a TUM trajectory file it takes)."""
     def decorate(f):
-        f = click.option("--poses-max-difference", type=float, default=None, metavar="SECONDS",
+        f = click.option("--poses-max-difference", default=None, metavar="SECONDS",
+                         type=Number(POSE_TIME_DIFFERENCE_S, "s", "a frame and its pose, as evo's --t_max_diff"),
                          help="With --poses FILE (a TUM trajectory): the largest time difference between a frame and "
                               "the pose it takes, as evo's --t_max_diff [default: 0.02].")(f)
         return click.option("--poses", type=PoseSource(), default=default, show_default=True, help=help_text)(f)
