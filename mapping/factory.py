@@ -42,6 +42,7 @@ class ReconstructConfig:
     reference_exposure: float = 1.0             # --display-exposure: the histogram's display reference
     exposure_compensation: bool | None = None   # None: on when a response is given
     exposure_reference: str = "median"          # --mesh-exposure: median | first | k | r,g,b (first frame = 1)
+    exposures: str | None = None                # --exposures FILE: given per-frame exposures instead of estimates
     holdout_every: int | None = None            # --holdout-every: withhold every N-th frame (mapping.holdout)
     colour_map: str | None = None               # --colour-map: rigid | non-rigid after fusion (mapping.colour_map)
     force: bool = False
@@ -105,6 +106,23 @@ def make_tracker(name: str = "auto", *, depth_max: float = 3.0, motion_model: st
     return TRACKERS[name](depth_max=depth_max, motion_model=motion_model, **kwargs)
 
 
+def _given_exposures(path, dataset, response, vignetting, max_difference: float):
+    """A :class:`mapping.exposure_compensation.given.GivenExposures` of ``path`` matched to ``dataset``; every
+    frame must have a value (:class:`mapping.exposure_files.ExposureFileError` naming the file otherwise)."""
+    from mapping.exposure_compensation.given import GivenExposures
+    from mapping.exposure_files import ExposureFileError, match_exposure_file
+    from mapping.pose_files import _frame_keys
+
+    table = match_exposure_file(dataset, path, max_difference=max_difference)
+    if table.matched < len(table.values):
+        raise ExposureFileError(f"{path}: {len(table.values) - table.matched} of {len(table.values)} frames have no "
+                                "exposure; reconstruct needs one per frame (radiomap self-calibrate fits the missing "
+                                "ones and writes them all to its exposures.txt)")
+    numbers = _frame_keys(dataset)[1]
+    return GivenExposures(response, vignetting, known=dict(zip(numbers.tolist(), table.values)),
+                          source=table.describe())
+
+
 def build_run(config: ReconstructConfig) -> dict[str, Any]:
     """The keyword arguments of :func:`mapping.pipeline.reconstruct` for a configuration (the dataset opened,
     the models loaded, backend and tracker built)."""
@@ -137,7 +155,10 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
                              "or --no-exposure-compensation")
         from mapping.exposure_compensation import CompensatedColour, parse_reference
 
-        colour_model = CompensatedColour(colour_model, export_reference=parse_reference(config.exposure_reference))
+        estimator = None if config.exposures is None else _given_exposures(config.exposures, dataset, response,
+                                                                            vignetting, config.poses_max_difference)
+        colour_model = CompensatedColour(colour_model, estimator,
+                                         export_reference=parse_reference(config.exposure_reference))
     backend = make_backend(config.backend, voxel_size=config.voxel_size, depth_max=config.depth_max,
                            block_resolution=config.block_resolution,
                            trunc_voxel_multiplier=config.trunc_voxel_multiplier, surfel_mesh=config.surfel_mesh)

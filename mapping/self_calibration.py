@@ -35,6 +35,7 @@ import numpy as np
 
 from mapping.export import MANIFEST, RUNNING_MARKER, ResultsFolder
 from radiometry.response import CameraResponse
+from mapping.exposure_files import KnownExposures, match_exposure_file
 from radiometry.self_calibration import Observations, SelfCalibration, SelfCalibrationError
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,8 @@ class SelfCalibrationFolder(ResultsFolder):
         self._publication = None     # the open publish_set context
         self._set = None             # its FileSet
         self._completed = False
+        self._existed = Path(path).exists()
+        self._wrote_running = False
         super().__init__(path, force=force)
 
     def _remove_previous_run(self) -> None:
@@ -73,6 +76,20 @@ class SelfCalibrationFolder(ResultsFolder):
     def _mark_running(self) -> None:
         if not self_calibration_complete(self.path):   # a complete previous result stays complete until replaced
             super()._mark_running()
+            self._wrote_running = True
+
+    def refuse(self) -> None:
+        """End the run without a result and without a trace (a refusal, e.g. ``--strict``): the staged files go,
+        the RUNNING marker this run wrote goes, the folder goes if this run created it and it is empty; a previous
+        self-calibration stands untouched."""
+        self.release()
+        if self._wrote_running:
+            (self.path / RUNNING_MARKER).unlink(missing_ok=True)
+        if not self._existed:
+            try:
+                self.path.rmdir()
+            except OSError:
+                pass
 
     def file(self, name: str) -> Path:
         """Where to write ``name``: in the staging folder of the set (published by :meth:`complete`)."""
@@ -155,6 +172,7 @@ class SelfCalibrationRun:
     peak_rss_mb: float
     files: dict[str, Path] = field(default_factory=dict)
     summary: str = ""
+    checks: dict[str, Any] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -347,17 +365,22 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
                          depth_scale: float | None = None, intrinsics=None, options: SamplingOptions =
                          SamplingOptions(), solver: dict[str, Any] | None = None, plots: bool = True,
                          force: bool = False, progress: bool = True, manifest: dict | None = None,
-                         tracker: str = "auto", poses_max_difference: float = 0.02) -> SelfCalibrationRun:
+                         tracker: str = "auto", poses_max_difference: float = 0.02, exposures=None,
+                         holdout: str = "every:5", strict: bool = False) -> SelfCalibrationRun:
     """``radiomap self-calibrate``: self-calibrate ``sequence`` into the folder ``output`` (module doc).
 
     response: a model or file (default ``CameraResponse.gamma(2.2)``, recorded in the summary as an assumption);
     poses: ``"gt"``, ``"icp"`` (tracked by ``tracker``) or a trajectory file (:mod:`mapping.pose_files`, matched
     within ``poses_max_difference`` seconds); frames: a slice of the sequence; solver: keyword arguments of
-    :func:`radiometry.self_calibration.self_calibrate`; manifest: the command's options, saved in the summary.
+    :func:`radiometry.self_calibration.self_calibrate`; manifest: the command's options, saved in the summary;
+    exposures: known exposures (a file, :mod:`mapping.exposure_files`, or a :class:`KnownExposures`): only the
+    frames without one get a fitted exposure; holdout: the frames withheld for the validation
+    (:mod:`radiometry.self_calibration_validation`: ``every:N``, ``last:P%``, ``none``); strict: refuse (write
+    nothing) when V does not predict the withheld frames better than no V.
     """
     from radiometry.api import as_response
     from radiometry.fileio import atomic_write_json, atomic_write_text
-    from radiometry.self_calibration import coverage_text, self_calibrate
+    from radiometry.self_calibration import coverage_text
 
     from mapping.datasets import describe_dataset, intrinsics_text, open_dataset
     from mapping.metrics import format_tum_trajectory
@@ -372,6 +395,11 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     from mapping.pose_files import resolve_poses
 
     poses = resolve_poses(poses, dataset, max_difference=poses_max_difference)
+    from radiometry.self_calibration_validation import holdout_frames, parse_holdout
+
+    parse_holdout(holdout)                    # a ValueError naming the accepted forms
+    if exposures is not None and not isinstance(exposures, KnownExposures):
+        exposures = match_exposure_file(dataset, exposures, max_difference=poses_max_difference)
     if poses == "gt" and dataset.ground_truth() is None:
         raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses (--poses gt); use "
                                    "--poses icp or --poses FILE (a trajectory)")
@@ -401,8 +429,16 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         seconds["sightings"] = time.perf_counter() - t
         t = time.perf_counter()
         K = loaded[use[0]].K
-        result = self_calibrate(obs, **{"centre": (float(K[0, 2]), float(K[1, 2])), **(solver or {})})
+        known = None if exposures is None else exposures.values[use]
+        held = holdout_frames(len(use), holdout)
+        result, checks = _solve_and_check(obs, held, response, known, holdout, {
+            "centre": (float(K[0, 2]), float(K[1, 2])), **(solver or {})})
         seconds["solve"] = time.perf_counter() - t
+        for line in checks["warnings"]:
+            log.warning("%s", line)
+        if strict and checks["refuse"]:
+            folder.refuse()
+            raise SelfCalibrationError(f"--strict: {checks['refuse']}; nothing written")
         indices = np.array([loaded[i].index for i in use])
         stamps = np.array([loaded[i].timestamp for i in use])
         cov_line, thin = coverage_text(result.coverage)
@@ -425,8 +461,9 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
         run = SelfCalibrationRun(result=result, indices=indices, timestamps=stamps, sampling=stats,
                                  seconds={k: round(v, 2) for k, v in seconds.items()}, peak_rss_mb=_peak_rss_mb(),
                                  files=files)
+        run.checks = checks
         run.summary = summary_text(run, dataset.name, response_given, str(poses), cov_line) + "\n" + \
-            intrinsics_text(dataset)   # which intrinsics, from where
+            "\n".join(checks["lines"] + [intrinsics_text(dataset)])   # which intrinsics, from where
         files["summary"] = folder.final(atomic_write_text(folder.file("summary.txt"), run.summary + "\n"))
         atomic_write_json(folder.file(MARKER), {
             "sequence": describe_dataset(dataset), "poses": str(poses),
@@ -435,10 +472,58 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
             "solver": result.info, "coverage": cov_line, "thin_regions": thin,
             "residual_log_scale_before": [_mad(r) for r in result.residuals_before],
             "residual_log_scale_after": [_mad(r) for r in result.residuals_after],
+            "exposures_given": None if exposures is None else exposures.describe(),
+            "validation": checks["validation"], "ambiguity": result.info.get("ambiguity"),
+            "plausibility": checks["plausibility"], "warnings": checks["warnings"],
             "seconds": run.seconds, "peak_rss_mb": round(run.peak_rss_mb, 1),
             "files": {k: str(v) for k, v in files.items()}, "run": manifest or {}})
         folder.complete()
     return run
+
+
+def _solve_and_check(obs: Observations, held: np.ndarray, response: CameraResponse, known: np.ndarray | None,
+                     holdout: str, solver: dict[str, Any]) -> tuple[SelfCalibration, dict[str, Any]]:
+    """Solve on the frames not ``held``, validate on the held ones, check V's plausibility: ``(result, checks)``
+    with ``checks``: ``validation`` (a dict or None), ``plausibility`` (sentences), ``lines`` (for the summary),
+    ``warnings`` (what the user must hear) and ``refuse`` (why ``--strict`` refuses, or None)."""
+    from radiometry.self_calibration import self_calibrate
+    from radiometry.self_calibration_checks import plausibility
+    from radiometry.self_calibration_validation import subset, validate
+
+    held_sighting = held[obs.frame]
+    train = subset(obs, ~held_sighting) if held.any() else obs
+    result = self_calibrate(train, exposures=known, **solver)
+    lines, warnings, refuse = [], [], None
+    validation = None
+    if held.any():
+        found = validate(result, train, subset(obs, held_sighting), response.channel_tables(obs.channels),
+                         holdout)
+        if found is None:
+            lines.append(f"validation: no withheld frame ({holdout}) sees points of the fitted frames; not validated")
+            warnings.append("V could not be validated (no withheld frame shares points with the fitted ones)")
+        else:
+            validation = found.as_dict()
+            lines.append(found.text())
+            fill = np.isnan(result.exposures) & np.isfinite(found.exposures)
+            result.exposures[fill] = found.exposures[fill]          # withheld frames: k predicted with V
+            if not found.helps:
+                refuse = ("V does not predict withheld frames better than no V "
+                          f"(L1 {np.mean(found.l1_without):.2f} -> {np.mean(found.l1_with):.2f} levels)")
+                warnings.append(f"{refuse}: do not use this vignetting.npz (usual causes: too little motion, a wrong "
+                                "response, surfaces that are not matte, poses or depth that do not fit the colour)")
+                lines.append(f"WARNING: {warnings[-1]}")
+    else:
+        lines.append("validation: none (--holdout none): nothing tells whether V helps")
+    ambiguity = result.info.get("ambiguity")
+    if ambiguity:
+        lines.append(ambiguity)
+        warnings.append(ambiguity)
+    notes = plausibility(result.vignetting.evaluate(), result.vignetting.stderr, result.info["centre"])
+    if notes:
+        lines.extend(f"implausible: {n}" for n in notes)
+        warnings.append("implausible V: " + "; ".join(notes))
+    return result, {"validation": validation, "plausibility": notes, "lines": lines, "warnings": warnings,
+                    "refuse": refuse}
 
 
 def self_calibration_complete(folder: Path) -> bool:

@@ -8,7 +8,8 @@ irradiance ``E_ij = f^-1(I_ij) = k_j V(x_ij) L_i`` (the response ``f`` is given)
 is linear in ``log k`` and ``log L`` and smooth in the few parameters of ``V``. ``V`` is a free-centre even
 polynomial ``1 + b1 r^2 + b2 r^4 + b3 r^6`` (``r`` normalised by the half-diagonal, as
 :class:`radiometry.vignetting.PolynomialVignetting`) times ``exp(g(x))``, ``g`` a smooth non-radial residual,
-bilinear on the nodes of a coarse grid (8 x 6 cells by default) and regularised by its second differences.
+bilinear on the nodes of a grid (8 x 6 cells, finer where the sightings are dense enough: :func:`choose_grid`) and
+regularised by its second differences.
 The gauge: ``k_0 = 1`` (the first frame) and ``V = 1`` at the polynomial's centre (``g`` is shifted to 0 there;
 the constant goes into ``L``).
 
@@ -55,12 +56,20 @@ from radiometry.vignetting_calibration.accumulate import REGIONS
 
 log = logging.getLogger(__name__)
 
-#: grid cells (columns, rows) of the non-radial residual
+#: grid cells (columns, rows) of the non-radial residual: the coarsest, and the finer ones ``grid="auto"`` takes
+#: when the sightings are dense enough (:func:`choose_grid`)
 DEFAULT_GRID = (8, 6)
+GRIDS = ((8, 6), (12, 9), (16, 12), (24, 18))
+#: ``grid="auto"``: the finest of :data:`GRIDS` whose sparsest tenth of cells still holds this many sightings each
+MIN_PER_CELL = 1000
 #: image-position bins across the width used by the V update (observations within a bin share its centre)
 POSITION_BINS = 80
-#: weight of the rows that keep the grid residual free of a tilt (relative to its second differences)
+#: weight of the rows that keep the grid residual free of a tilt (relative to its second differences) along an
+#: axis whose tilt the data leave open (:mod:`radiometry.self_calibration_checks`), and along one they pin
 TILT_WEIGHT = 30.0
+TILT_WEIGHT_VISIBLE = 0.3
+#: the polynomial centre's prior spread (half-diagonals) along an axis whose tilt the data leave open
+OPEN_CENTRE_SIGMA = 0.03
 
 
 class SelfCalibrationError(CalibrationError):
@@ -183,7 +192,7 @@ def log_v_image(p: np.ndarray, resolution: tuple[int, int], grid: tuple[int, int
     return np.log(np.maximum(q, 1e-6)) + g
 
 
-def _grid_penalty(nodes: tuple[int, int]) -> np.ndarray:
+def _grid_penalty(nodes: tuple[int, int], tilt_weight=(TILT_WEIGHT, TILT_WEIGHT)) -> np.ndarray:
     """Rows of second differences along both grid axes, plus first differences at the borders' ends (so that a
     plane, which trades against the polynomial's centre, is not free either)."""
     nr, nc = nodes
@@ -200,7 +209,7 @@ def _grid_penalty(nodes: tuple[int, int]) -> np.ndarray:
     yy, xx = np.mgrid[0:nr, 0:nc]
     plane = np.stack([np.ones(nr * nc), (xx.ravel() - (nc - 1) / 2) / (nc - 1), (yy.ravel() - (nr - 1) / 2) / (nr - 1)],
                      axis=1)
-    tilt = np.linalg.pinv(plane)[1:] * TILT_WEIGHT
+    tilt = np.linalg.pinv(plane)[1:] * np.asarray(tilt_weight, dtype=np.float64)[:, None]
     return np.vstack([np.array(rows), ridge, tilt])
 
 
@@ -208,8 +217,14 @@ def _grid_penalty(nodes: tuple[int, int]) -> np.ndarray:
 # the solver
 # --------------------------------------------------------------------------------------------------
 def _exposures_and_radiance(y: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,
-                            n_frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least squares of ``y = kappa_frame + l_point`` with ``kappa_0 = 0``, exactly (Schur complement)."""
+                            n_frames: int, fixed: np.ndarray | None = None, kappa_fixed: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares of ``y = kappa_frame + l_point`` with ``kappa`` held at ``kappa_fixed`` on the
+    ``fixed`` frames (default: ``kappa_0 = 0``), exactly (Schur complement)."""
+    if fixed is None:
+        fixed = np.arange(n_frames) == 0
+    known = np.zeros(n_frames) if kappa_fixed is None else np.where(fixed, np.nan_to_num(kappa_fixed), 0.0)
+    y = y - known[frame]
     from scipy import sparse
 
     b = sparse.coo_matrix((w, (point, frame)), shape=(n_points, n_frames)).tocsr()
@@ -221,14 +236,14 @@ def _exposures_and_radiance(y: np.ndarray, w: np.ndarray, point: np.ndarray, fra
     bs = sparse.diags(np.sqrt(inv_dp)) @ b
     schur = np.diag(df) - (bs.T @ bs).toarray()
     rhs = sy_f - b.T @ (inv_dp * sy_p)
-    seen = df > 0
-    seen[0] = False      # kappa_0 = 0
+    seen = (df > 0) & ~fixed      # the fixed frames keep their known kappa
     kappa = np.zeros(n_frames)
     sub = np.ix_(seen, seen)
     ridge = 1e-9 * max(float(np.max(df)), 1.0)
     kappa[seen] = np.linalg.solve(schur[sub] + ridge * np.eye(int(seen.sum())), rhs[seen])
-    kappa[~seen & (df == 0)] = np.nan
-    kf = np.nan_to_num(kappa)
+    kappa[~fixed & (df == 0)] = np.nan
+    kappa[fixed] = known[fixed]
+    kf = np.nan_to_num(kappa) - known
     lp = inv_dp * np.bincount(point, w * (y - kf[frame]), minlength=n_points)
     return kappa, lp
 
@@ -289,21 +304,45 @@ def check_constrained(obs: Observations, *, min_frames: int = 3, min_points: int
     return counts
 
 
-def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, iterations: int = 15,
+def choose_grid(obs: Observations, min_per_cell: int = MIN_PER_CELL) -> tuple[int, int]:
+    """The finest grid of :data:`GRIDS` (aspect of a 4:3 image; columns, rows) on which 90 % of the cells hold
+    at least ``min_per_cell`` sightings: the non-radial part of V as fine as the coverage allows (dust shadows
+    and sensor shading sit well below the 8 x 6 grid's cells); cells thinner than that are held smooth by the
+    second-difference penalty and get a larger standard error."""
+    w, h = obs.resolution
+    chosen = GRIDS[0]
+    for gw, gh in GRIDS:
+        ix = np.clip(((np.asarray(obs.x) + 0.5) * gw / w).astype(np.int64), 0, gw - 1)
+        iy = np.clip(((np.asarray(obs.y) + 0.5) * gh / h).astype(np.int64), 0, gh - 1)
+        counts = np.bincount(iy * gw + ix, minlength=gw * gh)
+        if np.quantile(counts, 0.1) >= min_per_cell:
+            chosen = (gw, gh)
+    return chosen
+
+
+def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", iterations: int = 15,
                    huber: float = 2.0, smoothness: float = 0.01, min_frames: int = 3, min_points: int = 20,
                    centre: tuple[float, float] | None = None, centre_sigma: float = 1.0,
-                   stderr_bins: int = 40, stderr_block: int | None = None) -> SelfCalibration:
+                   stderr_bins: int = 40, stderr_block: int | None = None,
+                   exposures: np.ndarray | None = None) -> SelfCalibration:
     """Estimate ``V``, ``k_j`` and ``L_i`` per channel from ``obs`` (see the module doc).
 
-    grid: (columns, rows) of the non-radial residual; iterations: IRLS rounds; huber: the Huber threshold in
+    grid: (columns, rows) of the non-radial residual, or ``"auto"`` (:func:`choose_grid`); iterations: IRLS rounds; huber: the Huber threshold in
     robust standard deviations of the log residuals; smoothness: weight of the residual's second differences
     (relative to the number of sightings per grid cell); min_frames, min_points: :func:`check_constrained`;
     centre: the principal point (default: the image centre), the prior of the polynomial's centre, with
     ``centre_sigma`` half-diagonals of spread; stderr_bins: grid across the width on which the standard error of
     ``V`` is evaluated (then resized); stderr_block: consecutive frames per cluster of the standard error
-    (:func:`_covariance`; default a sixth of the frames: six clusters).
+    (:func:`_covariance`; default a sixth of the frames: six clusters); exposures: known ``k`` per frame and
+    channel ``(F, C)`` (NaN where unknown): held at their values (only the rest is fitted), and the result's
+    exposures are then scaled to the first frame (``k_0 = 1``).
     """
     regions = check_constrained(obs, min_frames=min_frames, min_points=min_points)
+    grid_how = "auto" if isinstance(grid, str) else "given"
+    if isinstance(grid, str):
+        if grid != "auto":
+            raise ValueError(f"grid must be 'auto' or (columns, rows), got {grid!r}")
+        grid = choose_grid(obs)
     width, height = obs.resolution
     point = np.asarray(obs.point, dtype=np.int64)
     frame = np.asarray(obs.frame, dtype=np.int64)
@@ -311,35 +350,53 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
     logs = np.log(np.asarray(obs.irradiance, dtype=np.float64))
     all_bins, bx, by, bin_shape = _bins(obs)
     coverage = np.bincount(all_bins, minlength=bx.size).reshape(bin_shape)
+    used_bins = np.unique(all_bins)
     bin_of, bx, by = _occupied(all_bins, bx, by)
     n_bins = bx.size
     model = _LogV(bx, by, obs.resolution, grid)
-    penalty = _grid_penalty(model.nodes)
+    from radiometry.self_calibration_checks import tilt_stderr, tilt_visibility
+
+    fixed0 = np.arange(n_frames) == 0
+    if exposures is not None:
+        fixed0 = np.all(np.isfinite(np.broadcast_to(exposures, (n_frames, obs.channels))), axis=1) | fixed0
+    visibility = tilt_visibility(obs.x, obs.y, np.ones(len(point)), point, frame, obs.resolution, n_points,
+                                 n_frames, fixed0)
+    tilt_open = np.array(visibility.open)     # known exposures pin the tilt (their frames are held)
+    penalty = _grid_penalty(model.nodes, np.where(tilt_open, TILT_WEIGHT, TILT_WEIGHT_VISIBLE))
     per_cell = len(point) / float(grid[0] * grid[1])
     lam = smoothness * per_cell
     centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0]) if centre is None else np.asarray(centre, float)
-    centre_weight = 1.0 / centre_sigma ** 2
+    centre_weight = 1.0 / np.where(tilt_open, min(centre_sigma, OPEN_CENTRE_SIGMA), centre_sigma) ** 2
     block = stderr_block or max(1, -(-n_frames // 6))      # six blocks of consecutive frames
     luts, ses, kappas, radiances = [], [], [], []
     before, after, params_out, scales = [], [], [], []
+    known = None if exposures is None else np.log(np.broadcast_to(np.asarray(exposures, dtype=np.float64),
+                                                                  (n_frames, obs.channels)))
     for c in range(obs.channels):
         y = logs[:, c]
+        fixed = np.arange(n_frames) == 0
+        kappa_fixed = np.zeros(n_frames)
+        if known is not None and np.isfinite(known[:, c]).any():
+            fixed, kappa_fixed = np.isfinite(known[:, c]), np.nan_to_num(known[:, c])
         p = np.concatenate([centre0, np.zeros(3 + model.bilinear.shape[1])])
         w = np.ones(len(y))
         scale = 0.01
         v_obs = model.value(p)[bin_of]
-        kappa, lp = _exposures_and_radiance(y - v_obs, w, point, frame, n_points, n_frames)
+        kappa, lp = _exposures_and_radiance(y - v_obs, w, point, frame, n_points, n_frames, fixed, kappa_fixed)
         before.append(y - v_obs - np.nan_to_num(kappa)[frame] - lp[point])
         kappa = np.nan_to_num(kappa)
         for _ in range(iterations):
             wb = np.bincount(bin_of, w, minlength=n_bins)
             prior = (centre0, centre_weight * float(wb.sum()) * scale ** 2 / model.radius ** 2)
             p, kappa, lp = _joint_step(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior,
-                                       obs.resolution)
+                                       obs.resolution, fixed)
             res = y - model.value(p)[bin_of] - kappa[frame] - lp[point]
             w, scale = _huber_weights(res, huber)
-        cov = _covariance(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior, scale, block)
-        kappa[np.bincount(frame, minlength=n_frames) == 0] = np.nan
+        cov = _covariance(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior, scale, block, fixed)
+        kappa[(np.bincount(frame, minlength=n_frames) == 0) & ~fixed] = np.nan      # known ones stay
+        if np.isfinite(kappa[0]) and kappa[0] != 0:     # known exposures: scaled to the first frame's
+            lp += kappa[0]
+            kappa -= kappa[0]
         # gauge: V = 1 at the polynomial's centre (g shifted to 0 there), k_0 = 1 (kappa_0 = 0 already)
         centre_model = _LogV(np.array([p[0]]), np.array([p[1]]), obs.resolution, grid)
         g_centre = float(centre_model.bilinear[0] @ p[5:])
@@ -348,17 +405,29 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] = DEFAULT_GRID, i
         after.append(res)
         scales.append(scale)
         luts.append(np.exp(log_v_image(p, obs.resolution, grid)))
-        ses.append(_stderr(p, cov, obs.resolution, grid, stderr_bins))
+        se = _stderr(p, cov, obs.resolution, grid, stderr_bins)
+        se = np.sqrt(se ** 2 + _misfit(res, w, bin_of, used_bins, bin_shape, scale, obs.resolution) ** 2
+                     ).astype(np.float32)
+        if tilt_open.any():      # what the data leave open is not known: the plausible tilts' spread
+            se = np.sqrt(se ** 2 + tilt_stderr(visibility, obs.resolution, p) ** 2).astype(np.float32)
+        ses.append(se)
         kappas.append(kappa)
         radiances.append(np.exp(lp))
         params_out.append(p)
     lut = np.stack(luts, axis=2)
     info = {"method": "self-calibration (IRLS, Huber, joint Gauss-Newton with the radiances eliminated)",
-            "grid": list(grid), "iterations": iterations, "huber": huber, "smoothness": smoothness,
+            "grid": list(grid), "grid_chosen": grid_how, "iterations": iterations, "huber": huber, "smoothness": smoothness,
             "observations": int(len(point)), "points": n_points, "frames": n_frames,
             "centre": [[round(float(q[0]), 2), round(float(q[1]), 2)] for q in params_out],
             "polynomial": [[float(v) for v in q[2:5]] for q in params_out],
-            "residual_scale_log": [float(s) for s in scales], "points_per_region": regions}
+            "residual_scale_log": [float(s) for s in scales], "points_per_region": regions,
+            "tilt_visibility": [round(v, 5) for v in visibility.visibility],
+            "tilt_open": [bool(o) for o in visibility.open],
+            "exposures_known": 0 if exposures is None else int(np.count_nonzero(
+                np.all(np.isfinite(np.broadcast_to(exposures, (n_frames, obs.channels))), axis=1)))}
+    ambiguity = visibility.text()
+    if ambiguity:
+        info["ambiguity"] = ambiguity
     vign = LUTVignetting(np.clip(lut, 1e-3, 10.0).astype(np.float32), info=info,
                          stderr=np.stack(ses, axis=2).astype(np.float32))
     sightings = np.bincount(frame, minlength=n_frames)
@@ -385,7 +454,7 @@ class _Reduced:
 
 def _reduced_system(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
                     point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
-                    prior: tuple[np.ndarray, float]) -> _Reduced:
+                    prior: tuple[np.ndarray, float], fixed: np.ndarray | None = None) -> _Reduced:
     """The normal equations of all unknowns at ``(p, kappa, lp)`` with weights ``w``, the radiances eliminated
     exactly (Schur complement)."""
     from scipy import sparse
@@ -413,33 +482,32 @@ def _reduced_system(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarr
     n_rr[:n_frames, n_frames:] = m_fb @ jv
     n_rr[n_frames:, :n_frames] = n_rr[:n_frames, n_frames:].T
     n_rr[n_frames:, n_frames:] = jv.T @ (jv * wb[:, None]) + np.pad(reg, ((5, 0), (5, 0)))
-    n_rr[n_frames, n_frames] += prior[1]
-    n_rr[n_frames + 1, n_frames + 1] += prior[1]
+    n_rr[n_frames, n_frames] += np.broadcast_to(prior[1], (2,))[0]
+    n_rr[n_frames + 1, n_frames + 1] += np.broadcast_to(prior[1], (2,))[1]
     inv_l = np.where(d_l > 0, 1.0 / np.maximum(d_l, 1e-300), 0.0)
     cs = c * np.sqrt(inv_l)[:, None]
     schur = n_rr - cs.T @ cs
     rhs = np.concatenate([g_k, g_v]) - c.T @ (inv_l * g_l)
     free = np.ones(n_frames + nv, bool)
-    free[0] = False
-    free[:n_frames] &= d_k > 0
+    free[:n_frames] &= (d_k > 0) & ~(np.arange(n_frames) == 0 if fixed is None else fixed)
     return _Reduced(schur, rhs, c, inv_l, g_l, free, jv)
 
 
 def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
                 point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
-                prior: tuple[np.ndarray, float], resolution: tuple[int, int]
+                prior: tuple[np.ndarray, float], resolution: tuple[int, int], fixed: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One Gauss-Newton step on all unknowns at once (exposures, radiances, ``V``), the radiances eliminated
-    exactly (:func:`_reduced_system`), with step halving; ``kappa_0`` stays 0."""
+    exactly (:func:`_reduced_system`), with step halving; the ``fixed`` frames' kappa (default ``kappa_0``) stay."""
     n_frames = kappa.size
     w_, h_ = resolution
 
     def cost(q, k, l):
         r = y - model.value(q)[bin_of] - k[frame] - l[point]
         return float(np.sum(w * r * r) + lam * np.sum((penalty @ q[5:]) ** 2)
-                     + prior[1] * np.sum((q[:2] - prior[0]) ** 2))
+                     + np.sum(prior[1] * (q[:2] - prior[0]) ** 2))
 
-    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior)
+    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior, fixed)
     free = red.free
     step = np.zeros(free.size)
     sub = red.schur[np.ix_(free, free)]
@@ -461,7 +529,8 @@ def _joint_step(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, 
 
 def _covariance(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, y: np.ndarray, w: np.ndarray,
                 point: np.ndarray, frame: np.ndarray, bin_of: np.ndarray, penalty: np.ndarray, lam: float,
-                prior: tuple[np.ndarray, float], scale: float, block: int) -> tuple[np.ndarray, np.ndarray]:
+                prior: tuple[np.ndarray, float], scale: float, block: int, fixed: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Covariances (cluster-robust, model-based) of ``V``'s parameters at the solution, exposures and radiances
     marginalised (not held fixed).
 
@@ -477,7 +546,7 @@ def _covariance(model: _LogV, p: np.ndarray, kappa: np.ndarray, lp: np.ndarray, 
     within 2): what drifts over the whole walk (a tilt of ``V`` traded against the exposures) stays understated."""
     from scipy import sparse
 
-    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior)
+    red = _reduced_system(model, p, kappa, lp, y, w, point, frame, bin_of, penalty, lam, prior, fixed)
     n_frames, n_points, n_bins = kappa.size, lp.size, model.x.size
     free = red.free
     sub = red.schur[np.ix_(free, free)]
@@ -543,6 +612,23 @@ def _stderr(p: np.ndarray, cov: tuple[np.ndarray, np.ndarray], resolution: tuple
     return cv2.resize(se.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
 
 
+def _misfit(res: np.ndarray, w: np.ndarray, bin_of: np.ndarray, used: np.ndarray, shape: tuple[int, int],
+            scale: float, resolution: tuple[int, int]) -> np.ndarray:
+    """What V's model leaves unexplained at each image position, ``(H, W)`` in log units: the weighted mean
+    residual per position bin, its noise part (``scale^2 / n``, twice) removed, smoothed over neighbouring bins.
+    A dust shadow finer than the grid, or a grid held smooth where sightings are thin, shows here: a standard
+    error from the noise alone would not cover it."""
+    import cv2
+
+    sw = np.bincount(bin_of, w, minlength=used.size)
+    mean = np.bincount(bin_of, w * res, minlength=used.size) / np.maximum(sw, 1e-12)
+    bias2 = np.maximum(mean ** 2 - 2 * scale ** 2 / np.maximum(sw, 1e-12), 0.0)
+    grid = np.zeros(shape[0] * shape[1])
+    grid[used] = bias2
+    smooth = cv2.GaussianBlur(grid.reshape(shape).astype(np.float32), (0, 0), 1.0)
+    return np.sqrt(cv2.resize(smooth, tuple(resolution), interpolation=cv2.INTER_LINEAR).astype(np.float64))
+
+
 def coverage_text(coverage: np.ndarray, min_samples: int = 3) -> tuple[str, list[str]]:
     """The coverage of image positions as the white-paper calibration reports it: the share of position bins
     with at least ``min_samples`` sightings, and the 3 x 3 regions with more than 5 % of their bins below."""
@@ -564,5 +650,5 @@ def coverage_text(coverage: np.ndarray, min_samples: int = 3) -> tuple[str, list
     return head, thin
 
 
-__all__ = ["DEFAULT_GRID", "Observations", "SelfCalibration", "SelfCalibrationError", "check_constrained",
+__all__ = ["DEFAULT_GRID", "GRIDS", "Observations", "choose_grid", "SelfCalibration", "SelfCalibrationError", "check_constrained",
            "coverage_text", "self_calibrate"]

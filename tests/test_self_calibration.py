@@ -189,7 +189,10 @@ def test_cli_on_a_small_simulated_room(room, tmp_path):
     ex = read_exposures(out / "exposures.txt")
     rows = np.loadtxt(room / "truth" / "exposures.txt")
     errs = exposure_errors(ex["k"], rows[ex["index"], 1:2] * rows[ex["index"], 2:5])
-    assert errs["median"] < 0.02, errs["median"]   # measured 1.4 % with the 3 px window (5 px: 0.8 %)
+    # measured 2.0 % (fitted on 24 frames, every 5th withheld and predicted; 1.75 % with --holdout none; 1.4 %
+    # before issue 29 freed the tilt where the data pin it, which took the 640x480 scan of tests/selfcal_camera.py
+    # from 0.49 % to 0.10-0.14 %)
+    assert errs["median"] < 0.025, errs["median"]
     # a second run into the same folder is refused without --force
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 1 and "already holds a self-calibration" in again.output

@@ -90,7 +90,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     format: str | None, views: int, render_width: int, glb: bool, force: bool, progress: bool,
                     manifest: dict, settings: str, notify: Callable[[str], None] = log.warning,
                     holdout_every: int | None = None, tracker: str = "auto", colour_map: str | None = None,
-                    poses_max_difference: float = 0.02):
+                    poses_max_difference: float = 0.02, exposures: str | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -113,6 +113,11 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                                   vignetting_self=vignetting_self, exposure_compensation=exposure_compensation,
                                   methods=methods)
     scene = _scene_of(dataset, notify)
+    given = None
+    if exposures is not None:       # the +ec methods take the camera's recorded exposures instead of estimates
+        from mapping.factory import _given_exposures
+
+        given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference)
 
     def summary(result) -> str:
         lines = [result.table_text()]
@@ -135,7 +140,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      title=f"radiomap compare: {Path(sequence).name}",
                      mesh_formats=("ply", "glb") if glb else ("ply",),
                      config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
-                     holdout_every=holdout_every, tracker_options={"name": tracker}, colour_map=colour_map)
+                     holdout_every=holdout_every, tracker_options={"name": tracker}, colour_map=colour_map,
+                     given_exposures=None if given is None else given.known)
     return result, summary(result)
 
 

@@ -66,6 +66,9 @@ def _methods(ctx, param, value):
 @click.option("--exposure-compensation", is_flag=True,
               help="Also run every corrected method with exposure compensation (reconstruct's default with "
                    "--response is on; here it adds methods).")
+@click.option("--exposures", type=click.Path(dir_okay=False), default=None,
+              help="The +ec methods use the camera's recorded per-frame exposures (exposure x gain; exposures.txt, "
+                   "'timestamp k' or 'timestamp k_r k_g k_b' lines, TUM monoVO times.txt) instead of estimates.")
 @click.option("--methods", callback=_methods, default=None, metavar="LIST",
               help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
                    "response, poly, lut, self, and response+ec, poly+ec, lut+ec, self+ec.")
@@ -91,7 +94,8 @@ def _methods(ctx, param, value):
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignetting_poly: Path | None,
             vignetting_self: Path | None, output: Path,
-            backend: str, exposure_compensation: bool, methods: list[str] | None, poses, tracker: str,
+            backend: str, exposure_compensation: bool, exposures: str | None, methods: list[str] | None, poses,
+            tracker: str,
             poses_max_difference: float | None,
             frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
             intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
@@ -136,6 +140,14 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
     ec = "on (+ec methods)" if any(m.exposure_compensation for m in method_list) else "off"
+    if p["exposures"] is not None:
+        if ec == "off":
+            raise click.BadParameter("applies to the +ec methods only; add --exposure-compensation (or +ec methods "
+                                     "to --methods)", param_hint="--exposures")
+        from mapping.exposure_files import read_exposure_file
+
+        read_exposure_file(p["exposures"])     # a bad file fails here, before anything is written
+        ec = f"given ({p['exposures']})"
     settings = settings_line(ctx, [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
                                    else ("exposure compensation", None, f"{ec}, as --methods lists"),
@@ -152,5 +164,6 @@ def task_arguments(ctx: click.Context) -> dict:
     return {**options, **models, "methods": [m.name for m in method_list],
             "poses_max_difference": max_difference,
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
-            "manifest": replay_manifest(ctx, files=("intrinsics", "poses")),
+            "exposures": p["exposures"],
+            "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
             "settings": settings}

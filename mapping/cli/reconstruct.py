@@ -78,6 +78,10 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--exposure-compensation/--no-exposure-compensation", default=None,
               help="Estimate every frame's exposure and white balance against the map and fuse f^-1(I)/V/k; "
                    "writes exposures.txt/.json [default: on with --response, off without; compare's: off].")
+@click.option("--exposures", "exposures", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="With exposure compensation: the camera's recorded per-frame exposures (exposure x gain; "
+                   "exposures.txt, 'timestamp k' or 'timestamp k_r k_g k_b' lines, TUM monoVO times.txt) instead "
+                   "of estimating them; one per frame.")
 @click.option("--mesh-exposure", default=None, callback=_mesh_exposure, metavar="median|first|K|R,G,B",
               help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
                    "median (of the sequence's estimates; the default), first, a number or r,g,b.")
@@ -92,7 +96,8 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
             poses_max_difference: float | None,
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
-            exposure_compensation: bool | None, mesh_exposure: str | None, holdout_every: int | None,
+            exposure_compensation: bool | None, exposures: Path | None, mesh_exposure: str | None,
+            holdout_every: int | None,
             colour_map: str | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample.
@@ -125,6 +130,13 @@ def task_arguments(ctx: click.Context) -> dict:
     if p["exposure_compensation"] and response is None:
         raise click.UsageError("--exposure-compensation needs --response (exposure acts on irradiance)")
     compensate = p["exposure_compensation"] if p["exposure_compensation"] is not None else response is not None
+    if p["exposures"] is not None and not compensate:
+        raise click.BadParameter("applies with exposure compensation only (it replaces the estimates); add --response"
+                                 " (and drop --no-exposure-compensation)", param_hint="--exposures")
+    if p["exposures"] is not None:
+        from mapping.exposure_files import read_exposure_file
+
+        read_exposure_file(p["exposures"])     # a bad file fails here, before anything is written
     if p["mesh_exposure"] is not None and not compensate and \
             not drop_replayed(ctx, "mesh_exposure", None, "no exposure compensation"):
         raise click.BadParameter("applies with exposure compensation only; without it the mesh colours are at "
@@ -151,6 +163,7 @@ def task_arguments(ctx: click.Context) -> dict:
                    backend=backend, surfel_mesh=p["surfel_mesh"], format=p["format"], depth_max=p["depth_max"],
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
                    exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"],
+                   exposures=None if p["exposures"] is None else str(p["exposures"]),
                    colour_map=p["colour_map"], force=p["force"],
                    progress=not p["no_progress"])
     settings = [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
@@ -158,5 +171,5 @@ def task_arguments(ctx: click.Context) -> dict:
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
         settings.append(("glb", None, "on"))
-    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses")),
+    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
             "settings": settings_line(ctx, settings)}

@@ -32,11 +32,19 @@ Examples:
 @sequence_options
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
               help="Folder for vignetting.npz, exposures.txt, figures and the summary.")
+@click.option("--exposures", "exposures_path", type=click.Path(dir_okay=False), default=None,
+              help="Known per-frame exposures (exposure x gain): radiomap's exposures.txt, 'timestamp k' or "
+                   "'timestamp k_r k_g k_b' lines, or TUM monoVO times.txt; only frames without one are fitted.")
+@click.option("--holdout", default="every:5", show_default=True, metavar="every:N|last:P%|none",
+              help="Frames withheld from the fit to validate V on (held-out L1 and PSNR with and without V).")
+@click.option("--strict", is_flag=True, help="Refuse (write nothing) when V does not predict withheld frames better "
+                                             "than no V.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite an earlier self-calibration in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(sequence: str, response_path: str | None, poses, poses_max_difference: float | None, tracker: str, frames,
-            depth_scale, intrinsics, format, output: str, no_plots: bool, force: bool, no_progress: bool) -> None:
+            depth_scale, intrinsics, format, output: str, exposures_path: str | None, holdout: str, strict: bool,
+            no_plots: bool, force: bool, no_progress: bool) -> None:
     """Self-calibrate vignetting and per-frame exposure and white balance from SEQUENCE (RGB-D with poses).
 
     Writes OUTPUT/vignetting.npz (LUT model with its standard error, for reconstruct/compare --vignetting),
@@ -67,12 +75,24 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "
                                  "drop --tracker or add --poses icp", param_hint="--tracker")
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved
+    from radiometry.self_calibration_validation import parse_holdout
+
+    try:
+        parse_holdout(p["holdout"])
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).replace("holdout must be", "must be"), param_hint="--holdout") from None
+    if p["exposures_path"]:
+        from mapping.exposure_files import read_exposure_file
+
+        read_exposure_file(p["exposures_path"])   # a bad file fails here, before anything is written
     manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
                                                "poses": p["poses"], "tracker": p["tracker"],
                                                "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
-                                               "output": p["output"]})
+                                               "output": p["output"], "exposures": p["exposures_path"],
+                                               "holdout": p["holdout"], "strict": p["strict"]})
     return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],
             "tracker": p["tracker"], "poses_max_difference": max_difference,
             "frames": frames, "format": p["format"], "depth_scale": p["depth_scale"], "intrinsics": p["intrinsics"],
+            "exposures": p["exposures_path"], "holdout": p["holdout"], "strict": p["strict"],
             "plots": not p["no_plots"], "force": p["force"], "progress": not p["no_progress"], "manifest": manifest}

@@ -72,7 +72,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply", "glb"),
             config: Mapping[str, Any] | None = None,
             summary: Callable[[CompareResult], str] | None = None, holdout_every: int | None = None,
-            colour_map: str | None = None) -> CompareResult:
+            colour_map: str | None = None, given_exposures: Mapping[int, np.ndarray] | None = None) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report. The
     folder ``output`` and each method's folder in it are locked against a second run
     (:class:`mapping.export.FolderLock`) from their creation until the comparison ends.
@@ -161,7 +161,7 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
                 for method in methods:
                     bar.set_postfix_str(method.name, refresh=True)
-                    colour_model = _colour_model(method, height, width, brightness)
+                    colour_model = _colour_model(method, height, width, brightness, given_exposures)
                     fusion = make_backend(backend, voxel_size=voxel_size, depth_max=depth_max,
                                           **dict(backend_options or {}))
                     track = poses == "icp" and fixed is None
@@ -260,7 +260,8 @@ def _ticks(bar, reads: int) -> Callable[[], None]:
     return tick
 
 
-def _colour_model(method: Method, height: int, width: int, brightness: str):
+def _colour_model(method: Method, height: int, width: int, brightness: str,
+                  given: Mapping[int, np.ndarray] | None = None):
     if method.response is None:
         return RawIntensity()
     vig = method.vignetting
@@ -271,6 +272,10 @@ def _colour_model(method: Method, height: int, width: int, brightness: str):
         return base
     from mapping.exposure_compensation import CompensatedColour
 
+    if given is not None:     # the camera's recorded exposures (compare --exposures), one table per method's run
+        from mapping.exposure_compensation.given import GivenExposures
+
+        return CompensatedColour(base, GivenExposures(method.response, vig, known=dict(given), source="--exposures"))
     return CompensatedColour(base, compensate=True)
 
 

@@ -307,6 +307,11 @@ class FileSequence:
         return np.array([f.timestamp for f in self._files])
 
     @property
+    def total_frames(self) -> int:
+        """Frames of the whole sequence (before ``frames`` selected some)."""
+        return len(self._all_files)
+
+    @property
     def frame_files(self) -> list[FrameFiles]:
         """The selected frames' files (nothing is read)."""
         return list(self._files)

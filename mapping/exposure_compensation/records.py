@@ -17,7 +17,7 @@ from mapping.exposure_compensation.masks import local_sums
 log = logging.getLogger(__name__)
 
 
-SOURCES = ("reference", "map", "frame", "fallback")
+SOURCES = ("reference", "map", "frame", "fallback", "given")
 EXPORT_REFERENCES = ("median", "first")
 FILE_FORMAT = {"format": "radiomap", "kind": "exposure-estimates", "version": 1}
 
