@@ -64,8 +64,8 @@ GRIDS = ((8, 6), (12, 9), (16, 12), (24, 18))
 MIN_PER_CELL = 1000
 #: image-position bins across the width used by the V update (observations within a bin share its centre)
 POSITION_BINS = 80
-#: weight of the rows that keep the grid residual free of a tilt (relative to its second differences) along an
-#: axis whose tilt the data leave open (:mod:`radiometry.self_calibration_checks`), and along one they pin
+#: weight of the rows that keep the grid residual free of a tilt (relative to its second differences), and along
+#: an axis whose tilt the data pin well (:data:`radiometry.self_calibration_checks.FREE_VISIBILITY`)
 TILT_WEIGHT = 30.0
 TILT_WEIGHT_VISIBLE = 0.3
 #: the polynomial centre's prior spread (half-diagonals) along an axis whose tilt the data leave open
@@ -337,16 +337,25 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
     channel ``(F, C)`` (NaN where unknown): held at their values (only the rest is fitted), and the result's
     exposures are then scaled to the first frame (``k_0 = 1``).
     """
+    from radiometry.self_calibration_checks import tilt_stderr, tilt_visibility
+
     regions = check_constrained(obs, min_frames=min_frames, min_points=min_points)
-    grid_how = "auto" if isinstance(grid, str) else "given"
-    if isinstance(grid, str):
-        if grid != "auto":
-            raise ValueError(f"grid must be 'auto' or (columns, rows), got {grid!r}")
-        grid = choose_grid(obs)
     width, height = obs.resolution
     point = np.asarray(obs.point, dtype=np.int64)
     frame = np.asarray(obs.frame, dtype=np.int64)
     n_points, n_frames = obs.n_points, obs.n_frames
+    fixed0 = np.arange(n_frames) == 0
+    if exposures is not None:
+        fixed0 = np.all(np.isfinite(np.broadcast_to(exposures, (n_frames, obs.channels))), axis=1) | fixed0
+    visibility = tilt_visibility(obs.x, obs.y, np.ones(len(point)), point, frame, obs.resolution, n_points,
+                                 n_frames, fixed0)
+    tilt_open = np.array(visibility.open)     # known exposures pin the tilt (their frames are held)
+    grid_how = "auto" if isinstance(grid, str) else "given"
+    if isinstance(grid, str):
+        if grid != "auto":
+            raise ValueError(f"grid must be 'auto' or (columns, rows), got {grid!r}")
+        # a tilt the data leave open leaves every slow trend along that axis nearly open too: the coarse grid
+        grid = DEFAULT_GRID if tilt_open.any() else choose_grid(obs)
     logs = np.log(np.asarray(obs.irradiance, dtype=np.float64))
     all_bins, bx, by, bin_shape = _bins(obs)
     coverage = np.bincount(all_bins, minlength=bx.size).reshape(bin_shape)
@@ -354,15 +363,10 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
     bin_of, bx, by = _occupied(all_bins, bx, by)
     n_bins = bx.size
     model = _LogV(bx, by, obs.resolution, grid)
-    from radiometry.self_calibration_checks import tilt_stderr, tilt_visibility
+    from radiometry.self_calibration_checks import FREE_VISIBILITY
 
-    fixed0 = np.arange(n_frames) == 0
-    if exposures is not None:
-        fixed0 = np.all(np.isfinite(np.broadcast_to(exposures, (n_frames, obs.channels))), axis=1) | fixed0
-    visibility = tilt_visibility(obs.x, obs.y, np.ones(len(point)), point, frame, obs.resolution, n_points,
-                                 n_frames, fixed0)
-    tilt_open = np.array(visibility.open)     # known exposures pin the tilt (their frames are held)
-    penalty = _grid_penalty(model.nodes, np.where(tilt_open, TILT_WEIGHT, TILT_WEIGHT_VISIBLE))
+    tilt_free = np.array(visibility.visibility) >= FREE_VISIBILITY
+    penalty = _grid_penalty(model.nodes, np.where(tilt_free, TILT_WEIGHT_VISIBLE, TILT_WEIGHT))
     per_cell = len(point) / float(grid[0] * grid[1])
     lam = smoothness * per_cell
     centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0]) if centre is None else np.asarray(centre, float)
@@ -408,8 +412,8 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
         se = _stderr(p, cov, obs.resolution, grid, stderr_bins)
         se = np.sqrt(se ** 2 + _misfit(res, w, bin_of, used_bins, bin_shape, scale, obs.resolution) ** 2
                      ).astype(np.float32)
-        if tilt_open.any():      # what the data leave open is not known: the plausible tilts' spread
-            se = np.sqrt(se ** 2 + tilt_stderr(visibility, obs.resolution, p) ** 2).astype(np.float32)
+        if not tilt_free.all():      # what the data leave open (or pin weakly) is not known: the plausible spread
+            se = np.sqrt(se ** 2 + tilt_stderr(visibility, obs.resolution, p, ~tilt_free) ** 2).astype(np.float32)
         ses.append(se)
         kappas.append(kappa)
         radiances.append(np.exp(lp))

@@ -24,8 +24,13 @@ import numpy as np
 
 #: below this share of a tilt's variance left once exposures and radiances are fitted, the tilt is called open
 #: (measured on the independent camera of tests/selfcal_camera.py, 320x240 and 640x480: a steady pan leaves
-#: 0.08-0.19 %, and its tilt then came out 3-4 levels wrong; a hand-held scan 0.49-0.88 %, pinned to ~1 level)
-OPEN_VISIBILITY = 0.003
+#: 0.08 % left-right, and its tilt then came out 3-4 levels wrong; a hand-held scan 0.49-0.88 %; real recordings
+#: 0.07-0.09 % (the kitchen's first 50 frames, the RealSense office) to 0.45 % (the kitchen's 100))
+OPEN_VISIBILITY = 0.0012
+#: at or above this share the data pin the tilt well enough to leave the grid's tilt free; in between, the tilt comes
+#: from the polynomial's free centre only (measured: the 15-frame quick demo, 0.16 % / 0.36 %, 1.57 levels with it
+#: and 2.66 with a free grid tilt; the hand-held scan, 0.49 % / 0.88 %, 0.35 levels free and 1.0 without)
+FREE_VISIBILITY = 0.004
 #: the spread of the vignetting centre about the principal point in real lenses (half-diagonals; 0.05 is 20 px
 #: at 640x480) and of a sensor-shading tilt of log V across the half-diagonal: what an open tilt is not known to
 PLAUSIBLE_OFFSET = 0.05
@@ -82,12 +87,14 @@ def tilt_visibility(x: np.ndarray, y: np.ndarray, w: np.ndarray, point: np.ndarr
     return TiltVisibility(vis, info, tuple(v < OPEN_VISIBILITY for v in vis))
 
 
-def tilt_stderr(vis: TiltVisibility, resolution: tuple[int, int], p: np.ndarray) -> np.ndarray:
+def tilt_stderr(vis: TiltVisibility, resolution: tuple[int, int], p: np.ndarray, axes=None) -> np.ndarray:
     """The standard error ``(H, W)`` of ``log V`` that an open tilt adds, for V's polynomial ``p`` (centre, b1..b3
     as :mod:`radiometry.self_calibration`): along each open axis, a vignetting centre :data:`PLAUSIBLE_OFFSET`
-    off the one chosen (the slope of the fitted V times that offset) and a sensor-shading tilt of
-    :data:`PLAUSIBLE_TILT`; the data do not narrow either. On an axis the data pin, 0 (the solver's own
-    covariance carries it)."""
+    off the one chosen (the slope of the fitted V, at least that of a quadratic with its outer fall-off, times
+    that offset) and a sensor-shading tilt of
+    :data:`PLAUSIBLE_TILT`; the data do not narrow either. ``axes``: the axes to count (default the open ones;
+    the solver also counts those below :data:`FREE_VISIBILITY`, whose tilt rests on the polynomial's centre
+    alone). On an axis the data pin, 0 (the solver's own covariance carries it)."""
     width, height = resolution
     radius = float(np.hypot(width / 2.0, height / 2.0))
     cx, cy, b1, b2, b3 = (float(v) for v in p[:5])
@@ -96,8 +103,14 @@ def tilt_stderr(vis: TiltVisibility, resolution: tuple[int, int], p: np.ndarray)
     r2 = (xs ** 2 + ys ** 2) / radius ** 2
     q = np.maximum(1 + b1 * r2 + b2 * r2 ** 2 + b3 * r2 ** 3, 1e-6)
     slope = (b1 + 2 * b2 * r2 + 3 * b3 * r2 ** 2) / q * 2 / radius ** 2      # d log V / d (r^2) * 2 / R^2
+    # the fitted radial profile is itself uncertain where a tilt is open (a pan sees it along one axis only): the
+    # slope is at least that of the quadratic with the fitted V's outer fall-off (log V = -a r^2, a from r^2 > 0.5)
+    outer = r2 > 0.5
+    if outer.any():
+        a = float(np.max(-np.log(q[outer]) / r2[outer]))
+        slope = -np.maximum(np.abs(slope), 2 * max(a, 0.0) / radius ** 2)
     var = np.zeros((height, width))
-    for d, o in ((xs, vis.open[0]), (ys, vis.open[1])):
+    for d, o in zip((xs, ys), vis.open if axes is None else axes):
         if o:
             var = var + (slope * d * PLAUSIBLE_OFFSET * radius) ** 2 + (PLAUSIBLE_TILT * d / radius) ** 2
     return np.sqrt(var)

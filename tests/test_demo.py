@@ -72,13 +72,16 @@ def test_mesh_colours_against_the_truth_follow_the_same_order(demo):
 
 def test_self_calibrated_method_is_near_the_lut_and_ahead_of_the_polynomial(demo):
     """V from the room's own 15 frames (1.3-1.75 levels off the truth, the LUT 0.26-0.29, the polynomial 2.5-2.9):
-    measured L1 mean 15.87 (LUT 15.89, polynomial 15.96), colour error 3.98 (LUT 3.58, polynomial 4.31)."""
+    measured L1 mean 15.87 (LUT 15.89, polynomial 15.96), colour error 3.98 (LUT 3.58, polynomial 4.31). Since issue
+    29 (the grid follows the coverage, the tilt is free where the data pin it, V fitted on 12 of the 15 frames, the
+    others withheld to validate it) the self-calibrated method's colour error came out 4.31 against the LUT's 4.53:
+    near the LUT, on either side of it."""
     table = demo["table"]
     l1 = {name: row["L1 mean"] for name, row in table.items()}
     err = {name: row["colour err"] for name, row in table.items()}
     lut, poly = _name(table, "lut"), _name(table, "poly")
     assert abs(l1["self+ec"] - l1[lut]) < 0.01 * l1[lut] and l1["self+ec"] < l1[poly]
-    assert err[lut] < err["self+ec"] < err[poly]
+    assert err["self+ec"] < err[poly] and abs(err["self+ec"] - err[lut]) < 0.15 * err[lut]
 
 
 def test_calibration_is_accurate(demo):
