@@ -19,6 +19,9 @@ alternating order, ``--repeats`` times; the table reports medians.
 - radiomap-float32: the same with the float32 grid (``colour_storage="float32"``; not run unless listed in
             ``--methods``): the 16-bit grid's memory saving and its effect on the histogram mean, ATE and time,
             measured in the same run.
+- radiomap-o3dcast: radiomap casting the map with Open3D's ``VoxelBlockGrid.ray_cast`` and its separate colour
+            kernel (``ray_caster="open3d"``, the path before issue 33; not run unless listed): the own cast's
+            saving and its results (histogram, ATE: the same bits expected) in the same run.
 - radiomap-numba: radiomap with its Numba kernels (``RADIOMAP_KERNELS=numba``; not run unless listed): what
             the compiled kernels save in memory and time, in the same run.
 
@@ -54,9 +57,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba")
+METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
 PEERS = ("open3d", "open3d-colour")
-OURS = ("radiomap", "radiomap-float32", "radiomap-numba")
+OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
 
 
 def parse_frames(text: str) -> slice:
@@ -174,7 +177,8 @@ def worker_radiomap(args) -> dict:
     backend = make_backend("tsdf", voxel_size=args.voxel_size, depth_max=args.depth_max,
                            block_resolution=args.block_resolution, trunc_voxel_multiplier=args.trunc,
                            block_count=args.block_count, device=args.device,
-                           colour_storage="float32" if args.worker == "radiomap-float32" else "uint16")
+                           colour_storage="float32" if args.worker == "radiomap-float32" else "uint16",
+                           ray_caster="open3d" if args.worker == "radiomap-o3dcast" else "radiomap")
     tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
     timed = _TimedFrames(ds)
     cpu0 = time.process_time()

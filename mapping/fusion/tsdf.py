@@ -23,6 +23,17 @@ above 1 included), in one of two storages (``colour_storage``):
 Integration is KinectFusion's running average; the map is rendered by ray casting the zero crossing, colours by
 trilinear interpolation of the eight voxels around the surface point.
 
+The ray cast (issue 33). By default (``ray_caster="radiomap"``) the map is cast by our kernel
+(``mapping._ckernels.raycast_depth``): Open3D 0.20's ``VoxelBlockGrid.ray_cast`` of depth, its range map (each
+listed block's corners projected to 1/8 resolution) and its march (steps of ``max(tsdf x truncation, voxel)``,
+a block at a time through absent blocks) in the same float32 operations, so the same depth bit for bit
+(``tests/test_raycast.py``, ``scripts/stress_raycast.py``), but with blocks looked up in a dense table of the
+view frustum's blocks instead of Open3D's hash map, eight rays in flight per thread (a step is a long chain of
+dependent divisions and loads: interleaving rays overlaps them), nothing written but depth, and each pixel's
+surface colour (the kernel of :meth:`TSDFBackend._surface_colour`) computed in the same pass, eight rows at a
+time while their voxels are in the caches. It needs the compiled kernels and a CPU grid; otherwise, or with
+``ray_caster="open3d"``, Open3D's cast runs (with the fragment-buffer guard below).
+
 Ray casts and block lists. :meth:`TSDFBackend.render_for_frame` computes the voxel blocks the frame's depth
 touches at its pose (the same list integration needs), ray casts the map within them, and hands the list over
 in the view (:attr:`ModelView.prepared`) so that :meth:`TSDFBackend.integrate` of the frame reuses it: one
@@ -184,6 +195,8 @@ class TSDFBackend:
                             "open3d" (Open3D's ray cast as it is).
     colour_storage:         "uint16" (default: 16-bit weight and colour, 12 bytes per voxel, fused by our kernel)
                             or "float32" (float weight and colour, 20 bytes, fused by Open3D); module doc.
+    ray_caster:             "radiomap" (default: our kernel, Open3D's cast bit for bit, faster) or "open3d"
+                            (``VoxelBlockGrid.ray_cast``); module doc.
     colour_scale:           uint16 storage: stored levels per map unit (stored value = colour x colour_scale,
                             rounded; it holds colours up to 65535 / colour_scale). None: from the first fused
                             frame, the largest power of two that holds 4x its largest colour value.
