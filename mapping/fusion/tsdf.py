@@ -322,7 +322,8 @@ class TSDFBackend:
     def _frustum_table(self, blocks, K: np.ndarray, pose: np.ndarray, extrinsic: np.ndarray, height: int,
                        width: int) -> tuple[np.ndarray, np.ndarray] | None:
         """A dense block table (:meth:`_block_table`) holding every block of the grid that the cast of ``blocks``
-        can reach: the rays march from the camera to at most the farthest corner of a listed block, so the
+        can reach: the rays march from the camera to at most the farthest corner of a listed block (or
+        ``depth_min``, where every tile's far end starts), so the
         bounding box of the view frustum cut there (two blocks of margin for rounding and the surface colour's
         neighbours), clipped to the grid's blocks. None when no block is listed or the table would take more than
         256 MB (Open3D's cast then runs)."""
@@ -335,6 +336,7 @@ class TSDFBackend:
         far = float((corners @ E[2, :3] + E[2, 3]).max())
         if not far > 0:
             return None
+        far = max(far, self.depth_min)   # a covered tile marches to at least depth_min (Open3D's range map starts there)
         K = np.asarray(K, dtype=np.float64)
         pix = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], np.float64)
         rays = np.column_stack([(pix[:, 0] - K[0, 2]) / K[0, 0], (pix[:, 1] - K[1, 2]) / K[1, 1], np.ones(4)])
