@@ -884,8 +884,9 @@ fail:
  * it with Open3D's cast). The range map: per 8x8 pixels the least and greatest camera depth of the listed blocks'
  * corners whose projected rectangles (Open3D's pass 0, as range_fragments) cover it; pixels march from there.
  * The table must hold every block of the grid that a ray below ``t_max`` can reach (the caller builds it over
- * the view frustum); a block outside it is taken as absent. ``steps`` (int64[2]) receives the march steps taken
- * and the rays marched. */
+ * the view frustum); a block outside it is taken as absent. ``steps`` (int64[9]) holds on entry, in [3:9], the
+ * bounding box of the map's blocks (lo, hi) and receives in [0:3] the march steps taken, the rays marched and the
+ * look-ups of a block inside that box but outside the table (then the cast may not be Open3D's: cast again). */
 #define RC_LANES 8
 typedef struct {
     Py_ssize_t pixel; /* -1: free */
@@ -927,7 +928,7 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
     Py_buffer vs_buf = {0};
     if (rm_get(osteps, &vs_buf, 'i', 8, 1, 1, "steps"))
         goto fail;
-    if (rm_dim(&vs_buf, 0, 2, "steps")) {
+    if (rm_dim(&vs_buf, 0, 9, "steps")) {
         PyBuffer_Release(&vs_buf);
         goto fail;
     }
@@ -954,6 +955,8 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
     const f32 *R = v[1].buf, *tv = v[2].buf, *Rc = v[3].buf, *o = v[4].buf, *tsdf = v[5].buf;
     f32 *out = v[9].buf;
     int64_t *steps_out = vs_buf.buf;
+    int64_t kb[6]; /* the bounding box of the map's blocks (lo, hi): steps[3:9] on entry */
+    memcpy(kb, steps_out + 3, sizeof kb);
     const Py_ssize_t n_voxels = rm_items(&v[5]) < weight.n ? rm_items(&v[5]) : weight.n;
     const f32 fx = (f32)fx_d, fy = (f32)fy_d, cx = (f32)cx_d, cy = (f32)cy_d, down = 8.0f;
     const f32 voxel_size = (f32)vs_d, sdf_trunc = (f32)trunc_d, depth_min = (f32)dmin_d, depth_max = (f32)dmax_d;
@@ -971,7 +974,7 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
         rm_release(vc, 4);
         return PyErr_NoMemory();
     }
-    int64_t total_steps = 0, total_rays = 0;
+    int64_t total_steps = 0, total_rays = 0, total_outside = 0;
     Py_BEGIN_ALLOW_THREADS
     for (int64_t i = 0; i < h_down * w_down; i++) {
         range[2 * i] = depth_max;
@@ -1019,7 +1022,7 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
      * so that the long chain of dependent operations of one step (divisions, floors, two loads) of one ray
      * overlaps those of the others; every ray's own arithmetic is unchanged. */
 #ifdef _OPENMP
-#pragma omp parallel for schedule(dynamic, 1) reduction(+ : total_steps, total_rays)
+#pragma omp parallel for schedule(dynamic, 1) reduction(+ : total_steps, total_rays, total_outside)
 #endif
     for (Py_ssize_t band = 0; band < rows / 8; band++) {
         RayLane lane[RC_LANES];
@@ -1066,6 +1069,10 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
                     if (L->cslot >= 0 && bx == L->cbx && by == L->cby && bz == L->cbz)
                         slot = L->cslot;
                     else {
+                        int64_t jx = bx - table.lo[0], jy = by - table.lo[1], jz = bz - table.lo[2];
+                        if ((jx < 0 || jy < 0 || jz < 0 || jx >= table.nx || jy >= table.ny || jz >= table.nz)
+                            && bx >= kb[0] && by >= kb[1] && bz >= kb[2] && bx <= kb[3] && by <= kb[4] && bz <= kb[5])
+                            total_outside++; /* a block the map may hold but the table does not: cast again */
                         slot = block_slot(&table, bx, by, bz);
                         if (slot >= 0) {
                             L->cbx = bx, L->cby = by, L->cbz = bz, L->cslot = slot;
@@ -1117,6 +1124,7 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
     PyMem_RawFree(range);
     steps_out[0] = total_steps;
     steps_out[1] = total_rays;
+    steps_out[2] = total_outside;
     PyBuffer_Release(&vs_buf);
     rm_release(v, 10);
     rm_release(vc, 4);

@@ -91,3 +91,19 @@ def test_reconstruction_is_unchanged_by_the_own_cast():
     assert a[0].sum() > 10_000 and len(a[1]) > 10_000
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
+
+
+@needs_c
+def test_a_table_too_small_is_caught(monkeypatch):
+    """Should the frustum table miss a block of the map (it never does), the kernel counts the look-ups and the
+    backend casts again over the whole map: the result stays Open3D's."""
+    from mapping.fusion import tsdf
+
+    def one_block_table(self, blocks, K, pose, extrinsic, height, width):
+        keys, _ = self._known_blocks()
+        lo = keys.min(axis=0).astype(np.int64)
+        return self._block_table(lo, lo)
+
+    monkeypatch.setattr(tsdf.TSDFBackend, "_frustum_table", one_block_table)
+    casts, pixels, bad, desc, hits = _stress().run_case(2)
+    assert hits > 0.1 * pixels and bad == 0, desc

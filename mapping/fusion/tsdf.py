@@ -352,10 +352,12 @@ class TSDFBackend:
 
     def _cast_depth(self, blocks, table: tuple[np.ndarray, np.ndarray], K: np.ndarray, pose: np.ndarray,
                     extrinsic: np.ndarray, height: int, width: int, weight: float,
-                    colour_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+                    colour_size: tuple[int, int], whole_map: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Open3D's ray cast of depth (its range map and march, the same float32 operations: the same depth bit
         for bit) by our kernel, over the dense block table instead of Open3D's hash map (module doc), and the
-        colour of :meth:`_surface_colour` (the same kernel code) of the top-left ``colour_size`` pixels."""
+        colour of :meth:`_surface_colour` (the same kernel code) of the top-left ``colour_size`` pixels. Should a
+        ray reach a block of the map's bounding box outside ``table``, the cast is made again over that whole box
+        (``whole_map``), where a block outside is absent."""
         f32 = np.float32
         colour = np.empty(tuple(colour_size) + (3,), f32)
         K = np.asarray(K, dtype=np.float64)
@@ -363,7 +365,8 @@ class TSDFBackend:
         Rinv = E[:3, :3].T                               # Open3D's InverseTransformation, in float64
         tinv = -(Rinv @ E[:3, 3])
         depth = np.empty((height, width), f32)
-        steps = np.zeros(2, np.int64)
+        keys, _ = self._known_blocks()
+        steps = np.concatenate([np.zeros(3, np.int64), keys.min(axis=0), keys.max(axis=0)]).astype(np.int64)
         _kernels().raycast_depth(np.ascontiguousarray(blocks.numpy(), np.int32), np.ascontiguousarray(E[:3, :3], f32),
                                  np.ascontiguousarray(E[:3, 3], f32), np.ascontiguousarray(Rinv, f32),
                                  np.ascontiguousarray(tinv, f32), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
@@ -375,6 +378,10 @@ class TSDFBackend:
                                  self.grid.attribute("color").numpy().reshape(-1), float(f32(self.colour_scale)),
                                  colour)
         self.cast_steps, self.cast_rays = int(steps[0]), int(steps[1])
+        if steps[2] and whole_map is False:   # a ray looked beyond the table (never seen since the depth_min fix)
+            log.debug("ray cast: %d look-ups outside the frustum table; cast again over the whole map", steps[2])
+            whole = self._block_table(keys.min(axis=0).astype(np.int64), keys.max(axis=0).astype(np.int64))
+            return self._cast_depth(blocks, whole, K, pose, extrinsic, height, width, weight, colour_size, True)
         return depth, colour
 
     def _fragments(self, blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int,
