@@ -475,6 +475,54 @@ fail:
         }                                                                                                          \
     } while (0)
 
+/* What surface_colour computes for pixel (x, y) of depth t, into px[0..2] (zero where no voxel is observed). */
+typedef struct {
+    const f32 *Rc, *o;
+    f32 fx, fy, cx, cy, vs, scale, block_size;
+    int64_t res, res2, res3;
+    Py_ssize_t n_voxels;
+    const Attr *colour, *weight;
+    const BlockTable *table;
+} ColourCtx;
+
+static inline void colour_pixel(const ColourCtx *cc, f32 t, Py_ssize_t x, Py_ssize_t y, f32 *px)
+{
+    const f32 *Rc = cc->Rc, *o = cc->o;
+    const f32 vs = cc->vs, scale = cc->scale, block_size = cc->block_size;
+    const int64_t res = cc->res, res2 = cc->res2, res3 = cc->res3;
+    const Py_ssize_t n_voxels = cc->n_voxels;
+    const Attr weight = *cc->weight;
+    const BlockTable table = *cc->table;
+    px[0] = px[1] = px[2] = 0.0f;
+    if (!(t > 0))
+        return;
+    f32 dyc = ((f32)y - cc->cy) / cc->fy;
+    f32 dxc = ((f32)x - cc->cx) / cc->fx;
+    f32 xg = o[0] + t * (Rc[0] * dxc + Rc[1] * dyc + Rc[2]);
+    f32 yg = o[1] + t * (Rc[3] * dxc + Rc[4] * dyc + Rc[5]);
+    f32 zg = o[2] + t * (Rc[6] * dxc + Rc[7] * dyc + Rc[8]);
+    f32 qx = xg / block_size, qy = yg / block_size, qz = zg / block_size;
+    if (!(in_range(qx) && in_range(qy) && in_range(qz)))
+        return;
+    int64_t bx = (int64_t)floorf(qx), by = (int64_t)floorf(qy), bz = (int64_t)floorf(qz);
+    int64_t slot = block_slot(&table, bx, by, bz);
+    if (slot < 0)
+        return;
+    f32 gx = (xg - (f32)bx * block_size) / vs;
+    f32 gy = (yg - (f32)by * block_size) / vs;
+    f32 gz = (zg - (f32)bz * block_size) / vs;
+    f32 fx0 = floorf(gx), fy0 = floorf(gy), fz0 = floorf(gz);
+    int64_t ix = (int64_t)fx0, iy = (int64_t)fy0, iz = (int64_t)fz0;
+    f32 rx = gx - fx0, ry = gy - fy0, rz = gz - fz0;
+    if (cc->colour->u16) {
+        const uint16_t *colour_u = cc->colour->data;
+        SURFACE_COLOUR_PIXEL(f64, colour_u);
+    } else {
+        const f32 *colour_f = cc->colour->data;
+        SURFACE_COLOUR_PIXEL(f32, colour_f);
+    }
+}
+
 static PyObject *surface_colour(PyObject *self, PyObject *args)
 {
     PyObject *od, *oR, *oo, *oc, *ow, *oi, *ol, *oout;
@@ -506,43 +554,15 @@ static PyObject *surface_colour(PyObject *self, PyObject *args)
     const f32 fx = (f32)fx_d, fy = (f32)fy_d, cx = (f32)cx_d, cy = (f32)cy_d;
     const f32 vs = (f32)vs_d, scale = (f32)scale_d, block_size = vs * (f32)res;
     const int64_t res2 = res * res, res3 = res2 * res;
-    const f32 *colour_f = colour.data;
-    const uint16_t *colour_u = colour.data;
+    const ColourCtx cc = {Rc, o, fx, fy, cx, cy, vs, scale, block_size, res, res2, res3, n_voxels, &colour, &weight,
+                          &table};
     Py_BEGIN_ALLOW_THREADS
 #ifdef _OPENMP
 #pragma omp parallel for schedule(static)
 #endif
-    for (Py_ssize_t y = 0; y < rows; y++) {
-        f32 dyc = ((f32)y - cy) / fy;
-        for (Py_ssize_t x = 0; x < cols; x++) {
-            f32 *px = out + 3 * (y * cols + x);
-            px[0] = px[1] = px[2] = 0.0f;
-            f32 t = depth[y * cols + x];
-            if (!(t > 0))
-                continue;
-            f32 dxc = ((f32)x - cx) / fx;
-            f32 xg = o[0] + t * (Rc[0] * dxc + Rc[1] * dyc + Rc[2]);
-            f32 yg = o[1] + t * (Rc[3] * dxc + Rc[4] * dyc + Rc[5]);
-            f32 zg = o[2] + t * (Rc[6] * dxc + Rc[7] * dyc + Rc[8]);
-            f32 qx = xg / block_size, qy = yg / block_size, qz = zg / block_size;
-            if (!(in_range(qx) && in_range(qy) && in_range(qz)))
-                continue;
-            int64_t bx = (int64_t)floorf(qx), by = (int64_t)floorf(qy), bz = (int64_t)floorf(qz);
-            int64_t slot = block_slot(&table, bx, by, bz);
-            if (slot < 0)
-                continue;
-            f32 gx = (xg - (f32)bx * block_size) / vs;
-            f32 gy = (yg - (f32)by * block_size) / vs;
-            f32 gz = (zg - (f32)bz * block_size) / vs;
-            f32 fx0 = floorf(gx), fy0 = floorf(gy), fz0 = floorf(gz);
-            int64_t ix = (int64_t)fx0, iy = (int64_t)fy0, iz = (int64_t)fz0;
-            f32 rx = gx - fx0, ry = gy - fy0, rz = gz - fz0;
-            if (colour.u16)
-                SURFACE_COLOUR_PIXEL(f64, colour_u);
-            else
-                SURFACE_COLOUR_PIXEL(f32, colour_f);
-        }
-    }
+    for (Py_ssize_t y = 0; y < rows; y++)
+        for (Py_ssize_t x = 0; x < cols; x++)
+            colour_pixel(&cc, depth[y * cols + x], x, y, out + 3 * (y * cols + x));
     Py_END_ALLOW_THREADS
     rm_release(v, 8);
     Py_RETURN_NONE;
@@ -857,6 +877,264 @@ fail:
     return NULL;
 }
 
+/* ---------------------------------------------------------------------------------------------- raycast_depth */
+/* Open3D 0.20's VoxelBlockGrid.ray_cast (EstimateRange, then RayCastCPU's march), depth only, with the grid's
+ * blocks looked up in a dense table (BlockTable) instead of its hash map, and nothing but the depth written:
+ * the same float32 operations in the same order, so the same depth bit for bit (tests/test_raycast.py compares
+ * it with Open3D's cast). The range map: per 8x8 pixels the least and greatest camera depth of the listed blocks'
+ * corners whose projected rectangles (Open3D's pass 0, as range_fragments) cover it; pixels march from there.
+ * The table must hold every block of the grid that a ray below ``t_max`` can reach (the caller builds it over
+ * the view frustum); a block outside it is taken as absent. ``steps`` (int64[9]) holds on entry, in [3:9], the
+ * bounding box of the map's blocks (lo, hi) and receives in [0:3] the march steps taken, the rays marched and the
+ * look-ups of a block inside that box but outside the table (then the cast may not be Open3D's: cast again). */
+#define RC_LANES 8
+typedef struct {
+    Py_ssize_t pixel; /* -1: free */
+    f32 xd, yd, zd, t, t_max, t_prev, tsdf_prev, tsdf;
+    int64_t cslot;
+    int cbx, cby, cbz;
+} RayLane;
+
+static PyObject *raycast_depth(PyObject *self, PyObject *args)
+{
+    PyObject *ob, *oR, *ot, *oRc, *oo, *ots, *ow, *oi, *ol, *oout, *osteps, *oRp, *oop, *oc, *ooc;
+    double fx_d, fy_d, cx_d, cy_d, vs_d, trunc_d, dmin_d, dmax_d, wt_d, scale_d;
+    Py_ssize_t res;
+    Py_buffer v[10] = {{0}}, vc[4] = {{0}};
+    Attr weight, colour;
+    BlockTable table;
+    if (!PyArg_ParseTuple(args, "OOOOOddddndddddOOOOOOOOOdO", &ob, &oR, &ot, &oRc, &oo, &fx_d, &fy_d, &cx_d, &cy_d,
+                          &res, &vs_d, &trunc_d, &dmin_d, &dmax_d, &wt_d, &ots, &ow, &oi, &ol, &oout, &osteps, &oRp,
+                          &oop, &oc, &scale_d, &ooc))
+        return NULL;
+    /* the surface colour (surface_colour's, of each pixel's depth, band by band while its voxels are in the
+     * caches): pose rotation and origin as surface_colour takes them, the colour buffer, out (rows, cols, 3) */
+    if (rm_get(oRp, &vc[0], 'f', 4, 2, 0, "Rc_pose") || rm_get(oop, &vc[1], 'f', 4, 1, 0, "o_pose")
+        || attr(oc, &vc[2], "colour", &colour) || rm_get(ooc, &vc[3], 'f', 4, 3, 1, "out_colour")) {
+        rm_release(vc, 4);
+        return NULL;
+    }
+    if (rm_dim(&vc[0], 0, 3, "Rc_pose") || rm_dim(&vc[0], 1, 3, "Rc_pose") || rm_dim(&vc[1], 0, 3, "o_pose")
+        || rm_dim(&vc[3], 2, 3, "out_colour")) {
+        rm_release(vc, 4);
+        return NULL;
+    }
+    if (rm_get(ob, &v[0], 'i', 4, 2, 0, "blocks") || rm_get(oR, &v[1], 'f', 4, 2, 0, "R")
+        || rm_get(ot, &v[2], 'f', 4, 1, 0, "t") || rm_get(oRc, &v[3], 'f', 4, 2, 0, "Rc")
+        || rm_get(oo, &v[4], 'f', 4, 1, 0, "o") || rm_get(ots, &v[5], 'f', 4, -1, 0, "tsdf")
+        || attr(ow, &v[6], "weight", &weight) || rm_get(oi, &v[7], 'i', 4, 3, 0, "index")
+        || rm_get(ol, &v[8], 'i', 8, 1, 0, "lo") || rm_get(oout, &v[9], 'f', 4, 2, 1, "out"))
+        goto fail;
+    Py_buffer vs_buf = {0};
+    if (rm_get(osteps, &vs_buf, 'i', 8, 1, 1, "steps"))
+        goto fail;
+    if (rm_dim(&vs_buf, 0, 9, "steps")) {
+        PyBuffer_Release(&vs_buf);
+        goto fail;
+    }
+    Py_ssize_t nb = v[0].shape[0], rows = v[9].shape[0], cols = v[9].shape[1];
+    if (rm_dim(&v[0], 1, 3, "blocks") || rm_dim(&v[1], 0, 3, "R") || rm_dim(&v[1], 1, 3, "R")
+        || rm_dim(&v[2], 0, 3, "t") || rm_dim(&v[3], 0, 3, "Rc") || rm_dim(&v[3], 1, 3, "Rc")
+        || rm_dim(&v[4], 0, 3, "o") || block_table(&v[7], &v[8], &table)) {
+        PyBuffer_Release(&vs_buf);
+        goto fail;
+    }
+    const Py_ssize_t c_rows = vc[3].shape[0], c_cols = vc[3].shape[1]; /* colour of the first c_rows x c_cols */
+    if (c_rows > rows || c_cols > cols) {
+        PyErr_Format(PyExc_ValueError, "out_colour: at most %zd x %zd, got %zd x %zd", rows, cols, c_rows, c_cols);
+        PyBuffer_Release(&vs_buf);
+        goto fail;
+    }
+    if (res < 1 || res > 1024 || rows % 8 || cols % 8) {
+        PyErr_Format(PyExc_ValueError, "res must be in 1..1024 and out's sides multiples of 8, got %zd, %zd x %zd",
+                     res, rows, cols);
+        PyBuffer_Release(&vs_buf);
+        goto fail;
+    }
+    const int32_t *blocks = v[0].buf;
+    const f32 *R = v[1].buf, *tv = v[2].buf, *Rc = v[3].buf, *o = v[4].buf, *tsdf = v[5].buf;
+    f32 *out = v[9].buf;
+    int64_t *steps_out = vs_buf.buf;
+    int64_t kb[6]; /* the bounding box of the map's blocks (lo, hi): steps[3:9] on entry */
+    memcpy(kb, steps_out + 3, sizeof kb);
+    const Py_ssize_t n_voxels = rm_items(&v[5]) < weight.n ? rm_items(&v[5]) : weight.n;
+    const f32 fx = (f32)fx_d, fy = (f32)fy_d, cx = (f32)cx_d, cy = (f32)cy_d, down = 8.0f;
+    const f32 voxel_size = (f32)vs_d, sdf_trunc = (f32)trunc_d, depth_min = (f32)dmin_d, depth_max = (f32)dmax_d;
+    const f32 weight_threshold = (f32)wt_d, block_size = voxel_size * (f32)res;
+    const int64_t res2 = res * res, res3 = res2 * res;
+    const int64_t h_down = rows / 8, w_down = cols / 8;
+    const Py_ssize_t n_col_voxels = colour.n / 3 < weight.n ? colour.n / 3 : weight.n;
+    const ColourCtx cc = {vc[0].buf, vc[1].buf, fx, fy, cx, cy, voxel_size, (f32)scale_d, block_size, res, res2, res3,
+                          n_col_voxels, &colour, &weight, &table};
+    f32 *out_colour = vc[3].buf;
+    f32 *range = PyMem_RawMalloc(sizeof(f32) * 2 * (size_t)(h_down * w_down > 0 ? h_down * w_down : 1));
+    if (range == NULL) {
+        PyBuffer_Release(&vs_buf);
+        rm_release(v, 10);
+        rm_release(vc, 4);
+        return PyErr_NoMemory();
+    }
+    int64_t total_steps = 0, total_rays = 0, total_outside = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (int64_t i = 0; i < h_down * w_down; i++) {
+        range[2 * i] = depth_max;
+        range[2 * i + 1] = depth_min;
+    }
+    for (Py_ssize_t k = 0; k < nb; k++) { /* Open3D's pass 0 (as range_fragments), then its fragments' min/max */
+        int64_t u_min = w_down - 1, v_min = h_down - 1, u_max = 0, v_max = 0;
+        f32 z_min = depth_max, z_max = depth_min;
+        for (int i = 0; i < 8; i++) {
+            f32 xw = (f32)(((int64_t)blocks[3 * k] + (i & 1)) * res) * voxel_size;
+            f32 yw = (f32)(((int64_t)blocks[3 * k + 1] + ((i >> 1) & 1)) * res) * voxel_size;
+            f32 zw = (f32)(((int64_t)blocks[3 * k + 2] + ((i >> 2) & 1)) * res) * voxel_size;
+            f32 zc = R[6] * xw + R[7] * yw + R[8] * zw + tv[2];
+            if (zc <= 0)
+                continue;
+            f32 xc = R[0] * xw + R[1] * yw + R[2] * zw + tv[0];
+            f32 yc = R[3] * xw + R[4] * yw + R[5] * zw + tv[1];
+            f32 inv_z = 1.0f / zc;
+            f32 u = (xc * fx * inv_z + cx) / down;
+            f32 vv = (yc * fy * inv_z + cy) / down;
+            f64 fu_lo = fmin(fmax((f64)floorf(u), -1.0), (f64)w_down), fu_hi = fmin(fmax((f64)ceilf(u), -1.0), (f64)w_down);
+            f64 fv_lo = fmin(fmax((f64)floorf(vv), -1.0), (f64)h_down), fv_hi = fmin(fmax((f64)ceilf(vv), -1.0), (f64)h_down);
+            int64_t u_lo = (int64_t)fu_lo, u_hi = (int64_t)fu_hi, v_lo = (int64_t)fv_lo, v_hi = (int64_t)fv_hi;
+            if (u_lo < u_min) u_min = u_lo;
+            if (u_hi > u_max) u_max = u_hi;
+            if (v_lo < v_min) v_min = v_lo;
+            if (v_hi > v_max) v_max = v_hi;
+            if (zc < z_min) z_min = zc;
+            if (zc > z_max) z_max = zc;
+        }
+        if (u_min < 0) u_min = 0;
+        if (v_min < 0) v_min = 0;
+        if (u_max > w_down - 1) u_max = w_down - 1;
+        if (v_max > h_down - 1) v_max = h_down - 1;
+        if (!(v_min < v_max && u_min < u_max && z_min < z_max))
+            continue;
+        for (int64_t vt = v_min; vt <= v_max; vt++)
+            for (int64_t ut = u_min; ut <= u_max; ut++) {
+                f32 *r = range + 2 * (vt * w_down + ut);
+                if (z_min < r[0]) r[0] = z_min;
+                if (z_max > r[1]) r[1] = z_max;
+            }
+    }
+    /* The march: each thread takes 8 rows at a time and keeps RC_LANES rays in flight, one step of each in turn,
+     * so that the long chain of dependent operations of one step (divisions, floors, two loads) of one ray
+     * overlaps those of the others; every ray's own arithmetic is unchanged. */
+#ifdef _OPENMP
+#pragma omp parallel for schedule(dynamic, 1) reduction(+ : total_steps, total_rays, total_outside)
+#endif
+    for (Py_ssize_t band = 0; band < rows / 8; band++) {
+        RayLane lane[RC_LANES];
+        int active = 0;
+        Py_ssize_t next = band * 8 * cols, end = (band + 1) * 8 * cols;
+        for (int l = 0; l < RC_LANES; l++)
+            lane[l].pixel = -1;
+        for (;;) {
+            for (int l = 0; l < RC_LANES; l++) {
+                RayLane *L = &lane[l];
+                while (L->pixel < 0 && next < end) { /* start the next pixel that has a range */
+                    Py_ssize_t p = next++, y = p / cols, x = p % cols;
+                    out[p] = 0.0f;
+                    const f32 *r = range + 2 * ((y / 8) * w_down + x / 8);
+                    if (r[0] >= r[1])
+                        continue;
+                    total_rays++;
+                    f32 xc = ((f32)x - cx) * 1.0f / fx, yc = ((f32)y - cy) * 1.0f / fy, zc = 1.0f;
+                    L->xd = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
+                    L->yd = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
+                    L->zd = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
+                    L->t = L->t_prev = r[0];
+                    L->t_max = r[1];
+                    L->tsdf_prev = -1.0f;
+                    L->tsdf = 1.0f;
+                    L->cslot = -1;
+                    L->pixel = p;
+                    active++;
+                }
+                if (L->pixel < 0)
+                    continue;
+                /* one step of Open3D's march */
+                int done = 0, found = 0;
+                total_steps++;
+                f32 t = L->t;
+                f32 xg = o[0] + t * L->xd, yg = o[1] + t * L->yd, zg = o[2] + t * L->zd;
+                f32 qx = xg / block_size, qy = yg / block_size, qz = zg / block_size;
+                int64_t slot = -1;
+                int bx = 0, by = 0, bz = 0;
+                if (in_range(qx) && in_range(qy) && in_range(qz)) {
+                    bx = (int)floorf(qx);
+                    by = (int)floorf(qy);
+                    bz = (int)floorf(qz);
+                    if (L->cslot >= 0 && bx == L->cbx && by == L->cby && bz == L->cbz)
+                        slot = L->cslot;
+                    else {
+                        int64_t jx = bx - table.lo[0], jy = by - table.lo[1], jz = bz - table.lo[2];
+                        if ((jx < 0 || jy < 0 || jz < 0 || jx >= table.nx || jy >= table.ny || jz >= table.nz)
+                            && bx >= kb[0] && by >= kb[1] && bz >= kb[2] && bx <= kb[3] && by <= kb[4] && bz <= kb[5])
+                            total_outside++; /* a block the map may hold but the table does not: cast again */
+                        slot = block_slot(&table, bx, by, bz);
+                        if (slot >= 0) {
+                            L->cbx = bx, L->cby = by, L->cbz = bz, L->cslot = slot;
+                        }
+                    }
+                }
+                if (slot < 0) {
+                    L->t_prev = t;
+                    L->t = t + block_size;
+                } else {
+                    int xv = (int)((xg - (f32)bx * block_size) / voxel_size);
+                    int yv = (int)((yg - (f32)by * block_size) / voxel_size);
+                    int zv = (int)((zg - (f32)bz * block_size) / voxel_size);
+                    int64_t li = slot * res3 + (int64_t)zv * res2 + (int64_t)yv * res + xv;
+                    if (li < 0 || li >= n_voxels) /* Open3D would read outside the buffer: stop (never seen) */
+                        done = 1;
+                    else {
+                        f32 tsdf_prev = L->tsdf, tsdf_v = tsdf[li];
+                        f32 w = weight.u16 ? (f32)((const uint16_t *)weight.data)[li]
+                                           : ((const f32 *)weight.data)[li];
+                        L->tsdf_prev = tsdf_prev;
+                        L->tsdf = tsdf_v;
+                        if (tsdf_prev > 0 && w >= weight_threshold && tsdf_v <= 0)
+                            done = found = 1;
+                        else {
+                            L->t_prev = t;
+                            f32 delta = tsdf_v * sdf_trunc;
+                            L->t = t + (delta < voxel_size ? voxel_size : delta);
+                        }
+                    }
+                }
+                if (!done && !(L->t < L->t_max))
+                    done = 1;
+                if (done) {
+                    if (found)
+                        out[L->pixel] = (L->t * L->tsdf_prev - L->t_prev * L->tsdf) / (L->tsdf_prev - L->tsdf);
+                    L->pixel = -1;
+                    active--;
+                }
+            }
+            if (active == 0 && next >= end)
+                break;
+        }
+        for (Py_ssize_t y = band * 8; y < band * 8 + 8 && y < c_rows; y++)
+            for (Py_ssize_t x = 0; x < c_cols; x++)
+                colour_pixel(&cc, out[y * cols + x], x, y, out_colour + 3 * (y * c_cols + x));
+    }
+    Py_END_ALLOW_THREADS
+    PyMem_RawFree(range);
+    steps_out[0] = total_steps;
+    steps_out[1] = total_rays;
+    steps_out[2] = total_outside;
+    PyBuffer_Release(&vs_buf);
+    rm_release(v, 10);
+    rm_release(vc, 4);
+    Py_RETURN_NONE;
+fail:
+    rm_release(v, 10);
+    rm_release(vc, 4);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
     {"colour_pairs", colour_pairs, METH_VARARGS, "TSDF colour pairs (mapping.fusion._tsdf_kernels.colour_pairs)."},
     {"finish_view", finish_view, METH_VARARGS, "Finish a ray-cast view (_tsdf_kernels.finish_view)."},
@@ -865,6 +1143,7 @@ static PyMethodDef methods[] = {
     {"hit_bounds", hit_bounds, METH_VARARGS, "Block bounds of the surface points, into lo, hi (_tsdf_kernels)."},
     {"surface_colour", surface_colour, METH_VARARGS, "Trilinear surface colour (_tsdf_kernels.surface_colour)."},
     {"fill_block_table", fill_block_table, METH_VARARGS, "Dense block-slot table (_tsdf_kernels)."},
+    {"raycast_depth", raycast_depth, METH_VARARGS, "Open3D's ray cast of depth over a dense block table."},
     {"integrate_u16", integrate_u16, METH_VARARGS, "Fusion into the 16-bit grid (_tsdf_kernels.integrate_u16)."},
     {"forward", forward, METH_VARARGS, "Display levels of irradiance (mapping._colour_kernels.forward)."},
     {"l1", l1, METH_VARARGS, "Display L1 of two irradiance arrays (mapping._colour_kernels.l1)."},

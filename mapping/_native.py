@@ -14,7 +14,7 @@ import numpy as np
 
 from radiometry._native import choice, compiled, unusable
 
-_TSDF = ("colour_pairs", "finish_view", "refine", "range_fragments", "surface_colour", "fill_block_table",
+_TSDF = ("colour_pairs", "finish_view", "refine", "range_fragments", "surface_colour", "fill_block_table", "raycast_depth",
          "integrate_u16")
 
 

@@ -27,7 +27,7 @@ CHOICES = ("auto", "c", "numba")
 
 #: the kernels' argument contract; each C module exports the number it was built with (``ABI``). Bump it here and
 #: in ``radiometry/_buffers.h`` whenever a kernel's arguments change: a stale build is then not used.
-ABI = 1
+ABI = 2
 
 _LOADED: dict[str, tuple[ModuleType | None, str]] = {}
 

@@ -19,6 +19,9 @@ alternating order, ``--repeats`` times; the table reports medians.
 - radiomap-float32: the same with the float32 grid (``colour_storage="float32"``; not run unless listed in
             ``--methods``): the 16-bit grid's memory saving and its effect on the histogram mean, ATE and time,
             measured in the same run.
+- radiomap-o3dcast: radiomap casting the map with Open3D's ``VoxelBlockGrid.ray_cast`` and its separate colour
+            kernel (``ray_caster="open3d"``, the path before issue 33; not run unless listed): the own cast's
+            saving and its results (histogram, ATE: the same bits expected) in the same run.
 - radiomap-numba: radiomap with its Numba kernels (``RADIOMAP_KERNELS=numba``; not run unless listed): what
             the compiled kernels save in memory and time, in the same run.
 
@@ -54,9 +57,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba")
+METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
 PEERS = ("open3d", "open3d-colour")
-OURS = ("radiomap", "radiomap-float32", "radiomap-numba")
+OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
 
 
 def parse_frames(text: str) -> slice:
@@ -74,6 +77,15 @@ def _ate(stamps, poses, dataset) -> float | None:
     return absolute_trajectory_error(stamps, poses, gt[0], gt[1]).rmse
 
 
+def _open(args):
+    """The sequence as radiomap reads it (its loader: the folder's intrinsics file or ``--intrinsics``, the depth
+    scale radiomap detects or ``--depth-scale``): both loops get the same frames, K and depth in metres."""
+    from mapping.datasets import open_dataset
+
+    return open_dataset(args.sequence, frames=parse_frames(args.frames), intrinsics=args.intrinsics,
+                        depth_scale=args.depth_scale)
+
+
 def _peak_mb() -> float:
     import resource
 
@@ -84,9 +96,8 @@ def worker_open3d(args) -> dict:
     import numpy as np
 
     from mapping._open3d import o3d
-    from mapping.datasets import open_dataset
 
-    ds = open_dataset(args.sequence, frames=parse_frames(args.frames))
+    ds = _open(args)
     files = ds.frame_files
     device = o3d.core.Device(args.device)
     K = o3d.core.Tensor(ds.K)
@@ -97,7 +108,7 @@ def worker_open3d(args) -> dict:
     raycast_frame = o3d.t.pipelines.slam.Frame(ds.height, ds.width, K, device)
     stamps, poses = [], []
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         marks = []
         for i, f in enumerate(files):
             marks.append(time.perf_counter())
@@ -116,8 +127,8 @@ def worker_open3d(args) -> dict:
             model.synthesize_model_frame(raycast_frame, ds.depth_scale, 0.1, args.depth_max, args.trunc,
                                          args.worker == "open3d-colour")
         marks.append(time.perf_counter())
-        seconds = marks[-1] - t0
-    return {"method": args.worker, "frames": len(files), "fused": len(files), "seconds": seconds,
+        seconds, cpu = marks[-1] - t0, time.process_time() - cpu0
+    return {"method": args.worker, "frames": len(files), "fused": len(files), "seconds": seconds, "cpu_seconds": cpu,
             "ate_m": _ate(np.array(stamps), np.array(poses), ds), "peak_rss_mb": _peak_mb(),
             "blocks": int(model.get_hashmap().size()), "frame_ms": (1000 * np.diff(marks)).tolist()}
 
@@ -145,14 +156,13 @@ def worker_radiomap(args) -> dict:
     import numpy as np
 
     from mapping.colour import IrradianceColour
-    from mapping.datasets import open_dataset
     from mapping.datasets.in_memory import ArrayDataset
     from mapping.factory import make_backend, make_tracker
     from mapping.pipeline import reconstruct
     from radiometry.response import CameraResponse
     from radiometry.vignetting import PolynomialVignetting
 
-    ds = open_dataset(args.sequence, frames=parse_frames(args.frames))
+    ds = _open(args)
     w, h = ds.width, ds.height
     vignetting = PolynomialVignetting(np.tile([-0.3, 0.05, -0.02], (3, 1)),
                                       np.tile([w / 2 - 0.5, h / 2 - 0.5], (3, 1)), (w, h))
@@ -167,16 +177,19 @@ def worker_radiomap(args) -> dict:
     backend = make_backend("tsdf", voxel_size=args.voxel_size, depth_max=args.depth_max,
                            block_resolution=args.block_resolution, trunc_voxel_multiplier=args.trunc,
                            block_count=args.block_count, device=args.device,
-                           colour_storage="float32" if args.worker == "radiomap-float32" else "uint16")
+                           colour_storage="float32" if args.worker == "radiomap-float32" else "uint16",
+                           ray_caster="open3d" if args.worker == "radiomap-o3dcast" else "radiomap")
     tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
     timed = _TimedFrames(ds)
+    cpu0 = time.process_time()
     run = reconstruct(timed, colour_model=colour, backend=backend, tracker=tracker, progress=False)
+    cpu = time.process_time() - cpu0
     timed.marks.append(time.perf_counter())
     stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
     from radiometry._native import compiled
 
     return {"method": args.worker, "kernels": "C" if compiled("mapping._ckernels") else "Numba",
-            "frames": run.frames, "fused": run.fused, "seconds": run.seconds,
+            "frames": run.frames, "fused": run.fused, "seconds": run.seconds, "cpu_seconds": cpu,
             "ate_m": None if run.ate is None else run.ate.rmse, "peak_rss_mb": _peak_mb(),
             "blocks": run.map_stats.get("blocks"), "stage_ms": stages,
             "histogram_mean": run.histogram.mean(), "frame_ms": (1000 * np.diff(timed.marks)).tolist()}
@@ -187,6 +200,10 @@ def run_worker(method: str, args) -> dict:
            "--voxel-size", str(args.voxel_size), "--block-resolution", str(args.block_resolution),
            "--block-count", str(args.block_count), "--trunc", str(args.trunc), "--depth-max", str(args.depth_max),
            "--depth-diff", str(args.depth_diff), "--device", args.device, "--motion-model", args.motion_model]
+    if args.intrinsics:
+        cmd += ["--intrinsics", args.intrinsics]
+    if args.depth_scale:
+        cmd += ["--depth-scale", str(args.depth_scale)]
     load = _load()
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     if method == "radiomap-numba":
@@ -210,6 +227,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
     p.add_argument("--frames", default="0:100:1", help="A:B:S of the sequence (default every frame of 0..99)")
+    p.add_argument("--intrinsics", help="fx,fy,cx,cy or a file, for a folder without an intrinsics file (as "
+                   "radiomap's --intrinsics; default: the folder's file or the format's default)")
+    p.add_argument("--depth-scale", type=float, help="raw depth units per metre (default: as radiomap detects it)")
     p.add_argument("--voxel-size", type=float, default=0.01)
     p.add_argument("--block-resolution", type=int, default=16)
     p.add_argument("--block-count", type=int, default=4000, help="initial hash-map capacity (both grow)")
@@ -248,6 +268,7 @@ def main(argv=None) -> int:
             r = run_worker(method, args)
             runs[method].append(r)
             print(f"  run {rep + 1} {method:16s} {1000 * r['seconds'] / r['frames']:7.1f} ms/frame  "
+                  f"CPU {1000 * r['cpu_seconds'] / r['frames']:7.1f} ms/frame  "
                   f"ATE {100 * r['ate_m'] if r['ate_m'] is not None else float('nan'):5.2f} cm  "
                   f"peak {r['peak_rss_mb']:6.0f} MB  load {r['load'][0]:.1f}-{r['load'][1]:.1f}"
                   + (f"  {r['kernels']} kernels" if "kernels" in r else ""), file=sys.stderr)
@@ -273,6 +294,10 @@ def main(argv=None) -> int:
     pairs = {f"{m}/{peer}": [r["seconds"] / r["frames"] / (o["seconds"] / o["frames"])
                              for r, o in zip(runs[m], runs[peer])] for m in ours for peer in peers}
     ratios = {key: statistics.median(v) for key, v in pairs.items()}
+    # CPU time (user + sys of the worker's loop, all its threads): what the work costs, less swayed by the load
+    cpu_pairs = {f"{m}/{peer}": [r["cpu_seconds"] / o["cpu_seconds"] for r, o in zip(runs[m], runs[peer])]
+                 for m in ours for peer in peers}
+    cpu_ratios = {key: statistics.median(v) for key, v in cpu_pairs.items()}
     a, b = summary["radiomap"]["ate_cm"], summary[peers[0]]["ate_cm"]
     ate_ratio = a / b if (a is not None and b) else None
     from radiometry.tables import format_table
@@ -291,6 +316,8 @@ def main(argv=None) -> int:
             if key == "radiomap/open3d-colour" else ""
         print(f"time ratio {key}{note}: {value:.3f} (median of back-to-back pairs "
               f"{', '.join(f'{x:.3f}' for x in pairs[key])})")
+    for key, value in cpu_ratios.items():
+        print(f"CPU-time ratio {key}: {value:.3f} (pairs {', '.join(f'{x:.3f}' for x in cpu_pairs[key])})")
     peak_ratios = {m: summary[m]["peak_rss_mb"] / summary[peers[-1]]["peak_rss_mb"] for m in ours}
     for m, value in peak_ratios.items():
         print(f"peak memory ratio {m} / {peers[-1]}: {value:.2f} (target <= 1.2)")
@@ -311,7 +338,8 @@ def main(argv=None) -> int:
         print(f"{m} stage ms/frame: " + ", ".join(f"{k} {statistics.median(v):.1f}" for k, v in stages[m].items()))
     if args.json:
         args.json.write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "summary": summary,
-                                         "time_ratios": ratios, "pair_ratios": pairs, "ate_ratio": ate_ratio,
+                                         "time_ratios": ratios, "pair_ratios": pairs,
+                                         "cpu_ratios": cpu_ratios, "cpu_pair_ratios": cpu_pairs, "ate_ratio": ate_ratio,
                                          "peak_ratio": peak_ratio, "peak_ratios": peak_ratios, "scaling": scaling,
                                          "runs": runs}, indent=2))
     return 0

@@ -387,7 +387,7 @@ def test_no_ray_cast_reads_an_unwritten_range_fragment(monkeypatch, capfd):
 
     monkeypatch.setattr(tsdf, "_quiet", contextlib.nullcontext)     # keep Open3D's debug report
     K640 = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
-    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0)
+    backend = TSDFBackend(voxel_size=0.01, depth_max=3.0, ray_caster="open3d")   # the guard of Open3D's cast
     grid = backend.grid = _RecordingGrid(backend.grid)
     u = np.arange(640, dtype=np.float32)[None, :].repeat(480, axis=0)
     frames = [(1.5 + 1.3 * u / 640).astype(np.float32)] * 3 + [np.full((480, 640), 2.9, np.float32)]
@@ -446,16 +446,22 @@ def test_range_map_fragments_match_open3d(capfd):
 
 @pytest.mark.parametrize("height, width", [(6, 8), (8, 8), (12, 20), (17, 9)])
 def test_tiny_views_render(height, width):
-    """Views whose range map has a side under 2 pixels take no fragment: cast without growing anything."""
-    backend = TSDFBackend(voxel_size=0.02, depth_max=3.0)
-    depth = _plane()
-    for _ in range(2):
-        backend.integrate(depth, np.ones((H, W, 3), np.float32), K, np.eye(4))
-    capacity = backend.fragment_capacity
-    Ks = K * np.array([[width / W], [height / H], [1]])
-    view = backend.render_for_frame(np.full((height, width), 1.5, np.float32), Ks, np.eye(4))
-    assert view.depth.shape == (height, width) and backend.ray_casts == 2 and capacity > 0
-    assert backend.fragment_capacity == capacity
+    """Views whose range map has a side under 2 pixels take no fragment: Open3D's cast runs without growing
+    anything, and our cast (issue 33) gives its depth and colour."""
+    views = {}
+    for caster in ("open3d", "radiomap"):
+        backend = TSDFBackend(voxel_size=0.02, depth_max=3.0, ray_caster=caster)
+        depth = _plane()
+        for _ in range(2):
+            backend.integrate(depth, np.ones((H, W, 3), np.float32), K, np.eye(4))
+        capacity = backend.fragment_capacity
+        Ks = K * np.array([[width / W], [height / H], [1]])
+        views[caster] = view = backend.render_for_frame(np.full((height, width), 1.5, np.float32), Ks, np.eye(4))
+        assert view.depth.shape == (height, width) and backend.ray_casts == 2
+        if caster == "open3d":
+            assert capacity > 0 and backend.fragment_capacity == capacity
+    np.testing.assert_array_equal(views["open3d"].depth, views["radiomap"].depth)
+    np.testing.assert_array_equal(views["open3d"].colour, views["radiomap"].colour)
 
 
 def test_the_memory_estimate_counts_the_default_grid():

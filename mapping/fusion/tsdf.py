@@ -23,6 +23,17 @@ above 1 included), in one of two storages (``colour_storage``):
 Integration is KinectFusion's running average; the map is rendered by ray casting the zero crossing, colours by
 trilinear interpolation of the eight voxels around the surface point.
 
+The ray cast (issue 33). By default (``ray_caster="radiomap"``) the map is cast by our kernel
+(``mapping._ckernels.raycast_depth``): Open3D 0.20's ``VoxelBlockGrid.ray_cast`` of depth, its range map (each
+listed block's corners projected to 1/8 resolution) and its march (steps of ``max(tsdf x truncation, voxel)``,
+a block at a time through absent blocks) in the same float32 operations, so the same depth bit for bit
+(``tests/test_raycast.py``, ``scripts/stress_raycast.py``), but with blocks looked up in a dense table of the
+view frustum's blocks instead of Open3D's hash map, eight rays in flight per thread (a step is a long chain of
+dependent divisions and loads: interleaving rays overlaps them), nothing written but depth, and each pixel's
+surface colour (the kernel of :meth:`TSDFBackend._surface_colour`) computed in the same pass, eight rows at a
+time while their voxels are in the caches. It needs the compiled kernels and a CPU grid; otherwise, or with
+``ray_caster="open3d"``, Open3D's cast runs (with the fragment-buffer guard below).
+
 Ray casts and block lists. :meth:`TSDFBackend.render_for_frame` computes the voxel blocks the frame's depth
 touches at its pose (the same list integration needs), ray casts the map within them, and hands the list over
 in the view (:attr:`ModelView.prepared`) so that :meth:`TSDFBackend.integrate` of the frame reuses it: one
@@ -93,6 +104,8 @@ _ATTRS = ("tsdf", "weight", "color")
 SURFACES = ("debias", "refine", "open3d")
 #: colour storage of the grid: bytes per voxel (TSDF, weight, 3 colours)
 COLOUR_STORAGE = {"uint16": 4 + 2 + 6, "float32": 4 + 4 + 12}
+_CUBE = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], np.float64)   # a block's corners
+RAY_CASTERS = ("radiomap", "open3d")
 _HEADROOM = 4.0            # uint16 colour, colour_scale=None: room for 4x the first frame's largest colour
 
 
@@ -182,6 +195,8 @@ class TSDFBackend:
                             "open3d" (Open3D's ray cast as it is).
     colour_storage:         "uint16" (default: 16-bit weight and colour, 12 bytes per voxel, fused by our kernel)
                             or "float32" (float weight and colour, 20 bytes, fused by Open3D); module doc.
+    ray_caster:             "radiomap" (default: our kernel, Open3D's cast bit for bit, faster) or "open3d"
+                            (``VoxelBlockGrid.ray_cast``); module doc.
     colour_scale:           uint16 storage: stored levels per map unit (stored value = colour x colour_scale,
                             rounded; it holds colours up to 65535 / colour_scale). None: from the first fused
                             frame, the largest power of two that holds 4x its largest colour value.
@@ -195,7 +210,7 @@ class TSDFBackend:
                  trunc_voxel_multiplier: float = 8.0, depth_min: float = 0.1, depth_max: float = 3.0,
                  weight_threshold: float = 3.0, agreement_voxels: float = 3.0, agreement_relative: float = 0.02,
                  pixel_centre_fix: bool = True, surface: str = "debias", colour_storage: str = "uint16",
-                 colour_scale: float | None = None, device: str = "CPU:0") -> None:
+                 colour_scale: float | None = None, ray_caster: str = "radiomap", device: str = "CPU:0") -> None:
         for name, value in (("voxel_size", voxel_size), ("trunc_voxel_multiplier", trunc_voxel_multiplier),
                             ("depth_max", depth_max), ("agreement_voxels", agreement_voxels)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
@@ -219,6 +234,10 @@ class TSDFBackend:
         if surface == "refine" and block_resolution & (block_resolution - 1):
             raise ValueError(f"surface='refine' needs a power-of-two block_resolution, got {block_resolution}")
         self.surface = surface
+        if ray_caster not in RAY_CASTERS:
+            raise ValueError(f"ray_caster must be one of {', '.join(RAY_CASTERS)}, got {ray_caster!r}")
+        self.ray_caster = ray_caster
+        self.cast_steps = self.cast_rays = 0   # march steps and rays of the last cast by our kernel
         if colour_storage not in COLOUR_STORAGE:
             raise ValueError(f"colour_storage must be one of {', '.join(COLOUR_STORAGE)}, got {colour_storage!r}")
         if colour_scale is not None and not (isinstance(colour_scale, (int, float)) and np.isfinite(colour_scale)
@@ -272,15 +291,23 @@ class TSDFBackend:
         pose = np.asarray(pose, dtype=np.float64)
         if extrinsic is None:
             extrinsic = np.linalg.inv(pose)
-        self._fit_range_fragments(blocks.numpy(), K, extrinsic, hp, wp)
-        result = self.grid.ray_cast(blocks, Kt, o3d.core.Tensor(extrinsic), wp, hp, ["depth"], 1.0,
-                                    self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
-                                    _RANGE_FACTOR)
+        own = self.ray_caster == "radiomap" and hasattr(_kernels(), "raycast_depth") \
+            and self.device.get_type() == o3d.core.Device.DeviceType.CPU
+        table = self._frustum_table(blocks, K, pose, extrinsic, hp, wp) if own else None
+        colour = None
+        if table is not None:
+            depth, colour = self._cast_depth(blocks, table, K, pose, extrinsic, hp, wp, weight, (height, width))
+        else:
+            self._fit_range_fragments(blocks.numpy(), K, extrinsic, hp, wp)
+            result = self.grid.ray_cast(blocks, Kt, o3d.core.Tensor(extrinsic), wp, hp, ["depth"], 1.0,
+                                        self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
+                                        _RANGE_FACTOR)
+            depth = result["depth"].numpy()[:, :, 0]
         self.ray_casts += 1
-        depth = result["depth"].numpy()[:, :, 0]
         if (hp, wp) != (height, width):
             depth = np.ascontiguousarray(depth[:height, :width])
-        colour, table = self._surface_colour(depth, K, pose)
+        if colour is None:
+            colour, table = self._surface_colour(depth, K, pose)
         depth_nan = o3d.t.geometry.Image(_tensor(np.where(depth > 0, depth, np.float32(np.nan))))
         vertex = depth_nan.create_vertex_map(Kt, _NAN).as_tensor().numpy()
         normal = depth_nan.filter_bilateral(5, 5.0, 10.0).create_vertex_map(Kt, _NAN) \
@@ -291,6 +318,71 @@ class TSDFBackend:
         if self.surface == "refine":
             self._refine(table, K, pose, depth, vertex)
         return ModelView(depth=depth, colour=colour, vertex=vertex, normal=normal, pose=pose.copy())
+
+    def _frustum_table(self, blocks, K: np.ndarray, pose: np.ndarray, extrinsic: np.ndarray, height: int,
+                       width: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """A dense block table (:meth:`_block_table`) holding every block of the grid that the cast of ``blocks``
+        can reach: the rays march from the camera to at most the farthest corner of a listed block (or
+        ``depth_min``, where every tile's far end starts), so the
+        bounding box of the view frustum cut there (two blocks of margin for rounding and the surface colour's
+        neighbours), clipped to the grid's blocks. None when no block is listed or the table would take more than
+        256 MB (Open3D's cast then runs)."""
+        b = blocks.numpy()
+        if len(b) == 0:
+            return None
+        size = self.block_resolution * self.voxel_size
+        E = np.asarray(extrinsic, dtype=np.float64)
+        corners = (b[:, None, :].astype(np.float64) + _CUBE[None]) * size
+        far = float((corners @ E[2, :3] + E[2, 3]).max())
+        if not far > 0:
+            return None
+        far = max(far, self.depth_min)   # a covered tile marches to at least depth_min (Open3D's range map starts there)
+        K = np.asarray(K, dtype=np.float64)
+        pix = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], np.float64)
+        rays = np.column_stack([(pix[:, 0] - K[0, 2]) / K[0, 0], (pix[:, 1] - K[1, 2]) / K[1, 1], np.ones(4)])
+        points = np.vstack([pose[:3, 3], pose[:3, 3] + far * (rays @ pose[:3, :3].T)]) / size
+        keys, _ = self._known_blocks()
+        lo = np.maximum(np.floor(points.min(axis=0)).astype(np.int64) - 2, keys.min(axis=0))
+        hi = np.minimum(np.floor(points.max(axis=0)).astype(np.int64) + 2, keys.max(axis=0))
+        if np.any(lo > hi):
+            lo = hi = np.zeros(3, np.int64)
+        if np.prod(hi - lo + 1) > 64 * 2 ** 20:
+            return None
+        return self._block_table(lo, hi)
+
+    def _cast_depth(self, blocks, table: tuple[np.ndarray, np.ndarray], K: np.ndarray, pose: np.ndarray,
+                    extrinsic: np.ndarray, height: int, width: int, weight: float,
+                    colour_size: tuple[int, int], whole_map: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Open3D's ray cast of depth (its range map and march, the same float32 operations: the same depth bit
+        for bit) by our kernel, over the dense block table instead of Open3D's hash map (module doc), and the
+        colour of :meth:`_surface_colour` (the same kernel code) of the top-left ``colour_size`` pixels. Should a
+        ray reach a block of the map's bounding box outside ``table``, the cast is made again over that whole box
+        (``whole_map``), where a block outside is absent."""
+        f32 = np.float32
+        colour = np.empty(tuple(colour_size) + (3,), f32)
+        K = np.asarray(K, dtype=np.float64)
+        E = np.asarray(extrinsic, dtype=np.float64)
+        Rinv = E[:3, :3].T                               # Open3D's InverseTransformation, in float64
+        tinv = -(Rinv @ E[:3, 3])
+        depth = np.empty((height, width), f32)
+        keys, _ = self._known_blocks()
+        steps = np.concatenate([np.zeros(3, np.int64), keys.min(axis=0), keys.max(axis=0)]).astype(np.int64)
+        _kernels().raycast_depth(np.ascontiguousarray(blocks.numpy(), np.int32), np.ascontiguousarray(E[:3, :3], f32),
+                                 np.ascontiguousarray(E[:3, 3], f32), np.ascontiguousarray(Rinv, f32),
+                                 np.ascontiguousarray(tinv, f32), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                                 self.block_resolution, self.voxel_size,
+                                 float(f32(self.voxel_size) * f32(self.trunc_voxel_multiplier)), self.depth_min,
+                                 self.depth_max, weight, self.grid.attribute("tsdf").numpy().reshape(-1),
+                                 self.grid.attribute("weight").numpy().reshape(-1), table[0], table[1], depth, steps,
+                                 np.ascontiguousarray(pose[:3, :3], f32), np.ascontiguousarray(pose[:3, 3], f32),
+                                 self.grid.attribute("color").numpy().reshape(-1), float(f32(self.colour_scale)),
+                                 colour)
+        self.cast_steps, self.cast_rays = int(steps[0]), int(steps[1])
+        if steps[2] and whole_map is False:   # a ray looked beyond the table (never seen since the depth_min fix)
+            log.debug("ray cast: %d look-ups outside the frustum table; cast again over the whole map", steps[2])
+            whole = self._block_table(keys.min(axis=0).astype(np.int64), keys.max(axis=0).astype(np.int64))
+            return self._cast_depth(blocks, whole, K, pose, extrinsic, height, width, weight, colour_size, True)
+        return depth, colour
 
     def _fragments(self, blocks: np.ndarray, K: np.ndarray, extrinsic: np.ndarray, height: int,
                    width: int) -> np.ndarray:
