@@ -59,7 +59,7 @@ def break_radiance():
     return scene(240, 320, seed=3)
 
 
-#: measured, 320x240, scene and noise seed 3 (640x480 seed 7 in README): varied 0.50 / 0.84 / 0.52 / 0.36 / 0.30
+#: measured, 320x240, scene and noise seed 3 (640x480 seed 7 in docs/guides/calibrate.md): varied 0.50 / 0.84 / 0.52 / 0.36 / 0.30
 #: / 0.45 / 0.26; exact 2x 1.53 / 2.20 / 0.64 / 0.55 / 0.37 / 0.54 / 0.33 (order of break_curves)
 BREAK_2X_LIMIT = {"dark-kink-4x@60": 2.0, "dark-flat-40-55": 2.8}
 

@@ -1,4 +1,4 @@
-"""Robustness catalogue, part 2 (README "Outputs that cannot be written", "Atomic writes and --force", "Tracking
+"""Robustness catalogue, part 2 (docs/robustness_catalogue.md: "Outputs that cannot be written", "Atomic writes and --force", "Tracking
 loss and interruption"): outputs that cannot be written, nothing good lost, Ctrl-C and lost tracking. Part 1
 (inputs and calibration files) and the shared helpers are in test_robustness.py."""
 
