@@ -33,6 +33,7 @@ from radiometry.vignetting import LUTVignetting, PolynomialVignetting
 REPO = Path(__file__).resolve().parents[1]
 BRACKETS = REPO / "data_samples" / "brackets"
 VW, VH = 96, 72  # the models' calibration resolution (4:3)
+pytestmark = pytest.mark.slow   # every row runs the command end to end (the catalogue; the full suite runs it)
 
 
 # ==================================================================================================
