@@ -2,7 +2,7 @@
 
 Two C extensions, ``mapping._ckernels`` (TSDF, display look-ups, depth pyramid) and ``radiometry._ckernels``
 (uint8 correction, irradiance), the C twins of radiomap's Numba kernels: the same results without Numba's
-~111 MB runtime in the process (README "Benchmarks"). Built with OpenMP where the compiler has it, without
+~111 MB runtime in the process (docs/benchmarks.md). Built with OpenMP where the compiler has it, without
 FMA contraction (results bit-identical to the Numba kernels). Both are optional: without a C compiler the
 install goes on and radiomap runs its Numba kernels (``RADIOMAP_KERNELS`` chooses; ``mapping._native``).
 """

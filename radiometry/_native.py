@@ -5,7 +5,7 @@ implementations with the same arguments and the same results (``tests/test_nativ
 built at install (``setup.py``; ``mapping._ckernels``, ``radiometry._ckernels``) and a Numba kernel compiled at
 first use. C is the default: Numba's runtime costs ~111 MB in every process that calls a kernel (LLVM is
 loaded even to run kernels from its on-disk cache), more than radiomap's memory budget against Open3D's own
-SLAM loop (README "Benchmarks"). Numba runs them where the extensions were not built (no C compiler at install),
+SLAM loop (docs/benchmarks.md). Numba runs them where the extensions were not built (no C compiler at install),
 cannot be loaded, were built for another version of the kernels (:data:`ABI`), or when asked. The surfel backend
 and the vignetting accumulator have Numba kernels only.
 

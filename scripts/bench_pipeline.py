@@ -41,7 +41,7 @@ The time ratio is the median over back-to-back pairs (the machine's load drifts 
 adds the time per frame over the ``--window`` frames before each listed frame number (every method times each
 frame: from the start of one frame, its loading included, to the start of the next).
 
-The figures are in README.md (section Benchmarks).
+The figures are in docs/benchmarks.md.
 """
 
 from __future__ import annotations

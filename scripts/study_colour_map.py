@@ -22,7 +22,7 @@ the ground truth before -> after the optimisation.
   remove). ``colour err`` is :func:`mapping.compare.colour_error` (mean 8-bit display difference per channel
   against the true radiance after one global scale per channel).
 - kitchen: 7-Scenes redkitchen frames 50-99 (640x480), ground-truth poses, gamma 2.2 assumed; LUT self-calibrated on
-  frames 0-49 (``radiomap self-calibrate``), as in README "Self-calibration".
+  frames 0-49 (``radiomap self-calibrate``), as in docs/guides/self_calibrate.md.
 
     nice -n 10 python scripts/study_colour_map.py -o /tmp/study_cm   # the full study: 9-11 min at load 9-14, 2 cores
     nice -n 10 python scripts/study_colour_map.py -o /tmp/study_cm --only room --frames 30

@@ -33,7 +33,7 @@ calibrated models of the demo instead, ``lut`` and ``poly`` would add calibratio
         --colours raw response lut --no-kitchen --basin-trials 0                # the control (vignetting only)
 
 The summary table goes to OUT/summary.txt, every run to OUT/runs.csv and everything to OUT/study.json. The
-figures of the last run are in README.md (section Tracking on irradiance).
+figures of the last run are in docs/tracking.md (summary: docs/guides/reconstruct.md, "Tracking on irradiance").
 """
 
 from __future__ import annotations

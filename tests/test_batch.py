@@ -145,6 +145,7 @@ def _kill_stopped_worker(out: Path, tmp_path: Path, proc: subprocess.Popen, time
 
 
 # ------------------------------------------------------------------ the sequence list and names
+@pytest.mark.slow
 def test_sequence_list_comments_relative_paths_and_errors(data, tmp_path):
     assert read_sequence_list(data["list"]) == data["seqs"]
     bad = tmp_path / "bad.txt"
@@ -190,6 +191,7 @@ def test_thread_environment_and_one_line_errors(monkeypatch, tmp_path):
 
 
 # ------------------------------------------------------------------ the local-process engine
+@pytest.mark.slow
 def test_batch_reconstruct_writes_what_the_single_command_writes_then_skips(data, tmp_path):
     out = tmp_path / "out"
     res = _batch(data, out, "--engine", "processes", "--workers", "2")
@@ -221,6 +223,7 @@ def test_batch_reconstruct_writes_what_the_single_command_writes_then_skips(data
     assert (out / "alpha" / "metrics.json").stat().st_mtime_ns == stamp
 
 
+@pytest.mark.slow
 def test_a_failing_sequence_does_not_stop_the_others(data, tmp_path):
     broken = data["root"] / "seqs" / "broken"
     broken.mkdir(exist_ok=True)
@@ -240,6 +243,7 @@ def test_a_failing_sequence_does_not_stop_the_others(data, tmp_path):
     assert 'href="logs/broken.log"' in (out / "index.html").read_text()
 
 
+@pytest.mark.slow
 def test_a_killed_worker_leaves_running_and_the_rerun_completes_it(data, tmp_path):
     out = tmp_path / "out"
     proc = _stopping_batch(data, out, tmp_path, "--engine", "processes", "--workers", "1")
@@ -259,6 +263,7 @@ def test_a_killed_worker_leaves_running_and_the_rerun_completes_it(data, tmp_pat
     _same_results(out / "alpha", tmp_path / "alone_alpha")
 
 
+@pytest.mark.slow
 def test_batch_compare_and_usage_errors(data, tmp_path):
     out = tmp_path / "cmp"
     res = _batch(data, out, "--engine", "processes", command="compare",
@@ -279,6 +284,7 @@ def test_batch_compare_and_usage_errors(data, tmp_path):
     assert res.returncode == 2 and "--force of batch" in res.stderr
 
 
+@pytest.mark.slow
 def test_batch_self_calibrate_is_the_single_command_per_sequence(data, tmp_path):
     """A room that constrains V (160x120, 30 frames) and one that cannot (beta: 8 frames at 64x48): the first's
     folder holds what 'radiomap self-calibrate' writes alone (same V, stderr and exposures), the second fails in

@@ -66,6 +66,7 @@ def test_jpeg_and_noise_after_the_response_stay_within_one_percent_on_gamma(pipe
     assert np.all(err <= 1.0), err
 
 
+@pytest.mark.slow
 def test_the_euroc_curve_through_jpeg_with_white_balance(radiance):
     """Measured: 0.92 / 0.48 / 2.19 %: blue misses the 1 % target at its top declared level (234, the ceiling at 243
     less the margin): a documented failure, bounded here; the declared levels stay below every true ceiling."""
@@ -91,6 +92,7 @@ def test_where_it_fails_knees_under_jpeg_stay_bounded(curve, pipeline, bound, ra
     assert np.all(err <= bound), err
 
 
+@pytest.mark.slow
 def test_the_clean_camera_keeps_its_accuracy(radiance):
     table, _, _, response = _fit("kink-4x", "clean", "2x", radiance)
     err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
@@ -106,6 +108,7 @@ def test_debevec_also_finds_the_ceiling(radiance):
     assert np.all(err <= 1.5), err
 
 
+@pytest.mark.slow
 def test_explicit_levels_switch_the_detection_off(radiance):
     table, _, _, response = _fit("gamma-2.2", "clean", "2x", radiance, method="loglog", levels=(1, 254), edges=False)
     assert "levels_summary" not in response.meta and response.meta["levels"] == [1, 254]
@@ -122,6 +125,7 @@ def test_a_channel_saturated_in_every_exposure_stops_with_the_fix():
 
 
 # ------------------------------------------------------------------------------------------------ quality figures
+@pytest.mark.slow
 def test_the_quality_figure_separates_good_from_broken(radiance):
     """Measured (gamma 2.2, 320x240): a good fit 2.1 levels held-out RMS (0.96x the images' noise), split-half
     0.3 %; a camera that moved 1-2 px between exposures 18.5 levels (8.4x); the wrong response (the kink curve given
@@ -138,6 +142,7 @@ def test_the_quality_figure_separates_good_from_broken(radiance):
     assert wrong["grade"] == "broken" and "do not use" in wrong["summary"]
 
 
+@pytest.mark.slow
 def test_short_sparse_and_single_channel_stacks_get_a_quality_figure(radiance):
     """Review findings: a 2-exposure stack, 3 exposures 16x apart (leaving the middle one out leaves a 256x gap) and
     (H, W, 1) images are judged without refits where refits cannot stand, never refused or called broken for it."""
@@ -152,12 +157,14 @@ def test_short_sparse_and_single_channel_stacks_get_a_quality_figure(radiance):
     assert q["grade"] == "good" and len(q["split_half_percent"]) == 1, q["summary"]
 
 
+@pytest.mark.slow
 def test_the_quality_figure_of_a_jpeg_stack_is_good(radiance):
     _, images, times, response = _fit("gamma-2.2", "wb-jpeg92", "2x", radiance)
     q = assess(images, times, response, method=None)
     assert q["grade"] == "good", q["summary"]
 
 
+@pytest.mark.slow
 def test_the_quality_of_real_stacks_is_stated_and_a_moved_one_is_broken():
     """taipei (a Nikon night scene): 5.96 levels held-out, 2.1x its noise: doubtful (its 32 s exposure predicts at
     13.4 levels); the same stack with every other exposure moved by 2 px, or with gamma 2.2 given, is worse."""
@@ -187,6 +194,7 @@ def euroc_vignette():
     return vignette_field("euroc", width, height)
 
 
+@pytest.mark.slow
 def test_a_jpeg_sweep_through_the_response_from_a_jpeg_stack(euroc_vignette, radiance):
     """Measured: kink-4x, JPEG q92 with white balance: 0.34/0.24/0.61 levels; with the true response and a JPEG q75
     sweep 0.34/0.42/0.59 (JPEG's colour rounding and block noise, not the response: docs)."""
@@ -212,6 +220,7 @@ def test_a_sheet_clipped_below_255_is_refused_in_one_line(euroc_vignette):
     assert "\n" not in str(err.value) and "shorter exposure" in str(err.value)
 
 
+@pytest.mark.slow
 def test_auto_exposure_left_on_is_absorbed_or_refused(euroc_vignette, tmp_path):
     """A +-0.1-stop jitter (spread ~15 %) is absorbed by the drift correction (0.30-0.44 levels, measured); +-0.3
     stops (spread ~45 %) leaves 0.72 and the command refuses it without --allow-exposure-changes."""
@@ -247,6 +256,7 @@ def test_auto_exposure_left_on_is_absorbed_or_refused(euroc_vignette, tmp_path):
     assert "brightness varied" in result.output and "split-half uncertainty" in result.output
 
 
+@pytest.mark.slow
 def test_the_split_half_figure_is_the_size_of_the_error(euroc_vignette):
     """The even and odd frames' LUTs differ by about twice the full LUT's noise: the figure (half the difference)
     is within a factor 3 of the true error for the true response (measured 0.12-0.13 vs 0.15-0.18 levels)."""

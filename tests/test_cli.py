@@ -14,6 +14,7 @@ def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "mapping.cli", *args], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_version():
     out = run("--version")
     assert out.returncode == 0
@@ -22,6 +23,7 @@ def test_version():
     assert run("-V").stdout == out.stdout
 
 
+@pytest.mark.slow
 def test_version_says_which_kernels_run(monkeypatch):
     monkeypatch.setenv("RADIOMAP_KERNELS", "numba")
     assert run("--version").stdout.strip().splitlines()[1] == "kernels: Numba (RADIOMAP_KERNELS=numba)"
@@ -157,6 +159,7 @@ def test_one_meaning_per_option_name_across_the_cli():
     assert [c for c, _ in seen["--num-frames"]] == ["simulate"] and "-n" in seen
 
 
+@pytest.mark.slow
 def test_renamed_options_are_hidden_aliases():
     from click.testing import CliRunner
 
@@ -169,6 +172,7 @@ def test_renamed_options_are_hidden_aliases():
         assert old not in out, (command, old)
 
 
+@pytest.mark.slow
 def test_the_defaults_that_differ_are_the_ones_the_summaries_name():
     """reconstruct and compare keep different defaults only for poses and exposure compensation (GLB is on in
     both); the table the summaries quote matches the options."""

@@ -52,6 +52,7 @@ def metrics(run):
     return json.loads((run / "metrics.json").read_text())
 
 
+@pytest.mark.slow
 def test_config_json_holds_plain_values_that_the_options_read_back(first_run, room):
     config = json.loads((first_run / "config.json").read_text())
     assert_plain_json(config)
@@ -64,6 +65,7 @@ def test_config_json_holds_plain_values_that_the_options_read_back(first_run, ro
     assert config["pipeline"]["frames"] == "0:8" and config["pipeline"]["reference_exposure"] == 0.9
 
 
+@pytest.mark.slow
 def test_reconstruct_replay_gives_the_same_metrics(first_run, tmp_path):
     replay = tmp_path / "replay"
     res = invoke("reconstruct", "--config", first_run / "config.json", "-o", replay, "--no-progress")
@@ -85,6 +87,7 @@ def test_reconstruct_replay_gives_the_same_metrics(first_run, tmp_path):
     assert summary.splitlines()[-1] in res.output
 
 
+@pytest.mark.slow
 def test_icp_run_replays_to_the_same_trajectory(room, tmp_path):
     """With ICP the replay tracks again: the same frames fused and the same ATE and histogram up to the noise of
     Open3D's threaded reductions (measured: ATE within 0.005 mm, L1 mean within 0.02 %, pairs within 0.003 %)."""
@@ -102,6 +105,7 @@ def test_icp_run_replays_to_the_same_trajectory(room, tmp_path):
     assert "poses icp (from" in (tmp_path / "again" / "summary.txt").read_text()
 
 
+@pytest.mark.slow
 def test_command_line_overrides_the_config_and_a_replay_does_not_overwrite(first_run, tmp_path):
     before = (first_run / "metrics.json").read_bytes()
     res = invoke("reconstruct", "--config", first_run / "config.json", "--no-progress")   # -o from the file
@@ -117,6 +121,7 @@ def test_command_line_overrides_the_config_and_a_replay_does_not_overwrite(first
     assert "exposure compensation off (given)" in (out / "summary.txt").read_text()
 
 
+@pytest.mark.slow
 def test_a_recorded_value_the_command_line_contradicts_is_dropped_with_a_note(first_run, tmp_path):
     """The command line cannot unset a recorded --mesh-exposure or --surfel-mesh: an override that contradicts
     one drops it (a note names the file and the key); the same contradiction typed out is still refused."""
@@ -133,6 +138,7 @@ def test_a_recorded_value_the_command_line_contradicts_is_dropped_with_a_note(fi
     assert res.exit_code == 2 and "applies with exposure compensation only" in res.output
 
 
+@pytest.mark.slow
 def test_compare_replay_gives_the_same_table(room, tmp_path):
     out = tmp_path / "cmp"
     res = invoke("compare", room, "-r", room / "truth" / "response.npz", "--vignetting-lut",
@@ -164,6 +170,7 @@ def rewrite(config_file, tmp_path, change):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("change, key, fix", [
     (lambda d: d["parameters"].update(colour="lut"), "'parameters.colour'", "remove or rename it"),
     (lambda d: d["parameters"].update(reference_exposure=2.0), "'parameters.reference_exposure' for radiomap "

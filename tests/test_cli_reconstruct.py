@@ -17,6 +17,7 @@ def run(*args: str):
     return CliRunner().invoke(cli, ["reconstruct", *args], catch_exceptions=False)
 
 
+@pytest.mark.slow
 def test_redwood_ground_truth_raw(tmp_path):
     seq = shared_path("rgbd", "open3d_testdata")
     out = tmp_path / "raw"
@@ -43,6 +44,7 @@ def test_redwood_ground_truth_raw(tmp_path):
     assert json.loads((out / "metrics.json").read_text())["frames"]["total"] == 3
 
 
+@pytest.mark.slow
 def test_timing_and_no_progress_bar_off_a_terminal(tmp_path):
     """metrics.json reports a positive, finite frame rate. Click's runner gives the command a stderr that is not a
     terminal, so no progress bar is drawn at all (the convention of radiometry.progress; the bar on a terminal,
@@ -59,6 +61,7 @@ def test_timing_and_no_progress_bar_off_a_terminal(tmp_path):
     assert fps == pytest.approx(5 / timing["seconds"], rel=1e-9)    # the 5 frames over the run's time
 
 
+@pytest.mark.slow
 def test_simulated_room_corrected_with_icp(tmp_path):
     from mapping.simulation import sample_sequence
 

@@ -21,8 +21,15 @@ REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "data_samples" / "brackets"
 
 
-def invoke(*args: str):
-    return CliRunner().invoke(cli, ["response", *map(str, args)])
+def invoke(*args: str, quality: str = "fast"):
+    """``radiomap response ARGS``, a calibration with ``--quality fast`` unless the test gives ``--quality`` or
+    ``quality="full"``: the command's default figure refits the stack once per exposure and twice on half the pixels
+    (~8x the fit's CPU). test_response_on_the_sample runs the default and checks the figure it prints."""
+    args = [str(a) for a in args]
+    calibrates = bool(args) and Path(args[0]).is_dir() and not {"--gamma", "--linear"} & set(args)
+    if calibrates and quality != "full" and "--quality" not in args:
+        args += ["--quality", quality]
+    return CliRunner().invoke(cli, ["response", *args])
 
 
 def one_line_error(result) -> str:
@@ -41,19 +48,25 @@ def sample_copy(tmp_path):
     return folder
 
 
+@pytest.mark.slow
 def test_sample_is_up_to_date():
     out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_samples.py"), "--check"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
 
 
+@pytest.mark.slow
 def test_response_on_the_sample(tmp_path):
     out = tmp_path / "out" / "crf.npz"
-    result = invoke(SAMPLE, "-o", out)
+    result = invoke(SAMPLE, "-o", out, quality="full")   # the command's default quality figure
     assert result.exit_code == 0, result.output
     for word in ("method loglog (auto: the log-log fit; every exposure ratio is 4x", "channels", "images",
                  "samples", "fit RMS", "monotone", "time", "wrote"):
         assert word in result.output
+    quality = CameraResponse.load(out).meta["quality"]   # the full figure: refits and split halves
+    assert quality["holdout_refit"] and quality["split_half_percent"] is not None, quality
+    if quality["grade"] == "good":
+        assert quality["summary"] in result.output
     response = CameraResponse.load(out)
     truth = CameraResponse.load(SAMPLE / "ground_truth_response.npz")
     assert response.channels == 3 and response.meta["method"] == "loglog"
@@ -68,6 +81,7 @@ def test_response_on_the_sample(tmp_path):
     assert record["response"]["images_used"] == [f"exposure_{k}.png" for k in range(5)]
 
 
+@pytest.mark.slow
 def test_overwrite_needs_force(tmp_path):
     out = tmp_path / "crf.npz"
     assert invoke(SAMPLE, "-o", out, "--samples", "10").exit_code == 0
@@ -80,6 +94,7 @@ def test_overwrite_needs_force(tmp_path):
     assert out.read_bytes() != first and CameraResponse.load(out).meta["method"] == "loglog"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix, method, extra, channels", [
     (".crf", "debevec", [], 3),
     (".txt", "debevec", ["--channel", "G"], 1),
@@ -95,6 +110,7 @@ def test_formats_and_methods(tmp_path, suffix, method, extra, channels):
     assert out.with_suffix(".png").is_file()
 
 
+@pytest.mark.slow
 def test_pcalib_of_colour_images_warns(tmp_path):
     result = invoke(SAMPLE, "-o", tmp_path / "pcalib.txt")
     assert result.exit_code == 0 and "writing the mean of R, G and B" in result.output
@@ -146,6 +162,7 @@ def test_usage_errors(tmp_path, args, message):
     assert result.exit_code == 2 and message in result.output
 
 
+@pytest.mark.slow
 def test_loglog_takes_its_prior_weight_from_lambda(tmp_path):
     out = tmp_path / "crf.npz"
     result = invoke(SAMPLE, "-o", out, "--method", "loglog", "--lambda", "0.5", "--mask-blue")
@@ -160,11 +177,13 @@ def test_loglog_takes_its_prior_weight_from_lambda(tmp_path):
     assert np.abs(other.inverse_table - CameraResponse.load(out).inverse_table).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_mask_blue_is_reported(tmp_path):
     result = invoke(SAMPLE, "-o", tmp_path / "crf.npz", "--mask-blue")
     assert result.exit_code == 0 and "masked 0.0% of the pixels" in result.output
 
 
+@pytest.mark.slow
 def test_console_entry_point(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mapping.cli", "response", str(SAMPLE), "-o",
                           str(tmp_path / "crf.crf")], capture_output=True, text=True, timeout=120)
@@ -172,6 +191,7 @@ def test_console_entry_point(tmp_path):
     assert "method loglog" in out.stdout and (tmp_path / "crf.crf").is_file()
 
 
+@pytest.mark.slow
 def test_plot_response_is_axis_first(tmp_path):
     from matplotlib.colors import to_hex
 
@@ -190,6 +210,7 @@ def test_plot_response_is_axis_first(tmp_path):
     assert path.read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, name, expected", [
     (["--gamma", "2.2"], "gamma.npz", (np.arange(256) / 255.0) ** 2.2),
     (["--linear"], "linear.crf", np.arange(256) / 255.0),
@@ -228,6 +249,7 @@ def test_standard_response_usage_errors(tmp_path, args, message):
     assert not (tmp_path / "r.npz").exists()
 
 
+@pytest.mark.slow
 def test_method_choices_are_the_registry():
     from mapping.cli.response import RESPONSE_METHODS
     from radiometry.response_fit import FITTERS, METHODS
@@ -235,6 +257,7 @@ def test_method_choices_are_the_registry():
     assert RESPONSE_METHODS == METHODS == FITTERS.names()
 
 
+@pytest.mark.slow
 def test_lambda_auto_on_the_sample(tmp_path):
     out = tmp_path / "crf.npz"
     result = invoke(SAMPLE, "-o", out, "--lambda", "AUTO")
@@ -269,6 +292,7 @@ def varied_folder(tmp_path):
     return folder, kink_curve()
 
 
+@pytest.mark.slow
 def test_engel_method(tmp_path, varied_folder):
     folder, truth = varied_folder
     out = tmp_path / "engel.npz"
@@ -286,6 +310,7 @@ def test_engel_method(tmp_path, varied_folder):
     assert record["summary"]["method"] == "engel" and record["response"]["observed_range"] == [[1, 254]] * 3
 
 
+@pytest.mark.slow
 def test_engel_on_equal_ratios_warns(tmp_path):
     out = tmp_path / "engel.npz"
     result = invoke(SAMPLE, "-o", out, "--method", "engel", "--mask-blue")

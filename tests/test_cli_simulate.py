@@ -20,6 +20,7 @@ def run(*args: str):
     return CliRunner().invoke(cli, ["simulate", *args], catch_exceptions=False)
 
 
+@pytest.mark.slow
 def test_room(tmp_path):
     out = tmp_path / "room"
     res = run("room", "-o", str(out), "--seed", "2", "--num-frames", "3", *TINY)
@@ -34,6 +35,7 @@ def test_room(tmp_path):
     assert read_rgb(next((out / "rgb").glob("*.png"))).shape == (48, 64, 3)
 
 
+@pytest.mark.slow
 def test_room_is_deterministic_and_refuses_to_overwrite(tmp_path):
     args = ["--seed", "5", "--num-frames", "2", "--fixed-exposure", "--light-change", "0.5", *TINY]
     assert run("room", "-o", str(tmp_path / "a"), *args).exit_code == 0
@@ -52,6 +54,7 @@ def test_room_is_deterministic_and_refuses_to_overwrite(tmp_path):
     assert len(list((tmp_path / "a" / "rgb").glob("*.png"))) == 1
 
 
+@pytest.mark.slow
 def test_paper_with_real_response_and_lensfun_vignetting(tmp_path):
     pcalib = shared_path("vignetting", "euroc_mt9v034_752x480", "pcalib.txt")
     db = shared_path("lensfun", "db")
@@ -69,6 +72,7 @@ def test_paper_with_real_response_and_lensfun_vignetting(tmp_path):
     assert manifest["kind"] == "paper" and manifest["flicker"] == 0.05
 
 
+@pytest.mark.slow
 def test_brackets(tmp_path):
     out = tmp_path / "br"
     res = run("brackets", "-o", str(out), "--num-frames", "4", "--camera", "mild", "--vignetting-preset", "none",
@@ -105,6 +109,7 @@ def test_help_lists_kinds_and_examples():
     assert "{brackets|paper|room}" in res.output and "Examples:" in res.output and "--seed" in res.output
 
 
+@pytest.mark.slow
 def test_no_progress_bar_when_stderr_is_not_a_terminal(tmp_path):
     """Without --no-progress but with a stderr that is not a terminal (click's runner, like a pipe or a log), no
     bar is drawn; stdout holds only the summary table. (The bar on a terminal: test_progress.py.)"""

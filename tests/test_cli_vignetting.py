@@ -43,6 +43,7 @@ def one_line_error(result) -> str:
     return line.strip()
 
 
+@pytest.mark.slow
 def test_vignetting_lut_writes_model_coverage_plots_and_summary(sweep, tmp_path):
     out = tmp_path / "vig.npz"
     result = invoke("vignetting", sweep["rgb"], "--response", sweep["response"], "-o", out, "--min-samples", "10")
@@ -72,6 +73,7 @@ def test_vignetting_lut_writes_model_coverage_plots_and_summary(sweep, tmp_path)
                   "--max-frames", "60").exit_code == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, model, cls", [("xtion.vgn", "poly", PolynomialVignetting),
                                               ("vignette.png", "poly-fixed-center", LUTVignetting)])
 def test_vignetting_foreign_formats(sweep, tmp_path, name, model, cls):
@@ -107,6 +109,7 @@ def model_file(sweep, tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_correct_folder_and_irradiance(sweep, model_file, tmp_path):
     frames = sorted(sweep["rgb"].iterdir())[:3]
     src = tmp_path / "in"
@@ -139,6 +142,7 @@ def test_correct_folder_and_irradiance(sweep, model_file, tmp_path):
     assert "exists; pass --force" in line
 
 
+@pytest.mark.slow
 def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
     video = tmp_path / "clip.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
@@ -157,6 +161,7 @@ def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
     assert result.exit_code == 1 and "--scale -2 is outside the sensible range 0.0001..10000" in result.output
 
 
+@pytest.mark.slow
 def test_correct_resolution_mismatch(sweep, model_file, tmp_path):
     img = tmp_path / "square.png"
     cv2.imwrite(str(img), np.full((64, 64, 3), 100, np.uint8))
@@ -193,6 +198,7 @@ def _summary(prefix):
     return json.loads(prefix.with_name(prefix.name + "_summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_vignetting_from_a_camera_index(sweep, tmp_path, monkeypatch):
     """``radiomap vignetting 0``: the camera's BGR frames (after 10 warm-up frames, noise here) give the
     same model as the same frames read from the folder."""
@@ -227,6 +233,7 @@ def test_vignetting_from_a_camera_index(sweep, tmp_path, monkeypatch):
     assert not (tmp_path / "none.npz").exists()
 
 
+@pytest.mark.slow
 def test_vignetting_stop_when_covered(sweep, tmp_path):
     out = tmp_path / "early.npz"
     result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--min-samples", "5",
@@ -244,6 +251,7 @@ def test_vignetting_stop_when_covered(sweep, tmp_path):
     assert np.all(vignetting_error_levels(model, sweep["truth"], response) < 0.5)
 
 
+@pytest.mark.slow
 def test_vignetting_smooth_sigma(sweep, tmp_path):
     """On a short sweep (40 frames, ~9 samples per pixel) a wider smoothing is closer to the true V."""
     import inspect
@@ -269,6 +277,7 @@ def test_vignetting_smooth_sigma(sweep, tmp_path):
     assert load_vignetting(tmp_path / "d.npz").info["smooth_sigma"] == DEFAULT_SMOOTH_SIGMA
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", ["-1", "nan"])
 def test_vignetting_smooth_sigma_out_of_range(sweep, tmp_path, value):
     result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.npz", "--smooth-sigma",
@@ -284,6 +293,7 @@ def test_vignetting_smooth_sigma_out_of_range(sweep, tmp_path, value):
     assert not (tmp_path / "v.npz").exists()
 
 
+@pytest.mark.slow
 def test_vignetting_smooth_sigma_is_for_the_lut(sweep, tmp_path):
     result = invoke("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", tmp_path / "v.npz", "--model", "poly",
                     "--smooth-sigma", "2")
@@ -294,6 +304,7 @@ def test_vignetting_smooth_sigma_is_for_the_lut(sweep, tmp_path):
     assert not (tmp_path / "v.npz").exists()
 
 
+@pytest.mark.slow
 def test_vignetting_reports_its_error_budget_and_plots_the_stderr(sweep, tmp_path):
     out = tmp_path / "vig.npz"
     result = invoke("vignetting", sweep["rgb"], "--response", sweep["response"], "-o", out, "--min-samples", "10")
@@ -316,6 +327,7 @@ def test_vignetting_reports_its_error_budget_and_plots_the_stderr(sweep, tmp_pat
     assert np.all(np.array(budget["total"]) < 3.0 * measured + 0.05) and np.all(np.array(budget["total"]) > 0.02)
 
 
+@pytest.mark.slow
 def test_correct_writes_the_relative_stderr_on_request(sweep, model_file, tmp_path):
     frame = sorted(sweep["rgb"].iterdir())[0]
     target = tmp_path / "se" / "stderr.npy"

@@ -69,6 +69,7 @@ def blurred(vertices: np.ndarray, width: float = 0.06) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ the renderer
+@pytest.mark.slow
 def test_renderer_reproduces_a_linear_colour_field_and_the_depth():
     """Vertex colours linear in the world position: barycentric interpolation is exact, so every pixel's colour is
     the field at the point the pinhole ray meets the wall, and its depth the wall's distance."""
@@ -87,6 +88,7 @@ def test_renderer_reproduces_a_linear_colour_field_and_the_depth():
     np.testing.assert_allclose(colour, field(x, y), atol=2e-3)
 
 
+@pytest.mark.slow
 def test_renderer_leaves_pixels_without_surface_at_zero():
     from mapping.colour_map import MeshRenderer
 
@@ -104,6 +106,7 @@ def test_renderer_leaves_pixels_without_surface_at_zero():
 
 
 # ------------------------------------------------------------------ the stage on a known wall
+@pytest.mark.slow
 def test_stage_sharpens_blurred_colours_on_the_wall(wall):
     """The map's colours are the texture blurred over 6 cm; the keyframes see it sharp: the optimised mesh is
     closer to the true texture and its held-out PSNR higher, and the stage keeps it."""
@@ -128,6 +131,7 @@ def test_stage_sharpens_blurred_colours_on_the_wall(wall):
     assert r.pose_change["translation_cm_max"] < 1.0     # the poses were right: the optimiser leaves them
 
 
+@pytest.mark.slow
 def test_non_rigid_does_not_make_the_wall_worse(wall):
     from mapping.colour_map import colour_map_stage
 
@@ -140,6 +144,7 @@ def test_non_rigid_does_not_make_the_wall_worse(wall):
     assert outcome.optimised.psnr >= outcome.plain.psnr
 
 
+@pytest.mark.slow
 def test_rigid_optimisation_pulls_misregistered_keyframes_back(wall):
     """Keyframe poses off by N(0, 1 cm) along the wall (seeded): re-coloured from them as they are, the mesh is
     misregistered; 50 rigid iterations bring the keyframes closer to their true poses and the held-out PSNR up
@@ -164,6 +169,7 @@ def test_rigid_optimisation_pulls_misregistered_keyframes_back(wall):
     assert psnr > psnr0 + 0.15, (psnr0, psnr)
 
 
+@pytest.mark.slow
 def test_keyframes_are_the_sharpest_of_each_window(wall):
     from mapping.colour_map import select_keyframes
 
@@ -230,6 +236,7 @@ def test_misaligned_keyframes_are_rejected(wall):
     assert outcome.plain.psnr > outcome.optimised.psnr + 3
 
 
+@pytest.mark.slow
 def test_too_few_keyframes_keep_the_plain_mesh(wall):
     from mapping.colour_map import colour_map_stage
 
@@ -241,6 +248,7 @@ def test_too_few_keyframes_keep_the_plain_mesh(wall):
 
 
 # ------------------------------------------------------------------ display <-> map units
+@pytest.mark.slow
 def test_display_inverse_undoes_the_export_display():
     from mapping.colour import IrradianceColour
     from mapping.exposure_compensation import CompensatedColour
@@ -270,6 +278,7 @@ def test_bad_options_are_one_line_errors(wall):
         optimise_colour_map(vertices, triangles, colours, frames, poses[:3], RawIntensity())
 
 
+@pytest.mark.slow
 def test_written_beside_the_plain_mesh_only_when_kept(wall, tmp_path):
     import json
 
@@ -296,6 +305,7 @@ def test_written_beside_the_plain_mesh_only_when_kept(wall, tmp_path):
     assert json.loads((tmp_path / "b" / "colour_map.json").read_text())["kept"] == "plain"
 
 
+@pytest.mark.slow
 def test_after_a_pipeline_run_with_withheld_frames(tmp_path):
     """The stage on a real run of the pipeline (sample room, 15 frames, every 5th withheld): the withheld frames are
     the check, the files land beside the run's mesh."""
@@ -321,6 +331,7 @@ def test_after_a_pipeline_run_with_withheld_frames(tmp_path):
     assert (tmp_path / "mesh_colourmap.ply").is_file() == outcome.accepted
 
 
+@pytest.mark.slow
 def test_summary_line_reads_the_record(wall):
     from mapping.colour_map import ColourMapOutcome, colour_map_stage, summary_line
 
@@ -344,6 +355,7 @@ def _cli(*args: str):
     return CliRunner().invoke(cli, list(args), catch_exceptions=False)
 
 
+@pytest.mark.slow
 def test_reconstruct_colour_map_end_to_end(tmp_path):
     import json
 
@@ -380,6 +392,7 @@ def test_colour_map_option_errors_are_one_line(tmp_path):
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
+@pytest.mark.slow
 def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
     import json
 
@@ -399,6 +412,7 @@ def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
 
 
 # ------------------------------------------------------------------ the stage is part of the run
+@pytest.mark.slow
 def test_ctrl_c_in_the_stage_leaves_the_folder_unfinished(tmp_path, monkeypatch):
     """The stage runs before the results folder is marked complete (mapping.pipeline.reconstruct): Ctrl-C in the
     optimiser leaves RUNNING, status "interrupted" and no colour-map files nor summary; a second run is refused
@@ -435,6 +449,7 @@ def test_ctrl_c_in_the_stage_leaves_the_folder_unfinished(tmp_path, monkeypatch)
     assert (out / "mesh_colourmap.ply").is_file() == result.colour_map.accepted
 
 
+@pytest.mark.slow
 def test_a_crash_in_the_stage_of_compare_leaves_that_method_unfinished(tmp_path, monkeypatch):
     """``radiomap compare --colour-map``: the stage crashing in the second method leaves the first method's folder
     complete with its colour map, the second's and the comparison's unfinished; ``--force`` then completes both."""
@@ -491,6 +506,7 @@ def test_keyframes_moved_too_far_are_rejected(wall):
     assert colour_map_stage(vertices, triangles, blurred(vertices), frames, wrong, RawIntensity(), **kwargs).accepted
 
 
+@pytest.mark.slow
 def test_study_script_on_a_tiny_room(tmp_path):
     """scripts/study_colour_map.py end to end on a 15-frame 96x72 room: every variant has a row with finite figures,
     and the correction shows where it should (the fused LUT + exposure map beats the uncorrected one)."""

@@ -67,6 +67,7 @@ def gt_run(room, models, tmp_path_factory):
 # --------------------------------------------------------------------------------------------------
 # the comparison
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_every_method_fuses_the_same_frames_at_the_ground_truth_poses(gt_run, room):
     from mapping.datasets import open_dataset
 
@@ -79,6 +80,7 @@ def test_every_method_fuses_the_same_frames_at_the_ground_truth_poses(gt_run, ro
         np.testing.assert_allclose(r.run.poses, gt_poses, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_one_mesh_per_method_and_a_table_with_every_method(gt_run):
     from mapping._open3d import o3d
 
@@ -109,6 +111,7 @@ def test_one_mesh_per_method_and_a_table_with_every_method(gt_run):
     assert "Colour map" not in Path(gt_run.files["report"]).read_text()
 
 
+@pytest.mark.slow
 def test_measured_ordering_with_the_true_camera(gt_run):
     """Measured on this fixture (160x120, 8 frames, voxel 2 cm, auto exposure, no compensation): L1 mean
     none 25.6, poly 17.7, lut 17.9; L1 p90 52, 30, 31; colour error none 7.3, poly 3.7, lut 3.6 levels.
@@ -126,6 +129,7 @@ def test_measured_ordering_with_the_true_camera(gt_run):
         assert r.colour_error.vertices == pytest.approx(len(r.geometry), rel=0.1)
 
 
+@pytest.mark.slow
 def test_report_opens_with_every_image(gt_run):
     images, links = check_report(gt_run.files["report"])
     assert images == 4      # histograms, colour error, renders, trajectory (no exposure estimates: no +ec run)
@@ -153,6 +157,7 @@ def _grid_tile(grid: np.ndarray, layout, method: int, view: int, like: np.ndarra
     return best[1]
 
 
+@pytest.mark.slow
 def test_renders_show_the_maps_from_the_same_viewpoints(gt_run, room):
     """compare.json records the renders' camera and viewpoints; every method's column used the same ones
     (trajectory poses, here the ground truth); re-rendering each method's mesh from them gives its tiles in
@@ -210,6 +215,7 @@ def test_renders_show_the_maps_from_the_same_viewpoints(gt_run, room):
     assert (masks["none", 0] != masks["none", 1]).mean() > 0.02
 
 
+@pytest.mark.slow
 def test_colour_map_outcome_in_the_table_json_and_report(room, models, tmp_path, monkeypatch):
     """``colour_map``: per method the stage's check (held-out PSNR and L1 of the plain and the optimised mesh), the
     mesh kept and why, and the stage's seconds, in compare.csv/.txt/.json and a report section. The figures are the
@@ -264,6 +270,7 @@ def test_colour_map_outcome_in_the_table_json_and_report(room, models, tmp_path,
     check_report(result.files["report"])
 
 
+@pytest.mark.slow
 def test_an_existing_comparison_is_not_overwritten_without_force(gt_run, room, models):
     from mapping.datasets import open_dataset
 
@@ -272,6 +279,7 @@ def test_an_existing_comparison_is_not_overwritten_without_force(gt_run, room, m
         compare(open_dataset(room[0]), methods, output=gt_run.output, progress=False)
 
 
+@pytest.mark.slow
 def test_icp_tracks_once_and_every_method_reuses_the_trajectory(room, models, tmp_path):
     from mapping.datasets import open_dataset
 
@@ -294,6 +302,7 @@ def test_icp_tracks_once_and_every_method_reuses_the_trajectory(room, models, tm
     assert doc["ate"]["rmse"] == pytest.approx(result.ate.rmse)
 
 
+@pytest.mark.slow
 def test_surfel_backend_gives_disc_meshes(room, models, tmp_path):
     from mapping.datasets import open_dataset
 
@@ -335,6 +344,7 @@ def test_make_methods_names_and_errors():
         Method("x", "x", None, lut)
 
 
+@pytest.mark.slow
 def test_equal_brightness_rescales_each_channel_to_mean_one():
     rng = np.random.default_rng(0)
     v = rng.uniform(0.4, 1.0, (12, 16, 3)).astype(np.float32)
@@ -344,6 +354,7 @@ def test_equal_brightness_rescales_each_channel_to_mean_one():
     np.testing.assert_allclose(ratio, np.broadcast_to(ratio[0, 0], ratio.shape), rtol=1e-5)   # a scale per channel
 
 
+@pytest.mark.slow
 def test_fixed_poses_replaces_and_drops_poses():
     from mapping.datasets.base import RGBDFrame
 
@@ -369,6 +380,7 @@ def test_fixed_poses_replaces_and_drops_poses():
         FixedPoses(DS(), [None])
 
 
+@pytest.mark.slow
 def test_surfel_discs_lie_in_the_tangent_plane():
     p = np.array([[0, 0, 1.0], [1, 2, 3]])
     n = np.array([[0, 0, -1.0], [1, 1, 0]])
@@ -452,6 +464,7 @@ def test_compare_rejects_bad_arguments(room, models, tmp_path):
 # --------------------------------------------------------------------------------------------------
 # the command
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_compare_smoke_with_exposure_compensation(room, models, tmp_path):
     from click.testing import CliRunner
 
@@ -495,6 +508,7 @@ def test_cli_compare_rejects_unknown_methods(room, tmp_path):
     assert res.exit_code == 2 and "--vignetting-lut" in res.output
 
 
+@pytest.mark.slow
 def test_no_progress_bar_when_stderr_is_not_a_terminal(room, models, tmp_path, capsys):
     """progress=True draws nothing when stderr is not a terminal (here pytest's capture): no redraws in a log. The
     bar on a terminal (one bar counting 3 frames x 3 methods) is tested in test_progress.py."""
@@ -510,6 +524,7 @@ def test_no_progress_bar_when_stderr_is_not_a_terminal(room, models, tmp_path, c
     assert "\r" not in captured.out and "9/9" not in captured.out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth_max, warned", [("2.5", True), ("6", False)])
 def test_cli_compare_warns_when_the_range_cuts_the_scene(room, models, tmp_path, depth_max, warned):
     """As reconstruct: more than 20 % of the valid depth beyond --depth-max is reported on stderr."""
@@ -529,6 +544,7 @@ def test_cli_compare_warns_when_the_range_cuts_the_scene(room, models, tmp_path,
     assert (line in res.stderr) == warned and "warning" not in res.stdout
 
 
+@pytest.mark.slow
 def test_cli_compare_self_calibrated_beside_the_white_paper_lut(room, models, tmp_path):
     """--vignetting-self runs the self-calibrated V as its own method beside the white-paper LUT; given the same V
     both fuse identically; a polynomial passed as --vignetting-self and self+ec without it are one-line errors."""

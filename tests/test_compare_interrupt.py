@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from test_robustness import interrupt_at_frame
 
 FRAMES, STOP = 6, 3    # a 6-frame simulated room; the first method is interrupted after its frame 3
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_compare_leaves_it_marked_unfinished(tmp_path):
     """SIGINT while the first method fuses frames (paused after its frame 3): exit 130 and exactly 'radiomap:
     interrupted' on stderr; the comparison keeps its RUNNING marker and has no compare.json (nothing claims it

@@ -38,6 +38,7 @@ def _name(table: dict, base: str) -> str:
     return next(n for n in table if n.removesuffix("+ec") == base)
 
 
+@pytest.mark.slow
 def test_methods_are_ordered_as_in_the_paper(demo):
     """No correction worst, LUT best on the L1 mean. Measured (quick demo, 'asymmetric' camera, seed 0,
     exposure compensation on; the response by the default method, loglog): none 26.21, response+ec 25.89,
@@ -60,6 +61,7 @@ def test_methods_are_ordered_as_in_the_paper(demo):
     assert table["none"]["L1 p90"] > table[lut]["L1 p90"]
 
 
+@pytest.mark.slow
 def test_mesh_colours_against_the_truth_follow_the_same_order(demo):
     table = demo["table"]
     err = {name: row["colour err"] for name, row in table.items()}
@@ -70,6 +72,7 @@ def test_mesh_colours_against_the_truth_follow_the_same_order(demo):
     assert err[lut] < 5.0
 
 
+@pytest.mark.slow
 def test_self_calibrated_method_is_near_the_lut_and_ahead_of_the_polynomial(demo):
     """V from the room's own 15 frames (1.3-1.75 levels off the truth, the LUT 0.26-0.29, the polynomial 2.5-2.9):
     measured L1 mean 15.87 (LUT 15.89, polynomial 15.96), colour error 3.98 (LUT 3.58, polynomial 4.31). Since issue
@@ -84,6 +87,7 @@ def test_self_calibrated_method_is_near_the_lut_and_ahead_of_the_polynomial(demo
     assert err["self+ec"] < err[poly] and abs(err["self+ec"] - err[lut]) < 0.15 * err[lut]
 
 
+@pytest.mark.slow
 def test_calibration_is_accurate(demo):
     cal = demo["demo"]["calibration"]
     assert max(cal["response_error_percent"]) < 3.0
@@ -94,6 +98,7 @@ def test_calibration_is_accurate(demo):
     assert cal["paper_frames_used"] >= 50
 
 
+@pytest.mark.slow
 def test_report_opens_with_every_image(demo):
     report = demo["out"] / demo["demo"]["report"]
     images, links = check_report(report)
@@ -104,6 +109,7 @@ def test_report_opens_with_every_image(demo):
     assert ("Exposure compensation: ON" in text) == ec
 
 
+@pytest.mark.slow
 def test_prints_the_table_calibration_and_report_path(demo):
     out = demo["output"]
     assert "Calibration accuracy" in out and "% of range" in out and "8-bit levels" in out
@@ -114,6 +120,7 @@ def test_prints_the_table_calibration_and_report_path(demo):
     assert (demo["out"] / "demo.txt").read_text().strip() in out   # demo.txt is what was printed
 
 
+@pytest.mark.slow
 def test_everything_is_written_into_out_only(demo):
     out = demo["out"]
     assert sorted(p.name for p in demo["work"].iterdir()) == ["out"]
@@ -130,6 +137,7 @@ def test_everything_is_written_into_out_only(demo):
                                                                            "self_calibration", "compare"}
 
 
+@pytest.mark.slow
 def test_quick_demo_has_the_self_calibrated_method(demo):
     """V self-calibrated from the quick demo's own 15 frames (160x120): its row in the calibration table, its
     method in the comparison, its folder with the standard error. Measured with window 3 on this room: 1.3-1.75
@@ -143,6 +151,7 @@ def test_quick_demo_has_the_self_calibrated_method(demo):
     assert (demo["out"] / "calibration" / "self" / "stderr.png").is_file()
 
 
+@pytest.mark.slow
 def test_a_room_that_cannot_constrain_v_is_run_without_the_self_method(tmp_path):
     """Step 5 on 8 frames at 64x48: self-calibration refuses with its one-line reason, which the demo keeps
     (and prints) instead of a model."""
@@ -159,6 +168,7 @@ def test_a_room_that_cannot_constrain_v_is_run_without_the_self_method(tmp_path)
     assert lines == [f"self-calibration: skipped, {record['skipped']}"] and timings["self_calibration"] > 0
 
 
+@pytest.mark.slow
 def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
     """The demo's step 5 on a room that constrains V (160x120, 30 frames, seed 1: measured 0.43 / 0.37 / 0.95
     levels and exposure median 1.4 % with the true response): V's error against the truth in the calibration
@@ -183,6 +193,7 @@ def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
     assert (tmp_path / "calib" / "self" / "vignetting.npz").is_file() and "self-calibration: V" in lines[0]
 
 
+@pytest.mark.slow
 def test_self_method_takes_the_self_calibrated_lut():
     from mapping.compare import make_methods
     from radiometry.response import CameraResponse
@@ -199,6 +210,7 @@ def test_self_method_takes_the_self_calibrated_lut():
         make_methods(resp, vignetting_self=poly, names=["self"])
 
 
+@pytest.mark.slow
 def test_models_written_by_the_demo_load(demo):
     from radiometry.response import CameraResponse
     from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel
@@ -212,6 +224,7 @@ def test_models_written_by_the_demo_load(demo):
 # --------------------------------------------------------------------------------------------------
 # the output-folder policy (cheap: no demo run)
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     from mapping.demo import DemoFolder
     from mapping.export import LOCK_NAME, RUNNING_MARKER
@@ -252,6 +265,7 @@ def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     assert not (out / LOCK_NAME).exists()
 
 
+@pytest.mark.slow
 def test_demo_run_twice_needs_force(demo):
     """`radiomap demo -o OUT` onto an earlier demo: one line naming OUT and the fix, exit 1, every file of the
     earlier demo byte-identical (calibrations included)."""

@@ -550,6 +550,7 @@ def _run(dataset, model, voxel_size=0.03):
     return run, backend
 
 
+@pytest.mark.slow
 def test_simulated_auto_exposure_and_white_balance_are_recovered(ae_awb_sequence):
     from mapping.colour import IrradianceColour
 
@@ -589,6 +590,7 @@ def _render_display(backend, model, frames, K, w, h):
     return out
 
 
+@pytest.mark.slow
 def test_over_and_under_exposed_frames_do_not_corrupt_the_map(ae_awb_sequence):
     from mapping.colour import IrradianceColour
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from conftest import shared_path
 from mapping.exposure_compensation import CompensatedColour, exposure_errors, read_exposures
@@ -18,6 +19,7 @@ GAMMA = CameraResponse.gamma(2.2)
 # --------------------------------------------------------------------------------------------------
 # real data: the 7-Scenes kitchen, auto exposure and white balance on, response unknown
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_real_kitchen_disagreement_drops_with_compensation():
     """Every 5th of the 100 frames, ground-truth poses (only colour differs), 2 cm voxels. The response is
     unknown: the documented assumption is gamma 2.2 (sRGB-like); no vignetting model.
@@ -57,6 +59,7 @@ def test_real_kitchen_disagreement_drops_with_compensation():
 # --------------------------------------------------------------------------------------------------
 # the CLI
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_reconstruct_with_and_without_exposure_compensation(tmp_path):
     from click.testing import CliRunner
 
@@ -98,6 +101,7 @@ def test_cli_reconstruct_with_and_without_exposure_compensation(tmp_path):
     assert res.exit_code != 0 and "--response" in res.output
 
 
+@pytest.mark.slow
 def test_cli_mesh_colours_are_exported_at_the_reference_exposure(tmp_path):
     """The mesh's display colours are ``f(E * k_ref)`` of the stored irradiance ``E``: ``k_ref`` the per-channel
     median of the sequence's estimates by default, the first frame's (1) with ``--mesh-exposure first``.

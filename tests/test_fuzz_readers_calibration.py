@@ -14,6 +14,7 @@ import struct
 import zipfile
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -125,6 +126,7 @@ def _npz_input(kind: str, rng: random.Random) -> bytes:
     return foreign_zip(rng) if rng.random() < 0.5 else random_input(rng)
 
 
+@pytest.mark.slow
 @fuzz(2500)
 @given(seed=SEEDS)
 def test_response_npz(workdir, seed):
@@ -134,6 +136,7 @@ def test_response_npz(workdir, seed):
     check_response(only_own_errors(CameraResponse.load, put(workdir, "r.npz", data)))
 
 
+@pytest.mark.slow
 @fuzz(2500)
 @given(seed=SEEDS)
 def test_vignetting_npz(workdir, seed):
@@ -143,6 +146,7 @@ def test_vignetting_npz(workdir, seed):
     check_vignetting(only_own_errors(VignettingModel.load, put(workdir, "v.npz", data)))
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(seed=SEEDS)
 def test_vignetting_accumulation_npz(workdir, seed):
@@ -176,6 +180,7 @@ def crf_structured(rng: random.Random) -> bytes:
     return struct.pack("<5I", MAGIC, cv_type, rng.choice([2, 2, 1, 3, 0]), rows, cols) + body
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_radical_crf(workdir, seed):
@@ -210,6 +215,7 @@ def pcalib_structured(rng: random.Random) -> str:
     return " ".join(values) + rng.choice([" \n", "\n", " vis_exponent: 1.0\n", "\nvis_exponent: 1.0\n"])
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_dso_pcalib(workdir, seed):
@@ -248,6 +254,7 @@ def vgn_header(rng: random.Random) -> bytes:
     return encode(" ".join(fields)) + body
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_radical_vgn(workdir, seed):
@@ -267,6 +274,7 @@ def test_radical_vgn(workdir, seed):
 
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(seed=SEEDS, suffix=st.sampled_from([".npz", ".crf", ".txt", ".vgn", ".png", ".NPZ", "", ".json"]))
 def test_load_dispatchers(workdir, seed, suffix):

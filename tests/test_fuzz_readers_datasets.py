@@ -47,6 +47,7 @@ def text_input(rng: random.Random, seed_text: str, columns: list[int], max_rows:
     return random_input(rng, text=True)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_tum_list(workdir, seed):
@@ -58,6 +59,7 @@ def test_tum_list(workdir, seed):
         assert all(math.isfinite(t) and name for t, name, _ in rows)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_tum_trajectory(workdir, seed):
@@ -85,6 +87,7 @@ TUM_FILES = {"rgb.txt": TUM_LIST, "depth.txt": TUM_LIST.replace("rgb/", "depth/"
              "intrinsics.txt": "60.0 60.0 31.5 23.5\n"}
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(seed=SEEDS, which=st.sampled_from(sorted(TUM_FILES)))
 def test_tum_folder_with_one_mutated_file(tum_folder, seed, which):
@@ -107,6 +110,7 @@ def test_tum_folder_with_one_mutated_file(tum_folder, seed, which):
     only_own_errors(open_and_read)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_sevenscenes_pose(workdir, seed):
@@ -118,6 +122,7 @@ def test_sevenscenes_pose(workdir, seed):
         assert pose.shape == (4, 4) and np.all(np.isfinite(pose))
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_redwood_log(workdir, seed):
@@ -153,6 +158,7 @@ def camera_json(rng: random.Random) -> str:
     return json.dumps(doc, allow_nan=True)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_camera_intrinsics_json(workdir, seed):
@@ -165,6 +171,7 @@ def test_camera_intrinsics_json(workdir, seed):
         assert K.shape == (3, 3) and np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_camera_intrinsics_txt(workdir, seed):
@@ -181,6 +188,7 @@ MANIFEST = json.dumps({"format": "radiomap-sim", "version": 1, "kind": "room", "
                        "K": [[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], "depth_scale": 5000.0, "n_frames": 3})
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(seed=SEEDS)
 def test_simulated_manifest(tum_folder, seed):

@@ -59,6 +59,7 @@ def jpeg_size_lie(seed: bytes, rng: random.Random) -> bytes:
     return bytes(data)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_dso_vignette_png(workdir, seed):
@@ -77,6 +78,7 @@ def test_dso_vignette_png(workdir, seed):
     check_vignetting(only_own_errors(read_dso_vignette, put(workdir, "vignette.png", data)))
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_colour_and_depth_images(workdir, seed):
@@ -123,6 +125,7 @@ def times_input(rng: random.Random) -> bytes | str:
     return random_input(rng, text=True)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_times_file(workdir, seed):
@@ -143,6 +146,7 @@ def bracket_folder(workdir) -> Path:
     return folder
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(seed=SEEDS)
 def test_bracket_folder_with_mutated_times(bracket_folder, seed):

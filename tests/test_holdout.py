@@ -34,6 +34,7 @@ def _flat_render(colour, depth=2.0):
     return render
 
 
+@pytest.mark.slow
 def test_raw_exact_gain_gives_infinite_psnr():
     m = 4 * _levels(0, 3, 30)  # multiples of 4: every product below is an integer
     gain = np.array([2.0, 1.5, 1.25])
@@ -63,6 +64,7 @@ def test_raw_known_error_gives_the_expected_figures():
     assert f.psnr == pytest.approx(10 * math.log10(255 ** 2 / (9 * k / (3 * n))), abs=1e-9)
 
 
+@pytest.mark.slow
 def test_irradiance_with_vignetting_recovers_exposure():
     """Levels chosen first, the map's irradiance built backwards through the true response and vignetting
     (``E = f^-1(I) / (k V)``): the prediction must give the levels back and the gain k."""
@@ -84,6 +86,7 @@ def test_irradiance_with_vignetting_recovers_exposure():
     assert flat.psnr < f.psnr - 30 and flat.l1 > 5
 
 
+@pytest.mark.slow
 def test_valid_pixels_leaves_out_occlusion_clipping_and_edges():
     rgb = np.full((H, W, 3), 100, np.uint8)
     rgb[:5, :, 1] = 252          # saturated in one channel
@@ -106,6 +109,7 @@ def test_valid_pixels_leaves_out_occlusion_clipping_and_edges():
     assert not with_edges[18, 25] and ok[18, 25]
 
 
+@pytest.mark.slow
 def test_frames_without_pose_or_pixels_are_recorded_not_pooled():
     m = _levels(3)
     good = _frame(2 * m, np.full((H, W), 2.0), index=4)
@@ -119,6 +123,7 @@ def test_frames_without_pose_or_pixels_are_recorded_not_pooled():
     assert res.csv("none").splitlines()[0].startswith("method,index,psnr_db")
 
 
+@pytest.mark.slow
 def test_pooled_figures_pool_pixels_not_frame_means():
     m = _levels(4)
     a = 2 * m
@@ -141,6 +146,7 @@ def test_bad_every_is_refused(every):
         check_holdout_every(every, 10)
 
 
+@pytest.mark.slow
 def test_every_held_out_positions():
     assert check_holdout_every(5, 50) == 5
     assert [i for i in range(12) if is_held_out(i, 5)] == [4, 9]
@@ -159,6 +165,7 @@ def _box(n):
     return ds
 
 
+@pytest.mark.slow
 def test_withheld_frames_are_not_fused_the_map_is_the_subsets():
     """A run withholding frames 2, 5, 8 fuses exactly what a run of the other frames alone fuses: the same
     histogram bin by bin and the same map size; the withheld frames are judged at their ground-truth poses."""
@@ -195,6 +202,7 @@ def test_withheld_frames_are_not_fused_the_map_is_the_subsets():
     assert run.summary_row()["held out"] == 3 and run.summary_row()["skipped"] == 0
 
 
+@pytest.mark.slow
 def test_withheld_frames_are_tracked_with_icp():
     from mapping.factory import make_backend, make_tracker
     from mapping.pipeline import reconstruct
@@ -210,6 +218,7 @@ def test_withheld_frames_are_tracked_with_icp():
     assert len(run.holdout.evaluated) == 2
 
 
+@pytest.mark.slow
 def test_a_comparison_withholds_the_same_frames_when_the_map_starts_late(tmp_path):
     """The first frame has no depth, so with ICP the map starts at position 1, a withheld position: it must stay
     withheld (without a pose, it cannot found the map), as in the runs at the shared poses, which withhold by
@@ -259,6 +268,7 @@ def room_seq():
     return sample_sequence("room")
 
 
+@pytest.mark.slow
 def test_compare_holdout_end_to_end(room_seq, tmp_path):
     """Three methods, ICP tracked once: every method judges the same withheld frames at the same poses; the figures
     reach compare.csv/.json, holdout.csv, each method's metrics.json and the report."""
@@ -295,6 +305,7 @@ def test_compare_holdout_end_to_end(room_seq, tmp_path):
     assert l1["lut+ec"] < 0.98 * l1["response+ec"] and psnr["lut+ec"] > psnr["response+ec"], (l1, psnr)
 
 
+@pytest.mark.slow
 def test_reconstruct_holdout_end_to_end(room_seq, tmp_path):
     import json
 
@@ -322,6 +333,7 @@ def test_bad_holdout_every_is_one_line(room_seq, tmp_path, command, every):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_batch_summary_rows_carry_the_holdout_figures(tmp_path):
     """A batch's summary.csv shows each sequence's held-out PSNR and L1 when its run withheld frames, and no such
     columns for a run that did not."""
@@ -340,6 +352,7 @@ def test_batch_summary_rows_carry_the_holdout_figures(tmp_path):
     assert columns_of([row]).index("holdout PSNR") < columns_of([row]).index("error")
 
 
+@pytest.mark.slow
 def test_periphery_and_lowpass_psnr_see_a_smooth_field_that_texture_hides():
     """A prediction wrong by a smooth field that darkens the corners (a vignette left uncorrected) plus
     zero-mean pixel noise: the low-pass PSNR sees only the field, the periphery PSNR the corners, both computed

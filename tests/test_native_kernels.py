@@ -40,6 +40,7 @@ def _same(a, b) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
+@pytest.mark.slow
 def test_the_extensions_are_built_where_a_compiler_is():
     """An install with a C compiler builds both extensions (setup.py makes them optional: a build that fails
     silently would leave radiomap on Numba's kernels and its memory)."""
@@ -60,6 +61,7 @@ def _build(tmp_path, cc: str) -> subprocess.CompletedProcess:
                           text=True, timeout=600)
 
 
+@pytest.mark.slow
 def test_an_install_without_a_c_compiler_goes_on(tmp_path):
     """No working compiler: both extensions are skipped with a warning, the build succeeds (Numba's kernels run)."""
     proc = _build(tmp_path, "/bin/false")
@@ -68,6 +70,7 @@ def test_an_install_without_a_c_compiler_goes_on(tmp_path):
     assert not list(tmp_path.rglob("*.so"))
 
 
+@pytest.mark.slow
 def test_a_compiler_without_openmp_builds_serial_kernels(tmp_path):
     """A compiler that refuses -fopenmp: the extensions build without it, run on one thread, same bits."""
     cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
@@ -152,6 +155,7 @@ def kernels():
     return _native._tsdf(True), _native._tsdf(False)
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("storage", ["uint16", "float32"])
 @pytest.mark.parametrize("seed", range(6))
@@ -182,6 +186,7 @@ def test_surface_colour_and_block_table(kernels, storage, seed):
     assert (outs[0] != 0).any(axis=2).mean() > 0.2         # the rays do reach observed voxels
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("storage", ["uint16", "float32"])
 @pytest.mark.parametrize("seed", range(4))
@@ -210,6 +215,7 @@ def test_refine(kernels, storage, seed):
     assert _same(results[0][1], results[1][1]) and _same(results[0][2], results[1][2])
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("seed", range(6))
 def test_integrate_u16(kernels, seed):
@@ -238,6 +244,7 @@ def test_integrate_u16(kernels, seed):
     assert (outs[0][1] != g["weight"]).sum() > 1000 and outs[0][3].sum() > 0   # voxels fused, colour clamped
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("debias", [True, False])
 @pytest.mark.parametrize("seed", range(4))
@@ -270,6 +277,7 @@ def test_finish_view_and_colour_pairs(kernels, debias, seed):
     assert _same(pairs[0][1], pairs[1][1]) and _same(pairs[0][2], pairs[1][2])
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("seed", range(5))
 def test_range_fragments(kernels, seed):
@@ -288,6 +296,7 @@ def test_range_fragments(kernels, seed):
     assert outs[0][0] == outs[1][0] > 0 and _same(outs[0][1], outs[1][1])
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("diff", [0.14, 0.0, -1.0, 1e9])
 @pytest.mark.parametrize("shape", [(480, 640), (37, 51), (1, 1), (2, 3)])
@@ -329,6 +338,7 @@ def test_display_lookups(gamma):
     assert _same(lc, ln)
 
 
+@pytest.mark.slow
 @needs_c
 def test_parallel_kernels_do_not_depend_on_the_number_of_threads(kernels):
     c, _ = kernels
@@ -353,6 +363,7 @@ def test_parallel_kernels_do_not_depend_on_the_number_of_threads(kernels):
         _native.set_num_threads(0)
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("channels,per_value", [(3, True), (3, False), (1, False), (4, False)])
 def test_correction_lookups(channels, per_value):
@@ -393,6 +404,7 @@ def test_correction_lookups(channels, per_value):
         assert _same(ic, inb)
 
 
+@pytest.mark.slow
 @needs_c
 @pytest.mark.parametrize("storage", ["uint16", "float32"])
 def test_surface_colour_at_block_boundaries(kernels, storage):
@@ -431,6 +443,7 @@ def test_surface_colour_at_block_boundaries(kernels, storage):
     assert _same(outs[0], outs[1]) and (outs[0][rounds_up[pick]] != 0).any(axis=1).mean() > 0.3
 
 
+@pytest.mark.slow
 @needs_c
 def test_python_float_scalars_give_the_same_bits(kernels):
     """Scalars are taken in the kernels' own types (float32, or float64 for refine and the colour scale), whatever
@@ -463,6 +476,7 @@ def test_python_float_scalars_give_the_same_bits(kernels):
     assert len(set(fused)) == 1
 
 
+@pytest.mark.slow
 @needs_c
 def test_display_lookups_stay_inside_their_tables():
     """Tables whose bucket origin lies above a value (a caller's mistake) give bucket 0, never a read before the
@@ -484,6 +498,7 @@ def test_display_lookups_stay_inside_their_tables():
                                       np.empty_like(x))
 
 
+@pytest.mark.slow
 @needs_c
 def test_integrate_and_l1_do_not_depend_on_the_number_of_threads(kernels):
     c, _ = kernels
@@ -561,6 +576,7 @@ def test_the_choice_and_its_errors(monkeypatch):
     assert compiled("mapping._no_such_kernels") is None
 
 
+@pytest.mark.slow
 def test_a_stale_or_broken_build_is_not_used(monkeypatch, tmp_path, caplog):
     """An extension built for other kernels (its ABI differs) or one that fails as it loads is not used: Numba runs,
     said once at INFO (not at every kernel call), and --version's summary says why."""
@@ -586,6 +602,7 @@ def test_a_stale_or_broken_build_is_not_used(monkeypatch, tmp_path, caplog):
     assert _native.summary() == "none usable: disk gone"
 
 
+@pytest.mark.slow
 @needs_c
 def test_the_extensions_carry_the_abi_of_this_radiomap():
     from radiometry import _native as rn
@@ -594,6 +611,7 @@ def test_the_extensions_carry_the_abi_of_this_radiomap():
     assert _native.summary().startswith("C (OpenMP, ") or _native.summary() == "C (no OpenMP: one thread)"
 
 
+@pytest.mark.slow
 def test_a_wrong_choice_fails_before_a_command_writes_anything(tmp_path):
     env = dict(os.environ, RADIOMAP_KERNELS="fortran")
     out = tmp_path / "out"

@@ -31,6 +31,7 @@ def room():
 # --------------------------------------------------------------------------------------------------
 # simulated room: tracking accuracy and colour accuracy against the truth
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_simulated_room_icp_ate(room):
     run = reconstruct(room, backend=make_backend("tsdf", voxel_size=0.02, depth_max=4.0),
                       tracker=make_tracker(depth_max=4.0), progress=False)
@@ -116,6 +117,7 @@ def room_colour_runs(room, calibrated_lut):
     return runs
 
 
+@pytest.mark.slow
 def test_simulated_room_corrected_colours_are_closer_to_the_truth(room_colour_runs):
     """One scale per channel (white balance forgiven): what vignetting correction alone buys."""
     errors = {name: _mesh_error(c, t, scale="channel") for name, (c, t, _) in room_colour_runs.items()}
@@ -128,6 +130,7 @@ def test_simulated_room_corrected_colours_are_closer_to_the_truth(room_colour_ru
     assert hists["lut+exposure"]["mean"] < hists["none"]["mean"]
 
 
+@pytest.mark.slow
 def test_simulated_room_colours_after_one_global_scale(room_colour_runs):
     """Issue 5 as written: with ground-truth poses, the mesh colours with LUT correction are closer to the truth
     (mean error after ONE global least-squares scale, the same for R, G and B) than without correction, with
@@ -152,6 +155,7 @@ def test_simulated_room_colours_after_one_global_scale(room_colour_runs):
 # --------------------------------------------------------------------------------------------------
 # the real 7-Scenes sample: a complete run with its results folder
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_sevenscenes_run_writes_results(tmp_path):
     root = shared_path("rgbd", "redkitchen_7scenes_000-099")
     ds = open_dataset(root, frames=slice(0, 100, 3))
@@ -183,6 +187,7 @@ def test_sevenscenes_run_writes_results(tmp_path):
 # --------------------------------------------------------------------------------------------------
 # colour models
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("response", [CameraResponse.gamma(2.2), CameraResponse.linear(),
                                       CameraResponse.from_table(np.stack([np.exp(np.linspace(-9, 0, 256)),
                                                                           np.linspace(0.01, 1, 256) ** 3,
@@ -200,6 +205,7 @@ def test_fast_forward_matches_the_response(response):
     np.testing.assert_allclose(half(E), response.forward(E * 0.5), atol=2e-4)
 
 
+@pytest.mark.slow
 def test_display_l1_does_not_depend_on_the_number_of_threads():
     """The histogram's L1 kernel runs rows in parallel; each row sums its channels in one order, so one thread and
     every thread give the same float32 bits (and the same as the serial forward look-ups summed in that order)."""
@@ -225,6 +231,7 @@ def test_display_l1_does_not_depend_on_the_number_of_threads():
     np.testing.assert_allclose(every, serial, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_colour_models():
     response = CameraResponse.gamma(2.2)
     rgb = np.random.default_rng(1).integers(0, 256, (6, 8, 3)).astype(np.uint8)
@@ -267,6 +274,7 @@ def _box(n=8):
     return ds
 
 
+@pytest.mark.slow
 def test_a_frame_without_depth_is_skipped_and_not_fused():
     ds = _box()
     frames = list(ds.frames)
@@ -299,6 +307,7 @@ class _RecordingColour(RawIntensity):
         return FrameColour(frame.rgb.astype(np.float32), valid, "colour rejected: the test says so")
 
 
+@pytest.mark.slow
 def test_the_frame_contract_pose_view_and_valid_pixels():
     """The colour model gets the view rendered for the frame and the pose it is fused at; its valid mask reaches
     the backend; a frame with nothing valid is skipped with the model's reason."""
@@ -317,6 +326,7 @@ def test_the_frame_contract_pose_view_and_valid_pixels():
     assert len(fused) == 3 and all(not v[:, :80].any() and v[:, 80:].all() for v in fused)
 
 
+@pytest.mark.slow
 def test_tracking_lost_for_good_raises(tmp_path):
     ds = _box(5)
     frames = [ds.frames[0]] + [RGBDFrame(f.index, f.timestamp, f.rgb, np.zeros_like(f.depth), f.K, f.pose)
@@ -338,6 +348,7 @@ class _Interrupting(ArrayDataset):
         return super().__getitem__(index)
 
 
+@pytest.mark.slow
 def test_interrupted_run_stays_marked_incomplete(tmp_path):
     ds = _Interrupting(_box(6).frames)
     out = ResultsFolder(tmp_path / "run")
@@ -351,6 +362,7 @@ def test_interrupted_run_stays_marked_incomplete(tmp_path):
     ResultsFolder(out.path, force=True)                                       # --force reuses the folder
 
 
+@pytest.mark.slow
 def test_a_frame_cut_short_by_ctrl_c_is_not_counted_as_skipped(tmp_path):
     """Ctrl-C while frame 3 is being fused: frames 0-2 fused, frame 3 neither fused nor counted as skipped (it
     once appeared as a skip with an empty reason)."""
@@ -373,6 +385,7 @@ def test_a_frame_cut_short_by_ctrl_c_is_not_counted_as_skipped(tmp_path):
     assert metrics["frames"]["skip_reasons"] == {} and metrics["frames"]["skipped_frames"] == []
 
 
+@pytest.mark.slow
 def test_backends_by_name():
     with pytest.raises(ValueError, match="backend must be one of tsdf, surfel, got 'octomap'"):
         make_backend("octomap")
@@ -385,6 +398,7 @@ def test_backends_by_name():
         reconstruct(_box(2), backend=make_backend("tsdf"), poses="icp")
 
 
+@pytest.mark.slow
 def test_surfel_backend_through_the_pipeline():
     pytest.importorskip("mapping.fusion.surfel")
     ds = _box(6)

@@ -40,6 +40,7 @@ def inverted_tum(room: Path, dest: Path) -> Path:  # noqa: F811 (the fixture's n
     return seq
 
 
+@pytest.mark.slow
 def test_kitchen_correct_poses_raise_no_alarm():
     result = refuse_inverted_poses(open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099")))
     assert result is not None and not result.looks_inverted
@@ -56,6 +57,7 @@ def test_kitchen_inverted_poses_are_refused_by_reconstruct(tmp_path):
     assert not out.exists()                  # refused before the results folder is made
 
 
+@pytest.mark.slow
 def test_simulated_room_inverted_and_correct(room, tmp_path):  # noqa: F811
     correct = check_convention(open_dataset(room))
     assert correct is not None and not correct.looks_inverted, correct
@@ -75,6 +77,7 @@ def test_self_calibrate_refuses_inverted_poses(room, tmp_path):  # noqa: F811
     assert not (out / "vignetting.npz").exists()
 
 
+@pytest.mark.slow
 def test_icp_needs_no_convention_check(tmp_path, room):  # noqa: F811
     """--poses icp does not read the ground truth: inverted ground truth does not stop it."""
     seq = inverted_tum(room, tmp_path / "inv")

@@ -66,6 +66,7 @@ def bars(monkeypatch) -> Bars:
 # ==================================================================================================
 # the helper
 # ==================================================================================================
+@pytest.mark.slow
 def test_bar_drawn_on_a_terminal():
     term = Terminal()
     assert list(progress_bar(range(5), desc="things", file=term)) == list(range(5))
@@ -74,6 +75,7 @@ def test_bar_drawn_on_a_terminal():
     assert text.startswith("\rthings:   0%") and "0/5" in text and "5/5" in text and "frame/s" in text
 
 
+@pytest.mark.slow
 def test_no_bar_off_a_terminal_or_when_disabled():
     for stream, enabled in ((io.StringIO(), True), (Terminal(), False)):
         bar = progress_bar(total=5, desc="things", file=stream, enabled=enabled)
@@ -85,6 +87,7 @@ def test_no_bar_off_a_terminal_or_when_disabled():
         assert stream.getvalue() == ""
 
 
+@pytest.mark.slow
 def test_default_stream_is_stderr_at_the_time_of_the_call(monkeypatch, capsys):
     bar = progress_bar(total=2, desc="piped")  # capsys: stderr is not a terminal
     bar.update(2)
@@ -97,6 +100,7 @@ def test_default_stream_is_stderr_at_the_time_of_the_call(monkeypatch, capsys):
     assert "watched" in sys.stderr.getvalue() and "2/2" in sys.stderr.getvalue()
 
 
+@pytest.mark.slow
 def test_a_bar_that_does_not_stay_clears_its_line():
     term = Terminal()
     list(progress_bar(range(3), desc="things", file=term, leave=False))
@@ -114,6 +118,7 @@ def test_every_bar_is_made_by_the_helper():
 # ==================================================================================================
 # the library's loops count what they process
 # ==================================================================================================
+@pytest.mark.slow
 def test_reconstruct_counts_every_frame_and_logs_each(bars, caplog):
     """5 frames, the third without a pose: the bar counts 5 of 5 with 1 skipped, and the pipeline logs one DEBUG
     line per frame, in order, saying what became of it."""
@@ -136,6 +141,7 @@ def test_reconstruct_counts_every_frame_and_logs_each(bars, caplog):
                      "frame 4 of 5: fused", "frame 5 of 5: fused"]
 
 
+@pytest.mark.slow
 def test_reconstruct_without_progress_draws_nothing(bars):
     from box_room import box_room_sequence
     from mapping.factory import make_backend
@@ -147,6 +153,7 @@ def test_reconstruct_without_progress_draws_nothing(bars):
     assert kwargs["enabled"] is False and bars.screen.getvalue() == ""
 
 
+@pytest.mark.slow
 def test_compare_has_one_bar_over_every_method(bars, tmp_path):
     """3 frames x 2 methods: one bar, 6 frames counted, the fusions inside draw none of their own."""
     from mapping.compare import compare, make_methods
@@ -162,6 +169,7 @@ def test_compare_has_one_bar_over_every_method(bars, tmp_path):
     assert "compare" in bars.screen.getvalue() and "6/6" in bars.screen.getvalue()  # it stays: its final state
 
 
+@pytest.mark.slow
 def test_simulation_and_calibration_loops_count(bars, tmp_path):
     from mapping.simulation import simulate_room
     from radiometry.response_fit import load_brackets
@@ -202,7 +210,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
 
 
 COMMANDS = {
-    "response": lambda i, out: ["response", BRACKETS, "-o", out / "crf.npz"],
+    "response": lambda i, out: ["response", BRACKETS, "-o", out / "crf.npz", "--quality", "fast"],
     "vignetting": lambda i, out: ["vignetting", i["paper"], "-r", i["paper_response"], "-o", out / "v.npz",
                                   "--min-samples", "5", "--no-plots"],
     "correct": lambda i, out: ["correct", i["frames"], "-r", i["gamma"], "--vignetting", i["flat"], "-o", out],
@@ -215,6 +223,7 @@ COMMANDS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(COMMANDS))
 def test_no_progress_on_every_looping_command(name, inputs, bars, tmp_path):
     """Each command that loops accepts --no-progress and then makes every bar disabled; without it, its bar is
@@ -228,6 +237,7 @@ def test_no_progress_on_every_looping_command(name, inputs, bars, tmp_path):
         assert (not any(enabled)) if flag else any(enabled), [kwargs for _, kwargs in bars]
 
 
+@pytest.mark.slow
 def test_no_progress_on_the_demo(monkeypatch, tmp_path):
     """The demo passes --no-progress to its run (whose loops are the ones above: test_demo.py runs it whole)."""
     import mapping.cli.demo as demo
@@ -246,6 +256,7 @@ def test_no_progress_on_the_demo(monkeypatch, tmp_path):
     assert seen == [False, True]
 
 
+@pytest.mark.slow
 def test_piped_100_frame_reconstruction_writes_no_progress(inputs, tmp_path):
     """The real command in a child process whose stderr is a pipe (a log, CI): 100 frames, the default options
     (no --no-progress), and not one redraw reaches the pipe."""
@@ -260,6 +271,7 @@ def test_piped_100_frame_reconstruction_writes_no_progress(inputs, tmp_path):
     assert "\r" not in out.stdout and "L1 mean" in out.stdout
 
 
+@pytest.mark.slow
 def test_the_same_run_on_a_terminal_draws_a_bar(inputs, tmp_path):
     """The control: with a (pseudo-)terminal as stderr the same command draws its bar (so the test above can fail;
     4 frames are enough to show it)."""

@@ -119,7 +119,9 @@ def wait_for_staging(out: Path, pid: int, strays: set[str]) -> float:
 
 
 def argv(out: Path, method: str) -> list[str]:
-    return ["response", str(BRACKETS), "-o", str(out / "crf.npz"), "--method", method, "--force"]
+    # --quality fast: what is tested is the publication of the set; the full figure (a refit per exposure and two half
+    # fits) would multiply each run's CPU by ~8 (tests/test_cli_response.py::test_response_on_the_sample runs it)
+    return ["response", str(BRACKETS), "-o", str(out / "crf.npz"), "--method", method, "--force", "--quality", "fast"]
 
 
 def snapshot(out: Path) -> dict[str, bytes]:
@@ -184,6 +186,7 @@ def seed_folder(out: Path, references, method: str = "robertson") -> None:
 # ==================================================================================================
 # SIGKILL
 # ==================================================================================================
+@pytest.mark.slow
 def test_sigkill_at_random_moments_leaves_the_old_or_the_new_set(zygote, references, tmp_path):
     """20 kills of ``radiomap response --force`` over an existing set: 10 at a random moment of the whole run,
     10 at a random moment of its publication (after its staging folder appeared). Every outcome is checked;
@@ -223,6 +226,7 @@ def test_sigkill_at_random_moments_leaves_the_old_or_the_new_set(zygote, referen
     assert is_complete_set(out, method, references)
 
 
+@pytest.mark.slow
 def test_sigkill_at_every_call_of_the_publication(zygote, references, tmp_path):
     """The child kills itself at its k-th os.replace / os.link / os.fsync, for every k until a run completes:
     every step of writing the temporaries, backing up, journaling and renaming is interrupted once."""
@@ -247,6 +251,7 @@ def test_sigkill_at_every_call_of_the_publication(zygote, references, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted(SET)   # the completing run removed every stray
 
 
+@pytest.mark.slow
 def test_strays_of_a_live_process_are_left_alone(tmp_path):
     live = tmp_path / f".crf.npz.tmp-radiomap-{os.getppid()}-abc.npz"
     dead_pid = 2 ** 22 + 12345                                     # above pid_max: no such process
@@ -280,6 +285,7 @@ def _fault_at(monkeypatch, k: int, exc: BaseException) -> list[int]:
     return calls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["disk full", "ctrl-c"])
 def test_response_fault_at_every_call_keeps_the_old_set(references, tmp_path, fault, monkeypatch):
     cached_plots(monkeypatch, references)
@@ -314,6 +320,7 @@ def sweep(tmp_path_factory):
                           width=64, height=48, progress=False, write_depth_images=False)
 
 
+@pytest.mark.slow
 def test_vignetting_disk_full_at_every_call_keeps_the_old_set(sweep, tmp_path, monkeypatch):
     """Model, coverage map and both summaries: a full disk at any call of their publication leaves the
     previous calibration's files byte for byte."""

@@ -54,6 +54,7 @@ def _redwood_folder(path, n=8, *, camera_file="camera_intrinsic.json", trajector
 # ------------------------------------------------------------------------------------------------------------
 # 1. intrinsics from the folder, associations, the recorder's depth scale
 # ------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["camera_intrinsic.json", "intrinsics.K.txt", "camera-intrinsics.txt"])
 def test_the_intrinsics_file_of_the_layout_is_read_and_named(tmp_path, name):
     ds = _redwood_folder(tmp_path / "seq", 2, camera_file=name, trajectory=False)
@@ -65,6 +66,7 @@ def test_the_intrinsics_file_of_the_layout_is_read_and_named(tmp_path, name):
     assert given.K[0, 0] == 300 and "(given)" in intrinsics_text(given)
 
 
+@pytest.mark.slow
 def test_a_default_intrinsics_is_said_with_a_warning(tmp_path, caplog):
     _redwood_folder(tmp_path / "seq", 1, camera_file=None, trajectory=False, size=(640, 480))
     with caplog.at_level(logging.WARNING):
@@ -92,6 +94,7 @@ def _tum_folder(path, n=6, *, stamps=None, associations=True, scale=5000.0, name
     return ds
 
 
+@pytest.mark.slow
 def test_associations_pair_the_frames_in_their_order_when_the_timestamps_are_broken(tmp_path, caplog):
     """The recorder wrote intervals instead of times (not increasing): associations.txt keeps the file's order
     (sorting by the broken stamps would scramble the frames) and the frames are dated N / 30 s, with a warning."""
@@ -107,6 +110,7 @@ def test_associations_pair_the_frames_in_their_order_when_the_timestamps_are_bro
     np.testing.assert_allclose(opened[3].depth, ds.frames[3].depth, atol=6e-4)
 
 
+@pytest.mark.slow
 def test_tum_depth_at_5000_per_metre_is_kept_and_the_folder_name_gives_the_kinect(tmp_path):
     """TUM's own depth (the Kinect's millimetres times 5: multiples of 5) stays at 5000 per metre; 'fr2' in the
     folder name picks freiburg 2's intrinsics."""
@@ -132,6 +136,7 @@ def test_a_malformed_associations_line_names_the_file_and_line(tmp_path):
         open_dataset(tmp_path / "rec")
 
 
+@pytest.mark.slow
 def test_the_shared_recordings_are_read_as_their_layouts_say():
     office = open_dataset(shared_path("rgbd", "realsense_office_d435"), intrinsics="615,615,320,240")
     assert len(office) == 100 and office.frame_files[0].rgb.name == "rgb00002.png"
@@ -146,6 +151,7 @@ def test_the_shared_recordings_are_read_as_their_layouts_say():
 # ------------------------------------------------------------------------------------------------------------
 # 2. poses from a file
 # ------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_each_kind_of_pose_file_is_matched_to_the_frames(tmp_path):
     ds = _redwood_folder(tmp_path / "seq", 6)
     opened = open_dataset(tmp_path / "seq")
@@ -189,6 +195,7 @@ def test_frames_without_a_pose_are_skipped_with_a_count_and_too_many_refused(tmp
         match_pose_file(ds, few)
 
 
+@pytest.mark.slow
 def test_a_trajectory_written_by_radiomap_reproduces_its_poses(tmp_path):
     """reconstruct tracks (the default tracker), writes trajectory.txt; given back as --poses FILE the run fuses every
     frame at the same poses (< 0.1 mm, < 1e-4 degrees); the ground truth is written beside it as a TUM file."""
@@ -220,6 +227,7 @@ def test_a_trajectory_written_by_radiomap_reproduces_its_poses(tmp_path):
     assert metrics["tracking"]["tracker"] == "auto"
 
 
+@pytest.mark.slow
 def test_no_ground_truth_no_groundtruth_file(tmp_path):
     _redwood_folder(tmp_path / "seq", 4, trajectory=False)
     run = tmp_path / "run"
@@ -240,6 +248,7 @@ def test_poses_option_errors_are_one_line(tmp_path):
         assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_compare_and_self_calibrate_take_a_pose_file(tmp_path):
     """--poses FILE on compare (every method at the file's poses) and self-calibrate (--tracker too)."""
     ds = _redwood_folder(tmp_path / "seq", 6)
@@ -276,6 +285,7 @@ def _losing(n_good=6, n=12):
                                                          f.pose) for i, f in enumerate(ds.frames)])
 
 
+@pytest.mark.slow
 def test_a_tracking_loss_keeps_the_map_marks_it_partial_and_fails(tmp_path):
     out = ResultsFolder(tmp_path / "lost")
     with pytest.raises(TrackingLostError, match="kept the 6 of 12 frames fused before the loss") as info:
@@ -291,6 +301,7 @@ def test_a_tracking_loss_keeps_the_map_marks_it_partial_and_fails(tmp_path):
     assert not is_complete(out.path)   # a batch runs it again
 
 
+@pytest.mark.slow
 def test_a_loss_before_a_map_exists_still_fails_unfinished(tmp_path):
     out = ResultsFolder(tmp_path / "lost")
     with pytest.raises(TrackingError) as info:
@@ -301,6 +312,7 @@ def test_a_loss_before_a_map_exists_still_fails_unfinished(tmp_path):
     assert (out.path / RUNNING_MARKER).exists()
 
 
+@pytest.mark.slow
 def test_the_cli_writes_the_partial_map_and_exits_non_zero(tmp_path):
     _redwood_folder(tmp_path / "seq", 40, depth_zero_from=8)
     res = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "seq"), "-o", str(tmp_path / "run"), "--depth-max",
@@ -325,6 +337,7 @@ def test_a_self_calibration_refused_at_validation_writes_nothing(tmp_path):
     shutil.rmtree(out)
 
 
+@pytest.mark.slow
 def test_a_batch_gives_each_sequence_its_own_pose_file(tmp_path):
     """``radiomap batch reconstruct LIST -- --poses groundtruth.txt``: a relative path not found from the working
     folder is each sequence's own file; the poses fused are that sequence's."""

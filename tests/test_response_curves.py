@@ -88,6 +88,7 @@ def test_euroc_curve_matches_the_project_reader():
     assert "euroc" in curves()
 
 
+@pytest.mark.slow
 def test_bench_calibration_script_runs_on_a_tiny_scene(capsys):
     import importlib.util
 
@@ -138,6 +139,7 @@ def test_the_ambiguity_bound_stays_inside_the_exact_2x_family():
     assert len(spread) > 100 and np.max(spread) < 0.01  # ... that the brackets cannot tell from it
 
 
+@pytest.mark.slow
 def test_the_smoothness_prior_of_debevec_cannot_reach_one_percent_at_exact_2x():
     """The figures behind issue 15's unmet 1 %: with infinite data Debevec's prior still picks a member 1.4 % (kink
     4x) and 2.2 % (flat then steep) off, while a log-log curvature prior's member is within 0.6 % on every curve

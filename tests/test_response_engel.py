@@ -28,6 +28,7 @@ def radiance():
 
 # measured at 320x240 (all pixels): gamma 0.75, s-curve 0.84, kink-4x 0.64, flat-then-steep 0.82, euroc 0.83
 # (worst channel); Debevec with lambda 10 on the same stacks: 0.48, 0.73, 0.92, 1.76, 0.35
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["kink-4x", "flat-then-steep", "euroc", "gamma-2.2"])
 def test_engel_is_within_one_percent_with_varied_exposure_ratios(radiance, name):
     table_set = curves()
@@ -46,6 +47,7 @@ def test_engel_is_within_one_percent_with_varied_exposure_ratios(radiance, name)
     assert meta["fit_rms_levels"] < 3.0  # measured 1.1 (kink-4x) .. 2.1 (gamma: steep f at the dark end)
 
 
+@pytest.mark.slow
 def test_engel_keeps_the_knee_that_debevec_rounds(radiance):
     truth = curves(include_euroc=False)["flat-then-steep"]
     images = render_brackets(truth, radiance, VARIED_TIMES)

@@ -98,6 +98,7 @@ LEVELS_CHECKED = np.arange(5, 251)
 
 # measured max errors (% of range, levels 5..250), Debevec: gamma 1ch 0.44, 3ch 0.44; s-curve 1ch 0.73, 3ch 0.47
 # (over 6 other noise/scene seeds: at most 0.78); the default (loglog): 0.38, 0.43, 0.24, 0.50
+@pytest.mark.slow
 @pytest.mark.parametrize("method, expected", [("debevec", "debevec"), ("auto", "loglog")])
 @pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("crf", ["gamma", "s-curve"])
@@ -116,6 +117,7 @@ def test_default_and_debevec_recover_known_response(synthetic, crf, channels, me
     assert response.meta["fit_rms_levels"] < 1.5
 
 
+@pytest.mark.slow
 def test_channels_are_not_swapped(synthetic):
     images, truth = synthetic("gamma", 3)
     table = fit_response(images, TIMES).inverse_table
@@ -142,6 +144,7 @@ def test_sampling_is_stratified_over_levels(synthetic):
     assert np.all(valid[select_samples(values, TIMES, samples=30, valid=valid)])
 
 
+@pytest.mark.slow
 def test_unobserved_levels_are_extrapolated(synthetic):
     # a low-contrast scene: no level below ~40 or above ~200 in any exposure
     radiance = np.exp(np.linspace(np.log(0.12), np.log(0.45), 160))[None, :, None] * np.ones((60, 1, 1))
@@ -163,6 +166,7 @@ def test_unobserved_levels_are_extrapolated(synthetic):
     assert np.abs(table[inside] / table[hi] - truth[inside] / truth[hi]).max() < 0.01
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("channels", [1, 3])
 def test_opencv_methods_are_comparable(synthetic, channels):
     images, truth = synthetic("gamma", channels)
@@ -176,6 +180,7 @@ def test_opencv_methods_are_comparable(synthetic, channels):
         assert err < bound, (method, err)
 
 
+@pytest.mark.slow
 def test_valid_levels_exclude_a_floor(synthetic):
     images, truth = synthetic("gamma", 1)
     floored = [np.maximum(im, 12) for im in images]  # a black level: nothing below 12
@@ -206,6 +211,7 @@ def test_robertson_saturated_level_is_extrapolated(synthetic):
     assert g[255] - g[254] < 3 * (g[254] - g[253]) + 1e-9  # no jump from OpenCV's clipped average
 
 
+@pytest.mark.slow
 def test_mask_restricts_the_samples(synthetic):
     images, truth = synthetic("gamma", 3)
     mask = np.ones(images[0].shape[:2], bool)
@@ -252,6 +258,7 @@ def _stack(n=3, shape=(20, 30)):
     return [np.full(shape, 40 * (k + 1), np.uint8) + np.arange(shape[1], dtype=np.uint8) for k in range(n)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("images, times, error, match", [
     (_stack(1), [1.0], ValueError, "at least 2 exposures"),
@@ -272,11 +279,13 @@ def test_bad_inputs_name_the_parameter(method, images, times, error, match):
         fit_response(images, times, method=method)
 
 
+@pytest.mark.slow
 def test_all_saturated_is_a_calibration_error():
     with pytest.raises(CalibrationError, match="saturated"):
         fit_response([np.full((10, 10, 3), 255, np.uint8)] * 3, [1.0, 2.0, 4.0])
 
 
+@pytest.mark.slow
 def test_exposures_that_never_overlap_are_rejected():
     a = np.zeros((10, 10), np.uint8)
     b = np.full((10, 10), 255, np.uint8)
@@ -288,12 +297,14 @@ def test_exposures_that_never_overlap_are_rejected():
         fit_response_debevec([a, b], [1.0, 2.0], levels=(1, 254))
 
 
+@pytest.mark.slow
 def test_integer_images_in_range_are_accepted():
     images, _ = render(gamma_inverse, scene(1)), None
     response = fit_response([im.astype(np.int64) for im in images], TIMES)
     assert response.channels == 1
 
 
+@pytest.mark.slow
 def test_bad_options():
     images = _stack(3)
     with pytest.raises(ValueError, match="method must be one of auto, debevec, engel, loglog, opencv-debevec, "
@@ -447,6 +458,7 @@ def test_memorial_times_are_seconds(memorial):
 
 # measured: memorial 8.88 levels (OpenCV's CalibrateDebevec, 70 samples: 7.42), taipei 5.76 (OpenCV 4.48);
 # memorial's long exposures dominate the error (film reciprocity failure at 8..32 s: 22.5 levels at 32 s)
+@pytest.mark.slow
 @pytest.mark.parametrize("name, bound", [("memorial", 10.0), ("taipei", 6.5)])
 def test_real_stacks_monotone_and_predictive(request, name, bound):
     data = request.getfixturevalue(name)
@@ -461,6 +473,7 @@ def test_real_stacks_monotone_and_predictive(request, name, bound):
 # OpenCV's CalibrateDebevec (150 grid samples, lambda 10) vs ours, RMS of normalised f^-1 over levels 10..245
 # measured: memorial (blue-free interior, since OpenCV takes no mask) R 0.96%, G 1.38%, B 2.93%;
 #           taipei R 3.52%, G 1.56%, B 2.93%
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["memorial", "taipei"])
 def test_agreement_with_opencv(request, name):
     data = request.getfixturevalue(name)
@@ -492,6 +505,7 @@ def two_x_stacks():
 
 # measured (200x150, 12 exposures at 2x steps): gamma-2.2 -> 30, kink-4x -> 1 (held-out error, levels^2:
 # gamma 3.77 at 30 vs 4.60 at 1; kink 1.27 at 1 vs 1.94 at 30)
+@pytest.mark.slow
 def test_cross_validated_lambda_is_smaller_for_a_knee(two_x_stacks):
     times, stacks = two_x_stacks
     chosen = {}
@@ -507,6 +521,7 @@ def test_cross_validated_lambda_is_smaller_for_a_knee(two_x_stacks):
     assert chosen["kink-4x"] <= 3 and chosen["gamma-2.2"] >= 10
 
 
+@pytest.mark.slow
 def test_numeric_lambda_keeps_its_record(two_x_stacks):
     times, stacks = two_x_stacks
     images, _ = stacks["gamma-2.2"]

@@ -25,6 +25,7 @@ def radiance():
 # measured at 160x120 (R/G/B), scene and noise seeds 0/1/2: kink-4x 0.49/0.61/0.42, 0.29/0.74/0.54,
 # 0.46/0.34/0.45; flat-then-steep 0.66/0.86/0.58, 0.77/0.82/0.89, 0.64/0.66/0.71. Debevec (lambda 10) on the
 # same stacks: 1.03-1.35 and 1.66-1.98.
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["kink-4x", "flat-then-steep"])
 def test_a_knee_at_exact_2x_steps_is_within_one_percent(radiance, name):
     truth = curves(include_euroc=False)[name]
@@ -45,6 +46,7 @@ def test_a_knee_at_exact_2x_steps_is_within_one_percent(radiance, name):
     assert meta["fit_rms_levels"] < 3.0  # measured 1.2 at 640x480
 
 
+@pytest.mark.slow
 def test_varied_ratios_are_within_one_percent_too(radiance):
     """Measured 160x120, kink-4x: 0.42/0.32/0.32 % (640x480, every curve: 0.24-0.73 %)."""
     truth = kink_curve()
@@ -59,11 +61,12 @@ def break_radiance():
     return scene(240, 320, seed=3)
 
 
-#: measured, 320x240, scene and noise seed 3 (640x480 seed 7 in README): varied 0.50 / 0.84 / 0.52 / 0.36 / 0.30
+#: measured, 320x240, scene and noise seed 3 (640x480 seed 7 in docs/guides/calibrate.md): varied 0.50 / 0.84 / 0.52 / 0.36 / 0.30
 #: / 0.45 / 0.26; exact 2x 1.53 / 2.20 / 0.64 / 0.55 / 0.37 / 0.54 / 0.33 (order of break_curves)
 BREAK_2X_LIMIT = {"dark-kink-4x@60": 2.0, "dark-flat-40-55": 2.8}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(break_curves()))
 def test_curves_built_to_break_the_prior(break_radiance, name):
     """Curves the weights were not chosen on. Varied ratios: within 1 % each. Exact 2x: within 1 % except where a
@@ -91,6 +94,7 @@ def test_a_gamma_curve_costs_the_prior_nothing():
     assert np.abs(prior_rows(gaps) @ (2.2 * np.log(gaps))).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_mask_grayscale_and_unobserved_levels():
     truth = curves(include_euroc=False)["gamma-2.2"]
     radiance = scene(120, 160)
@@ -114,6 +118,7 @@ def test_mask_grayscale_and_unobserved_levels():
     assert np.all(np.isfinite(fitted.inverse_table)) and np.all(np.diff(fitted.inverse_table[:, 0]) > 0)
 
 
+@pytest.mark.slow
 def test_monotonicity_is_a_constraint_of_the_fit_not_a_repair(radiance):
     truth = kink_curve()
     images = render_brackets(truth, radiance, TIMES)
@@ -133,6 +138,7 @@ def test_monotonicity_is_a_constraint_of_the_fit_not_a_repair(radiance):
     assert np.all(max_error_percent(default.inverse_table, truth, (5, 95)) < 0.5)
 
 
+@pytest.mark.slow
 def test_bad_options():
     images = render_brackets(kink_curve(), scene(20, 30), TIMES[:3])
     for lam in (0.0, -1.0, np.nan, True, "auto"):
@@ -147,6 +153,7 @@ def test_bad_options():
         fit_response_loglog(images, TIMES[:3], levels=(0, 254))
 
 
+@pytest.mark.slow
 def test_a_singular_hessian_states_no_error_rather_than_zero(radiance, monkeypatch, caplog):
     """Where the energy's Hessian is singular (a direction the brackets and the prior leave undetermined), the fit
     records no ``inverse_stderr`` (and says why) instead of a standard error of 0; the vignetting budget then

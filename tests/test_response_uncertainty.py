@@ -29,6 +29,7 @@ def repeated_fits():
     return fits
 
 
+@pytest.mark.slow
 def test_debevec_stderr_is_the_size_of_the_fit_to_fit_spread(repeated_fits):
     """Kink 4x, 160x120: the stated error is the size of the actual spread between fits (a stated error that
     ignored the shared irradiances, or the level-dependent noise, would be off by a factor 2-40)."""
@@ -46,6 +47,7 @@ def test_debevec_stderr_is_the_size_of_the_fit_to_fit_spread(repeated_fits):
     assert np.allclose(stated[255], 0.0)  # the normalisation level is 1 by definition
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("varied, levels", [(False, (1, 254)), (True, (1, 254)), (False, (10, 220))])
 def test_loglog_stderr_is_the_size_of_the_fit_to_fit_spread(varied, levels):
     """The default fit (loglog), kink 4x, 160x120: the stated error (a sandwich over pixels, carried through the
@@ -71,6 +73,7 @@ def test_loglog_stderr_is_the_size_of_the_fit_to_fit_spread(varied, levels):
     assert "sandwich" in fits[0].meta["inverse_stderr_source"]
 
 
+@pytest.mark.slow
 def test_debevec_stderr_shrinks_with_less_noise():
     radiance = scene(H, W, seed=1)
     noisy = fit_response_debevec(render_brackets(gamma_curve(), radiance, TIMES, seed=1, full_well=2000.0), TIMES)
@@ -79,6 +82,7 @@ def test_debevec_stderr_shrinks_with_less_noise():
     assert np.median(relative_stderr(noisy)[sel]) > 1.5 * np.median(relative_stderr(clean)[sel])
 
 
+@pytest.mark.slow
 def test_stderr_and_extrapolated_levels_round_trip_through_the_file(repeated_fits, tmp_path):
     response = repeated_fits[0]
     back = CameraResponse.load(response.save(tmp_path / "r.npz"))
@@ -87,6 +91,7 @@ def test_stderr_and_extrapolated_levels_round_trip_through_the_file(repeated_fit
     assert "covariance" in back.meta["inverse_stderr_source"]
 
 
+@pytest.mark.slow
 def test_debevec_marks_the_levels_no_data_reached():
     radiance = scene(H, W, seed=2)
     images = render_brackets(gamma_curve(), radiance, TIMES, seed=2)

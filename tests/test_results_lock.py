@@ -79,6 +79,7 @@ def lock_file(folder: Path, pid: int, start: str | None = None) -> None:
 # ==================================================================================================
 # two runs into one folder
 # ==================================================================================================
+@pytest.mark.slow
 def test_a_second_run_into_a_folder_being_written_is_refused(long_seq, tmp_path):
     out = tmp_path / "run"
     first = start_reconstruct(long_seq, out, "--voxel-size", "0.03", "--depth-max", "5")
@@ -104,6 +105,7 @@ def test_a_second_run_into_a_folder_being_written_is_refused(long_seq, tmp_path)
     assert (out / "mesh.ply").is_file() and metrics["frames"]["fused"] == 80
 
 
+@pytest.mark.slow
 def test_a_folder_locked_by_a_live_process_refuses_compare_and_demo(idle_process, long_seq, tmp_path):
     """The same lock guards a comparison's folder and the demo's (the owner here is any live process)."""
     from mapping.demo import run_demo
@@ -118,6 +120,7 @@ def test_a_folder_locked_by_a_live_process_refuses_compare_and_demo(idle_process
     assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == [LOCK_NAME]   # nothing else was touched
 
 
+@pytest.mark.slow
 def test_a_stale_lock_is_taken_over_with_a_message(room, tmp_path, caplog):
     seq = tum_copy(room, tmp_path / "seq", indices=range(3))
     out = tmp_path / "run"
@@ -132,6 +135,7 @@ def test_a_stale_lock_is_taken_over_with_a_message(room, tmp_path, caplog):
     assert reconstruct(seq, out, "--force").exit_code == 0 and not (out / LOCK_NAME).exists()
 
 
+@pytest.mark.slow
 def test_the_lock_in_process(tmp_path):
     """One process may lock a folder again (a second run in one session); release removes the file."""
     first = FolderLock(tmp_path / "f")
@@ -149,6 +153,7 @@ def test_the_lock_in_process(tmp_path):
 # ==================================================================================================
 # --force removes the previous run's files (and only those)
 # ==================================================================================================
+@pytest.mark.slow
 def test_force_removes_the_previous_runs_files_and_keeps_the_users(room, tmp_path):
     seq = tum_copy(room, tmp_path / "seq", indices=range(4))
     out = tmp_path / "run"
@@ -169,6 +174,7 @@ def test_force_removes_the_previous_runs_files_and_keeps_the_users(room, tmp_pat
     assert "notes.txt" not in json.loads((out / MANIFEST).read_text())["files"]
 
 
+@pytest.mark.slow
 def test_compare_force_removes_the_previous_comparisons_method_folders(room, tmp_path):
     """compare --methods none,response,lut then --methods none --force: response/ (its metrics.json "complete") and
     the stale colour_error.png stayed beside the new compare.json, one folder holding two runs; config.json and
@@ -202,6 +208,7 @@ def test_compare_force_removes_the_previous_comparisons_method_folders(room, tmp
     assert snapshot(out) == before
 
 
+@pytest.mark.slow
 def test_results_subfolders_are_listed_and_removed_by_the_next_force_run(tmp_path, idle_process):
     """The rule behind compare --force: a results folder made with subfolder() is listed in the MANIFEST and the
     next force run cleans it like its parent (results out, the user's files and unlisted folders stay), never while
@@ -232,6 +239,7 @@ def test_results_subfolders_are_listed_and_removed_by_the_next_force_run(tmp_pat
     assert (top / "user" / "summary.txt").read_text() == "the user's"
 
 
+@pytest.mark.slow
 def test_a_killed_run_never_says_complete(long_seq, room, tmp_path):
     """SIGKILL of a --force run over a finished one (issue 31): the previous run stands byte for byte (the new run
     writes into a staging folder inside OUT, published only when complete); a killed run on an empty folder never
@@ -316,6 +324,7 @@ def test_correct_refuses_two_inputs_into_one_output(models, tmp_path):
     assert not (tmp_path / "out").exists()                                     # nothing written, not even the folder
 
 
+@pytest.mark.slow
 def test_a_simulation_folder_with_force_removes_only_an_earlier_simulation(tmp_path, caplog):
     """simulate's policy on the one results-folder mechanism (SequenceFolder): a non-empty folder is refused without
     --force; with it an earlier simulation's files (frames, lists, truth, brackets) go and the user's stay; a folder

@@ -1,4 +1,4 @@
-"""The robustness catalogue (README.md, "Robustness"): one test per row, each through the command line.
+"""The robustness catalogue (docs/robustness_catalogue.md): one test per row, each through the command line.
 
 Every bad input gives exit code 1, exactly one ``radiomap: error: ...`` line on stderr that names the file
 at fault and says how to fix it, and no traceback. Outputs are atomic and calibrations are never replaced
@@ -33,6 +33,7 @@ from radiometry.vignetting import LUTVignetting, PolynomialVignetting
 REPO = Path(__file__).resolve().parents[1]
 BRACKETS = REPO / "data_samples" / "brackets"
 VW, VH = 96, 72  # the models' calibration resolution (4:3)
+pytestmark = pytest.mark.slow   # every row runs the command end to end (the catalogue; the full suite runs it)
 
 
 # ==================================================================================================

@@ -110,6 +110,7 @@ def sequence(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("moment", ["mapping.simulation.sequences:write_image",            # the first frame
                                     "mapping.simulation.sequences:SequenceFolder.complete"],  # all written
                          ids=["early", "late"])
@@ -122,6 +123,7 @@ def test_simulate_force_interrupted_keeps_the_previous_sequence(sequence, tmp_pa
     assert_previous_kept(res, sig, out, before)
 
 
+@pytest.mark.slow
 def test_simulate_force_replaces_the_previous_sequence_wholly(sequence, tmp_path):
     """Fewer frames than before: none of the old frames is left; the user's notes stay; a killed run's staging
     folder is removed by the next run."""
@@ -163,6 +165,7 @@ def comparison(room, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("moment", ["mapping.pipeline:reconstruct",                       # the first method's run
                                     "mapping.compare.results:ComparisonFolder.complete"],  # all written
                          ids=["early", "late"])
@@ -175,6 +178,7 @@ def test_compare_force_interrupted_keeps_the_previous_comparison(room, compariso
     assert_previous_kept(res, sig, out, before)
 
 
+@pytest.mark.slow
 def test_compare_force_replaces_the_previous_comparison_wholly(room, comparison, tmp_path):
     """One method instead of two: the old method folder goes but for the user's file in it, the new comparison's
     files are exactly a fresh comparison's (but its run-dependent bytes); the user's notes stay."""
@@ -243,6 +247,7 @@ def _fake_comparison(out: Path) -> None:
     (out / "lut" / "mine.txt").write_text("mine too\n")
 
 
+@pytest.mark.slow
 def test_a_sigkill_at_any_rename_of_the_commit_is_rolled_back(tmp_path):
     """The commit moves the old method folders away, the new one in and the files over, compare.json last; a
     SIGKILL at each of those renames in turn leaves a journal that the next run in OUT rolls back: the previous

@@ -64,6 +64,7 @@ def previous(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("moment", ["mapping.demo:_calibrate_response",    # its first step
                                     "mapping.demo:DemoFolder.complete"],   # everything written
                          ids=["early", "late"])
@@ -76,6 +77,7 @@ def test_demo_force_interrupted_keeps_the_previous_demo(previous, tmp_path, mome
     assert_previous_kept(res, sig, out, before)
 
 
+@pytest.mark.slow
 def test_demo_force_replaces_the_previous_demo_wholly(previous, tmp_path):
     """Without exposure compensation (other method folders) and another seed: the published demo is exactly a
     fresh one's set of files (no old method folder, no old frame), the records name OUT, the user's notes stay."""

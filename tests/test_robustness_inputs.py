@@ -51,6 +51,7 @@ def test_implausible_option_is_one_line(room, tmp_path, option, value, fragments
     assert not out.exists()  # refused before anything is written
 
 
+@pytest.mark.slow
 def test_truncation_band_wider_than_the_depth_range(room, tmp_path):
     """--voxel-size 0.2 with --depth-max 0.5: the TSDF band (8 voxels, 1.6 m) covers the whole range."""
     out = tmp_path / "out"
@@ -59,6 +60,7 @@ def test_truncation_band_wider_than_the_depth_range(room, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_compare_validates_the_same_options(room, tmp_path):
     out = tmp_path / "cmp"
     error_line(run("compare", room, "-r", room / "truth" / "response.npz", "--methods", "none", "-o", out,
@@ -66,6 +68,7 @@ def test_compare_validates_the_same_options(room, tmp_path):
     assert not out.exists() or not any(out.iterdir())  # nothing written (the folder lock may have made it)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, fragments", [
     (["simulate", "paper", "--lensfun", "iphone", "--lens-focal", "-5"], ["--lens-focal -5 mm", "1..2000 mm"]),
     (["simulate", "paper", "--lensfun", "iphone", "--lens-aperture", "0"], ["--lens-aperture 0", "0.7..64"]),
@@ -78,6 +81,7 @@ def test_simulate_options_out_of_range(tmp_path, args, fragments):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_correct_scale_out_of_range(models, frames, tmp_path):
     """--scale 1e30 used to write images that were 100 % clipped."""
     out = tmp_path / "out"
@@ -86,6 +90,7 @@ def test_correct_scale_out_of_range(models, frames, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_vignetting_smooth_sigma_out_of_range(paper, tmp_path):
     """--smooth-sigma 1e9 used to end in an OpenCV traceback (a Gaussian kernel too large)."""
     out = tmp_path / "v.npz"
@@ -99,6 +104,7 @@ def test_vignetting_smooth_sigma_out_of_range(paper, tmp_path):
         fit_vignetting_lut(acc, smooth_sigma=1e9)
 
 
+@pytest.mark.slow
 def test_library_entry_points_validate_too(room):
     """ReconstructConfig/build_run and make_backend use the same rules: a ValueError for library callers."""
     from mapping.factory import ReconstructConfig, build_run, make_backend
@@ -124,6 +130,7 @@ def test_run_that_cannot_fit_in_memory_is_refused(room, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_memory_estimate_against_a_real_run(room, tmp_path):
     """The TSDF estimate is an upper bound of the right order: 1-3x the blocks the run allocates."""
     from mapping.datasets import open_dataset
@@ -143,6 +150,7 @@ def test_memory_estimate_against_a_real_run(room, tmp_path):
 # ==================================================================================================
 # item 5: runs that went wrong but reported success; inputs of the wrong kind
 # ==================================================================================================
+@pytest.mark.slow
 def test_poses_gt_without_ground_truth(room, tmp_path):
     """Used to fuse 0 of N frames and exit 0 with "status": "complete"."""
     seq = tum_copy(room, tmp_path / "seq")
@@ -152,6 +160,7 @@ def test_poses_gt_without_ground_truth(room, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_ground_truth_that_is_a_folder(room, tmp_path):
     seq = tum_copy(room, tmp_path / "seq")
     (seq / "groundtruth.txt").unlink()
@@ -161,6 +170,7 @@ def test_ground_truth_that_is_a_folder(room, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_run_that_fuses_too_little_fails(room, tmp_path):
     """Ground truth for 1 of 12 frames: 1 fused is below the rule (2 frames and 10 %); exit 1, the results say
     "failed" and keep their RUNNING marker."""
@@ -192,6 +202,7 @@ def test_reflection_pose_is_refused(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_grey_frame_in_a_colour_sequence(room, tmp_path):
     seq = tum_copy(room, tmp_path / "seq")
     grey = seq / "rgb" / "00002.png"
@@ -201,6 +212,7 @@ def test_grey_frame_in_a_colour_sequence(room, tmp_path):
     assert json.loads((out / "metrics.json").read_text())["status"] == "failed" and (out / "RUNNING").exists()
 
 
+@pytest.mark.slow
 def test_lut_given_as_the_polynomial(room, models, tmp_path):
     """compare --vignetting-poly LUT.npz used the LUT under the polynomial's name; then it was a usage error (exit 2,
     three lines) naming the model's internal "source" instead of the file."""
@@ -221,6 +233,7 @@ def v_npy(room) -> Path:
     return room / "truth" / "vignetting.npy"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["correct", "reconstruct", "vignetting", "compare"])
 def test_bare_npy_given_as_the_response(command, room, paper, v_npy, tmp_path):
     """-r V.npy ended in "TypeError: 'numpy.ndarray' object does not support the context manager protocol"."""
@@ -234,6 +247,7 @@ def test_bare_npy_given_as_the_response(command, room, paper, v_npy, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_bare_npy_under_a_model_name_given_as_the_vignetting(room, frames, models, tmp_path):
     """A V array saved as v.npz is read as a model file (by its suffix) and refused by name with the way out."""
     disguised = tmp_path / "v.npz"
@@ -246,6 +260,7 @@ def test_bare_npy_under_a_model_name_given_as_the_vignetting(room, frames, model
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_correct_takes_a_v_array_npy_as_reconstruct_does(frames, models, tmp_path):
     """correct --vignetting V.npy: the same images as the LUT model holding that V (reconstruct already read it)."""
     from radiometry.vignetting import VignettingModel
@@ -266,6 +281,7 @@ def test_correct_takes_a_v_array_npy_as_reconstruct_does(frames, models, tmp_pat
     assert corrected[:8, :8].astype(float).mean() > raw[:8, :8].astype(float).mean() + 5
 
 
+@pytest.mark.slow
 def test_sweep_whose_first_frame_has_another_size(paper, models, tmp_path):
     """The accumulator took the first frame's size: 29 good frames were skipped and the model rested on one."""
     sweep = tmp_path / "sweep"
@@ -278,6 +294,7 @@ def test_sweep_whose_first_frame_has_another_size(paper, models, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_sweep_with_one_odd_frame_later_is_used_with_a_warning(paper, tmp_path, caplog):
     sweep = tmp_path / "sweep"
     shutil.copytree(paper["rgb"], sweep)
@@ -290,6 +307,7 @@ def test_sweep_with_one_odd_frame_later_is_used_with_a_warning(paper, tmp_path, 
     assert out.exists()
 
 
+@pytest.mark.slow
 def test_vignetting_on_room_frames(room, tmp_path):
     """Ordinary room frames (no sheet) used to give a model: now each plain region is too little brighter than
     its surroundings or too textured, and the sweep is refused."""
@@ -330,6 +348,7 @@ def test_tum_lists_with_bom_crlf_latin1_names_disorder_and_duplicates(room, tmp_
     assert len(stamps) == 6 and stamps == sorted(stamps) and all(line.split(",")[2] == "1" for line in frames)
 
 
+@pytest.mark.slow
 def test_times_file_with_bom_crlf_and_latin1_name(tmp_path, caplog):
     """A bracket image_list.txt saved by a Windows tool: UTF-16 with a byte-order mark, CRLF, and an image whose
     name is not UTF-8; the response is fitted from all five brackets."""

@@ -11,6 +11,7 @@ import pytest
 from test_robustness import brackets, error_line, paper, room, run, snapshot  # noqa: F401 (fixtures)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, original", [("times.txt", "times.txt"), ("exposure_0.npz", "exposure_0.png"),
                                             ("times.crf", None)])
 @pytest.mark.parametrize("force", [[], ["--force"]], ids=["", "force"])
@@ -27,6 +28,7 @@ def test_response_never_writes_over_its_inputs(brackets, name, original, force):
     assert snapshot(brackets) == before
 
 
+@pytest.mark.slow
 def test_vignetting_never_writes_over_its_inputs(paper, tmp_path):  # noqa: F811
     sweep = tmp_path / "sweep"
     shutil.copytree(paper["rgb"], sweep)
@@ -43,6 +45,7 @@ def test_vignetting_never_writes_over_its_inputs(paper, tmp_path):  # noqa: F811
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["reconstruct", "self-calibrate"])
 def test_a_results_folder_is_never_its_sequence(room, tmp_path, command):  # noqa: F811
     seq = tmp_path / "seq"

@@ -32,6 +32,7 @@ def _frames(room, n):
     return [ds[i] for i in range(n)]
 
 
+@pytest.mark.slow
 def test_the_hash_map_never_grows_past_the_headroom(room, monkeypatch):
     """At 5 mm the room's first frame needs more blocks than the initial capacity: the growth is refused when the
     headroom cannot hold it, and allowed when it can (the same frame, the same grid)."""
@@ -62,6 +63,7 @@ def test_a_run_that_outgrows_the_memory_is_one_line(room, tmp_path, monkeypatch)
     assert json.loads((out / "metrics.json").read_text())["status"] != "complete"
 
 
+@pytest.mark.slow
 def test_an_address_space_limit_bounds_the_headroom():
     """``ulimit -v`` (RLIMIT_AS) is part of the bound: a child with a limit sees at most that limit."""
     code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, resource.RLIM_INFINITY)); "

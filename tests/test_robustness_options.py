@@ -41,6 +41,7 @@ def float_options() -> list[tuple[str, str]]:
     return found
 
 
+@pytest.mark.slow
 def test_every_float_option_is_a_checked_number():
     """Plain ``float`` / ``FloatRange`` options let nan through: every float option is a Number."""
     found = float_options()
@@ -76,6 +77,7 @@ def test_non_finite_values_are_one_line_and_write_nothing(places, tmp_path, comm
     assert snapshot(places["root"]) == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command, option, value, fragments", [
     ("response", "--gamma", "0.1", ["--gamma 0.1", "0.2..5"]),
     ("simulate", "--flicker", "0.5", ["--flicker 0.5", "0.5 excluded"]),
@@ -107,6 +109,7 @@ def test_a_replayed_config_with_infinity_names_the_key(places, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_batch_passes_the_same_check(places, tmp_path):
     listing = tmp_path / "list.txt"
     listing.write_text(f"{places['IN']}\n")

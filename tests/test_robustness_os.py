@@ -90,6 +90,7 @@ def _zombie() -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow
 def test_a_lock_held_by_a_zombie_is_stale(tmp_path, caplog):
     import socket
 
@@ -109,6 +110,7 @@ def test_a_lock_held_by_a_zombie_is_stale(tmp_path, caplog):
         proc.wait()
 
 
+@pytest.mark.slow
 def test_a_live_owner_still_holds_its_lock(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
     try:
@@ -174,6 +176,7 @@ def test_an_error_caused_by_ctrl_c_is_reported_as_the_interruption(tmp_path, sig
 # --------------------------------------------------------------------------------------------------
 # error lines cut what they quote
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_huge_token_of_a_broken_list_is_cut(brackets, tmp_path):  # noqa: F811
     lines = (brackets / "times.txt").read_text().splitlines()
     lines[-1] = lines[-1].split()[0] + " " + "9x" * 3_000_000           # a 6 MB "time"
@@ -182,6 +185,7 @@ def test_a_huge_token_of_a_broken_list_is_cut(brackets, tmp_path):  # noqa: F811
     assert len(line) < 2100
 
 
+@pytest.mark.slow
 def test_shorten_keeps_short_lines_and_cuts_long_tokens():
     assert shorten("a short line; fix it") == "a short line; fix it"
     cut = shorten("x: " + "y" * 10_000 + " fix")

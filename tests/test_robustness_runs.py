@@ -1,4 +1,4 @@
-"""Robustness catalogue, part 2 (README "Outputs that cannot be written", "Atomic writes and --force", "Tracking
+"""Robustness catalogue, part 2 (docs/robustness_catalogue.md: "Outputs that cannot be written", "Atomic writes and --force", "Tracking
 loss and interruption"): outputs that cannot be written, nothing good lost, Ctrl-C and lost tracking. Part 1
 (inputs and calibration files) and the shared helpers are in test_robustness.py."""
 
@@ -27,21 +27,25 @@ def a_file(tmp_path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_output_under_a_file_response(brackets, a_file):
     error_line(run("response", brackets, "-o", a_file / "crf.npz"), a_file, "is an existing file",
                "choose a folder name")
 
 
+@pytest.mark.slow
 def test_output_under_a_file_vignetting(paper, a_file):
     error_line(run("vignetting", paper["rgb"], "-r", paper["response"], "-o", a_file / "sub" / "v.npz"), a_file,
                "Not a directory", "choose another output folder")
 
 
+@pytest.mark.slow
 def test_output_under_a_file_correct(models, frames, a_file):
     error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", models["vignetting.npz"], "-o",
                    a_file / "out"), a_file / "out", "Not a directory", "choose another output folder")
 
 
+@pytest.mark.slow
 def test_output_under_a_file_reconstruct(room, a_file, tmp_path):
     seq = tum_copy(room, tmp_path / "seq")
     error_line(reconstruct(seq, a_file / "run"), a_file / "run", "Not a directory", "choose another output folder")
@@ -58,6 +62,7 @@ def _deny_writes_in(monkeypatch, folder: Path):
     monkeypatch.setattr(os, "access", fake)
 
 
+@pytest.mark.slow
 def test_output_folder_not_writable_response(brackets, tmp_path, monkeypatch):
     (tmp_path / "locked").mkdir()
     _deny_writes_in(monkeypatch, tmp_path / "locked")
@@ -65,6 +70,7 @@ def test_output_folder_not_writable_response(brackets, tmp_path, monkeypatch):
                "permission denied", "choose a writable output folder")
 
 
+@pytest.mark.slow
 def test_output_folder_not_writable_vignetting(paper, tmp_path, monkeypatch):
     (tmp_path / "locked").mkdir()
     _deny_writes_in(monkeypatch, tmp_path / "locked")
@@ -78,6 +84,7 @@ def test_output_folder_not_writable_vignetting(paper, tmp_path, monkeypatch):
                tmp_path / "locked", "permission denied", "choose a writable output folder")
 
 
+@pytest.mark.slow
 def test_output_folder_not_writable_reconstruct(room, tmp_path, monkeypatch):
     seq = tum_copy(room, tmp_path / "seq")
     (tmp_path / "locked").mkdir()
@@ -98,6 +105,7 @@ def _full_disk_for(monkeypatch, *names: str):
     monkeypatch.setattr(os, "replace", fake)
 
 
+@pytest.mark.slow
 def test_full_disk_response(brackets, tmp_path, monkeypatch):
     _full_disk_for(monkeypatch, "crf.npz")
     error_line(run("response", brackets, "-o", tmp_path / "crf.npz"), tmp_path / "crf.npz", "the disk is full",
@@ -106,6 +114,7 @@ def test_full_disk_response(brackets, tmp_path, monkeypatch):
     no_temporaries(tmp_path)
 
 
+@pytest.mark.slow
 def test_full_disk_correct(models, frames, tmp_path, monkeypatch):
     _full_disk_for(monkeypatch, "frame_1.png")
     error_line(run("correct", frames, "-r", models["response.npz"], "--vignetting", models["vignetting.npz"], "-o",
@@ -114,6 +123,7 @@ def test_full_disk_correct(models, frames, tmp_path, monkeypatch):
     no_temporaries(tmp_path / "out")
 
 
+@pytest.mark.slow
 def test_full_disk_reconstruct(room, tmp_path, monkeypatch):
     seq = tum_copy(room, tmp_path / "seq")
     _full_disk_for(monkeypatch, "metrics.json")
@@ -126,14 +136,16 @@ def test_full_disk_reconstruct(room, tmp_path, monkeypatch):
 # ==================================================================================================
 # 8. atomic writes and --force: nothing good is lost
 # ==================================================================================================
+@pytest.mark.slow
 def test_response_never_overwritten_without_force(brackets, tmp_path):
     out = tmp_path / "crf.npz"
-    assert run("response", brackets, "-o", out).exit_code == 0
+    assert run("response", brackets, "-o", out, "--quality", "fast").exit_code == 0
     before = snapshot(tmp_path)
     error_line(run("response", brackets, "-o", out, "--method", "robertson"), out, "exists", "pass --force")
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_vignetting_never_overwritten_without_force(paper, tmp_path):
     out = tmp_path / "v.vgn"
     assert run("vignetting", paper["rgb"], "-r", paper["response"], "-o", out, "--no-plots").exit_code == 0
@@ -143,6 +155,7 @@ def test_vignetting_never_overwritten_without_force(paper, tmp_path):
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_reconstruct_never_overwrites_a_previous_run_without_force(room, tmp_path):
     seq = tum_copy(room, tmp_path / "seq", indices=range(3))
     assert reconstruct(seq, tmp_path / "run").exit_code == 0
@@ -152,10 +165,11 @@ def test_reconstruct_never_overwrites_a_previous_run_without_force(room, tmp_pat
     assert snapshot(tmp_path / "run") == before
 
 
+@pytest.mark.slow
 def test_response_failing_half_way_keeps_the_old_model(brackets, tmp_path, monkeypatch):
     """--force, and the writer dies after writing half the archive: the old model stays byte-identical."""
     out = tmp_path / "crf.npz"
-    assert run("response", brackets, "-o", out).exit_code == 0
+    assert run("response", brackets, "-o", out, "--quality", "fast").exit_code == 0
     good = out.read_bytes()
     savez = np.savez_compressed
 
@@ -173,6 +187,7 @@ def test_response_failing_half_way_keeps_the_old_model(brackets, tmp_path, monke
     no_temporaries(tmp_path)
 
 
+@pytest.mark.slow
 def test_vignetting_failing_half_way_keeps_the_old_model(paper, tmp_path, monkeypatch):
     out = tmp_path / "v.vgn"
     assert run("vignetting", paper["rgb"], "-r", paper["response"], "-o", out, "--no-plots").exit_code == 0
@@ -184,6 +199,7 @@ def test_vignetting_failing_half_way_keeps_the_old_model(paper, tmp_path, monkey
     no_temporaries(tmp_path)
 
 
+@pytest.mark.slow
 def test_reconstruct_failing_half_way_never_mixes_two_runs(room, tmp_path, monkeypatch):
     """--force over a finished run; the mesh export dies half-way: one-line error, no half mesh, and nothing of the
     new run beside the previous one: the previous run stands byte for byte (issue 31: the new run is staged and
@@ -213,6 +229,7 @@ def test_reconstruct_failing_half_way_never_mixes_two_runs(room, tmp_path, monke
 # ==================================================================================================
 # 9. tracking loss and Ctrl-C during a reconstruction
 # ==================================================================================================
+@pytest.mark.slow
 def test_tracking_loss_in_the_middle(room, tmp_path):
     """Two garbage depth frames (all zero; shuffled) in an ICP run: both skipped and counted, the others
     fused, the trajectory still good, the map exported, exit 0 with a warning."""
@@ -240,6 +257,7 @@ def test_tracking_loss_in_the_middle(room, tmp_path):
     assert "beyond --depth-max" not in result.stderr
 
 
+@pytest.mark.slow
 def test_depth_cut_by_the_range_is_reported(room, tmp_path):
     """A scene deeper than --depth-max: the share of depth cut away goes into metrics.json, and above 20 % a
     warning names --depth-max (ICP on the rest may slide: this room tracked at 3 m drifts by decimetres)."""
@@ -254,6 +272,7 @@ def test_depth_cut_by_the_range_is_reported(room, tmp_path):
     assert f"warning: {100 * far:.0f} % of the valid depth lies beyond --depth-max 2.5 m" in result.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("poses, far", [("gt", 2), ("icp", 0)])
 def test_frame_with_only_far_depth_is_skipped(room, tmp_path, poses, far):
     """A frame whose depth lies entirely beyond --depth-max (a window, a far wall) has nothing to fuse: with
@@ -270,6 +289,7 @@ def test_frame_with_only_far_depth_is_skipped(room, tmp_path, poses, far):
     assert [f["index"] for f in metrics["frames"]["skipped_frames"]] == [far]
 
 
+@pytest.mark.slow
 def test_depth_max_on_a_truncation_step(room, tmp_path):
     """--depth-max a whole number of truncation bands (4 m, 2 cm voxels: 0.16 m bands) is an ordinary run (the
     TSDF's ray-cast reservation once cast a wall at exactly depth_max and Open3D aborted)."""
@@ -279,6 +299,7 @@ def test_depth_max_on_a_truncation_step(room, tmp_path):
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["frames"]["fused"] == 3
 
 
+@pytest.mark.slow
 def test_tracking_lost_for_good(room, tmp_path):
     """After 30 consecutive failures the run stops with a one-line error and the hint; marked failed."""
     seq = tum_copy(room, tmp_path / "seq", indices=[0] + [1] * 32)
@@ -291,6 +312,7 @@ def test_tracking_lost_for_good(room, tmp_path):
     assert json.loads((out / "metrics.json").read_text())["status"] == "failed"
 
 
+@pytest.mark.slow
 def test_ctrl_c_marks_the_results_incomplete(room, tmp_path):
     """SIGINT to 'radiomap reconstruct' while it fuses frames (paused after frame 3 of 14): exit 130, one line, no
     traceback; the folder keeps its RUNNING marker and metrics.json says 'interrupted' with the 3 frames done, whose

@@ -82,6 +82,7 @@ def previous(room, tmp_path_factory) -> tuple[Path, dict[str, bytes]]:
     return out, _results(out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["collect_observations", "self_calibrate", "commit"])
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
 def test_force_interrupted_at_any_stage_keeps_the_previous_result(room, previous, tmp_path, stage, sig):
@@ -117,6 +118,7 @@ def test_force_interrupted_at_any_stage_keeps_the_previous_result(room, previous
     assert (out / "vignetting.npz").read_bytes() != b""
 
 
+@pytest.mark.slow
 def test_a_failed_force_run_keeps_the_previous_result(room, previous, tmp_path):
     """A run that fails (too few frames with a pose) after --force keeps the previous set too."""
     import shutil
@@ -133,6 +135,7 @@ def test_a_failed_force_run_keeps_the_previous_result(room, previous, tmp_path):
     assert _results(out) == files
 
 
+@pytest.mark.slow
 def test_a_new_run_replaces_only_the_previous_runs_files(room, previous, tmp_path):
     """With --no-plots after a run with figures, the old figures go once the new set is in place; the user's
     notes stay."""

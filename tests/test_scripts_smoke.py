@@ -20,6 +20,7 @@ def load_script(name: str):
     return module
 
 
+@pytest.mark.slow
 def test_repeatability_script(tmp_path, capsys):
     script = load_script("repeatability")
     out = tmp_path / "rep"
@@ -45,6 +46,7 @@ def test_repeatability_script(tmp_path, capsys):
     assert not (out / "sessions").exists()  # the sweeps were temporary (no --keep)
 
 
+@pytest.mark.slow
 def test_repeatability_script_needs_two_sessions(tmp_path, capsys):
     script = load_script("repeatability")
     with pytest.raises(SystemExit) as info:

@@ -49,6 +49,7 @@ def solved():
     return obs, k, L, self_calibrate(obs, smoothness=0.01, centre=((W - 1) / 2, (H - 1) / 2), centre_sigma=1.0)
 
 
+@pytest.mark.slow
 def test_recovers_v_k_and_l_despite_outliers(solved):
     obs, k, L, res = solved
     ys, xs = np.mgrid[0:H, 0:W]
@@ -67,6 +68,7 @@ def test_recovers_v_k_and_l_despite_outliers(solved):
     assert abs(cx - 92) < 8 and abs(cy - 66) < 8
 
 
+@pytest.mark.slow
 def test_gauge(solved):
     obs, _, _, res = solved
     assert np.allclose(res.exposures[0], 1.0)
@@ -88,6 +90,7 @@ def _gauge_error(res) -> np.ndarray:
     return out
 
 
+@pytest.mark.slow
 def test_stderr_matches_the_spread_of_v_across_noise_seeds():
     """The same scene and camera, four noise draws: the stated standard error of V describes how far V lands from
     the truth. Measured (this scene, 2 % noise): 95-99 % of pixels within 2 standard errors, RMS error / RMS
@@ -106,6 +109,7 @@ def test_stderr_matches_the_spread_of_v_across_noise_seeds():
     assert 0.8 < np.mean(ratios) < 1.3, ratios      # counted twice (ratio 0.73) fails
 
 
+@pytest.mark.slow
 def test_thinly_covered_regions_get_a_larger_stderr():
     """Nine in ten sightings in the top-left ninth of the image dropped: V's standard error there grows against
     the opposite corner, which kept all of its sightings, and against the same corner with all of them (measured
@@ -122,6 +126,7 @@ def test_thinly_covered_regions_get_a_larger_stderr():
     assert np.median(se_thin[tl]) > 1.5 * np.median(se_full[tl])
 
 
+@pytest.mark.slow
 def test_huber_resists_outliers_that_plain_least_squares_does_not():
     obs, k, _ = synthetic(1, outliers=0.15)
     robust = self_calibrate(obs, smoothness=0.01, centre_sigma=1.0)
@@ -130,18 +135,21 @@ def test_huber_resists_outliers_that_plain_least_squares_does_not():
     assert err[0] < 0.004 and err[0] < 0.5 * err[1]
 
 
+@pytest.mark.slow
 def test_cannot_constrain_v_without_motion():
     obs, _, _ = synthetic(2, spread=False)
     with pytest.raises(SelfCalibrationError, match="cannot constrain vignetting.*pans and turns"):
         self_calibrate(obs)
 
 
+@pytest.mark.slow
 def test_too_few_frames():
     obs, _, _ = synthetic(3, frames=2, per_point=2)
     with pytest.raises(SelfCalibrationError, match="only 2 frame.*--frames"):
         check_constrained(obs)
 
 
+@pytest.mark.slow
 def test_observations_are_checked():
     with pytest.raises(ValueError, match="irradiance must be finite and > 0"):
         Observations(np.zeros(2, int), np.zeros(2, int), np.zeros(2), np.zeros(2), np.array([[1.0], [0.0]]),
@@ -162,6 +170,7 @@ def room(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_cli_on_a_small_simulated_room(room, tmp_path):
     from click.testing import CliRunner
 
@@ -198,6 +207,7 @@ def test_cli_on_a_small_simulated_room(room, tmp_path):
     assert again.exit_code == 1 and "already holds a self-calibration" in again.output
 
 
+@pytest.mark.slow
 def test_icp_poses_on_a_frame_range_that_does_not_start_at_zero(room):
     """ICP poses are placed by the frame's place in the selection, not its number in the sequence (a range
     starting at frame 6 raised IndexError): one pose per selected frame, the first the anchor's ground truth."""

@@ -215,6 +215,7 @@ def run(*args: str):
     return CliRunner().invoke(cli, ["simulate", *args], catch_exceptions=False)
 
 
+@pytest.mark.slow
 def test_cli_picture_end_to_end(tmp_path):
     pic = block_picture(tmp_path / "blocks.png")
     out = tmp_path / "seq"

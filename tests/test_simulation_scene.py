@@ -227,6 +227,7 @@ def test_projector_shadow_falls_left_of_foreground_objects():
 
 
 # ------------------------------------------------------------------------------------ trajectory
+@pytest.mark.slow
 def test_handheld_trajectory_is_smooth_inside_the_room(room):
     poses = room_trajectory(room, 300, seed=2)
     lo, hi = room.camera_bounds
@@ -339,6 +340,7 @@ def test_room_contents(room):
 
 
 # ------------------------------------------------------------------------------------ sequences
+@pytest.mark.slow
 def test_room_sequence_files_and_truth(tmp_path, room):
     W, H, n = 96, 72, 6
     out = simulate_room(tmp_path / "seq", seed=4, n_frames=n, width=W, height=H, room=room, progress=False,
@@ -382,6 +384,7 @@ def test_room_sequence_files_and_truth(tmp_path, room):
     np.testing.assert_array_equal(light[:, 1], 1.0)
 
 
+@pytest.mark.slow
 def test_sequences_are_deterministic_for_a_seed(tmp_path, room):
     def pngs(path):
         return [p.read_bytes() for p in sorted(path.glob("*/*.png"))]
@@ -421,6 +424,7 @@ def test_auto_exposure_follows_a_dimming_light_in_the_room(room):
     assert fixed[-1].rgb.mean() < fixed[0].rgb.mean() - 20
 
 
+@pytest.mark.slow
 def test_paper_sequence_files(tmp_path):
     out = simulate_paper(tmp_path / "paper", seed=2, n_frames=8, width=64, height=48, flicker=0.1, progress=False)
     manifest = json.loads((out / MANIFEST).read_text())
@@ -436,6 +440,7 @@ def test_paper_sequence_files(tmp_path):
     assert set(np.unique(mask)) <= {0, 255}
 
 
+@pytest.mark.slow
 def test_bracket_sequence_files(tmp_path):
     out = simulate_brackets(tmp_path / "br", seed=1, width=96, height=72, progress=False)
     lines = (out / "times.txt").read_text().splitlines()
@@ -453,6 +458,7 @@ def test_bracket_sequence_files(tmp_path):
     assert radiance.shape == (72, 96, 3) and radiance.max() / radiance.min() > 1000
 
 
+@pytest.mark.slow
 def test_sample_sequence_is_generated_once(tmp_path):
     path = sample_sequence("brackets", root=tmp_path)
     assert (path / "times.txt").is_file() and (path / "sample.json").is_file()
@@ -463,6 +469,7 @@ def test_sample_sequence_is_generated_once(tmp_path):
         sample_sequence("kitchen", root=tmp_path)
 
 
+@pytest.mark.slow
 def test_sequence_argument_errors(tmp_path):
     with pytest.raises(ValueError, match="n_frames must be a whole number >= 1"):
         simulate_room(tmp_path / "a", n_frames=0)

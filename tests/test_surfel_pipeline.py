@@ -15,6 +15,7 @@ from test_surfel import C_STABLE, _read_ply
 # --------------------------------------------------------------------------------------------------
 # through the pipeline: the paper's ordering on a simulated room, and real data
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_pipeline_histograms_are_ordered_as_in_the_paper_on_a_simulated_room(tmp_path):
     """A simulated room seen by a camera with strong vignetting (the Xtion preset: corners at ~0.5), fixed
     exposure, fused with ground-truth poses by the surfel backend through the pipeline: the colour
@@ -40,6 +41,7 @@ def test_pipeline_histograms_are_ordered_as_in_the_paper_on_a_simulated_room(tmp
     assert means["lut"] < 0.85 * min(means["none"], means["response"]), means
 
 
+@pytest.mark.slow
 def test_auto_exposure_room_none_worst_lut_best_and_lut_colours_match_the_truth(tmp_path):
     """Issue 7's first "must show" on a camera with auto exposure and white balance: the simulated room at
     ground-truth poses, fused by the surfel backend (mapping.compare) without correction, with the response,
@@ -86,6 +88,7 @@ def test_auto_exposure_room_none_worst_lut_best_and_lut_colours_match_the_truth(
     assert err["lut+ec"] < 0.7 * err["none"] and err["lut+ec"] < err["poly+ec"], err
 
 
+@pytest.mark.slow
 def test_seven_scenes_sample_end_to_end_with_icp_tracking(tmp_path):
     """The 7-Scenes sample through ``reconstruct``: ICP tracking against the surfel map's render, fusion,
     histogram and export."""
@@ -117,6 +120,7 @@ def test_seven_scenes_sample_end_to_end_with_icp_tracking(tmp_path):
 # --------------------------------------------------------------------------------------------------
 # the CLI: --surfel-mesh
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_surfel_mesh_writes_the_poisson_mesh_and_is_refused_with_tsdf(tmp_path):
     from click.testing import CliRunner
 
@@ -146,6 +150,7 @@ def test_cli_surfel_mesh_writes_the_poisson_mesh_and_is_refused_with_tsdf(tmp_pa
     assert not (tmp_path / "tsdf").exists()
 
 
+@pytest.mark.slow
 def test_make_backend_threads_the_surfel_mesh_option():
     from mapping.factory import make_backend
 

@@ -35,6 +35,7 @@ def box():
 # --------------------------------------------------------------------------------------------------
 # ICP
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_icp_recovers_the_motion_between_frames(box):
     ds, view = box
     f0, f1 = ds[0], ds[1]
@@ -50,6 +51,7 @@ def test_icp_recovers_the_motion_between_frames(box):
     assert inliers > 0.8 * np.count_nonzero(f1.depth > 0) and rmse < 0.005 and 3 <= iters <= 10
 
 
+@pytest.mark.slow
 def test_tracker_tracks_and_rejects(box):
     ds, view = box
     f0, f1 = ds[0], ds[1]
@@ -104,6 +106,7 @@ def _assert_rejected_without_state_change(tracker, frame, view, view_pose, reaso
     return result
 
 
+@pytest.mark.slow
 def test_tracker_rejects_a_large_inlier_rmse(box):
     # measured on this box: the frame-2 alignment has an inlier RMSE of ~2.2 mm, fitness ~0.93
     tracker, f2, view, view_pose = _tracked_once(box, max_rmse=0.001)
@@ -115,6 +118,7 @@ def test_tracker_rejects_a_large_inlier_rmse(box):
     assert ok_tracker.track(f2.depth, f2.K, view, view_pose).ok
 
 
+@pytest.mark.slow
 def test_tracker_rejects_an_implausible_rotation(box):
     # the box camera turns ~0.8 deg per frame and moves 2 cm (well within max_translation = 0.3 m)
     tracker, f2, view, view_pose = _tracked_once(box, max_rotation_deg=0.4)
@@ -129,6 +133,7 @@ def test_tracker_rejects_an_implausible_rotation(box):
     assert not again.ok and again.reason.startswith("implausible rotation 1.6 deg > 0.8 deg")
 
 
+@pytest.mark.slow
 def test_tracker_rejects_a_wrong_model(box):
     ds, view = box
     f0, f1 = ds[0], ds[1]

@@ -109,6 +109,7 @@ def _raw_view(scene, pose):
 MOTION = _pose(_rotation((0.3, 1, 0.1), 1.0), (0.015, -0.01, 0.01))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["icp", "hybrid", "coloured-icp"])
 def test_each_tracker_recovers_a_known_motion_in_a_textured_corner(name):
     scene = Planes(CORNER)
@@ -126,6 +127,7 @@ def test_each_tracker_recovers_a_known_motion_in_a_textured_corner(name):
     assert result.iterations > 0 and 0.5 < result.fitness <= 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["hybrid", "coloured-icp"])
 def test_colour_recovers_what_geometry_cannot_see(name):
     """On one textured wall a sideways motion leaves the depth unchanged: point-to-plane ICP has a singular
@@ -144,6 +146,7 @@ def test_colour_recovers_what_geometry_cannot_see(name):
     assert _error(results[name].pose, true)[0] < 0.005
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cls", [HybridTracker, ColouredICPTracker])
 def test_empty_or_missing_views_fail_cleanly(cls):
     scene = Planes(CORNER)
@@ -163,6 +166,7 @@ def test_empty_or_missing_views_fail_cleanly(cls):
         tracker.track(frame.depth, K, _raw_view(scene, np.eye(4)), np.eye(4))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["hybrid", "coloured-icp"])
 def test_a_textureless_view_tracks_on_geometry_or_fails_by_the_rules(name):
     """No texture at all: the intensity term is flat (no gradient); the trackers still align on depth in the
@@ -185,6 +189,7 @@ def test_a_textureless_view_tracks_on_geometry_or_fails_by_the_rules(name):
     np.testing.assert_array_equal(result.pose, np.eye(4))
 
 
+@pytest.mark.slow
 def test_exposure_is_estimated_before_tracking_against_the_map():
     """A frame 1.6x brighter (per channel gains) than the map: the estimate from the PREDICTED pose (2 cm, 1 deg
     off) is within 1 %, and the frame's intensity is then at the map's exposure."""
@@ -205,6 +210,7 @@ def test_exposure_is_estimated_before_tracking_against_the_map():
     assert estimate_exposure(colour.colour, colour.usable, depth, K, view, _pose(t=(5, 0, 0))) is None
 
 
+@pytest.mark.slow
 def test_tracking_colour_is_in_the_units_the_map_holds():
     from mapping.colour import IrradianceColour, RawIntensity
     from mapping.exposure_compensation import CompensatedColour
@@ -224,6 +230,7 @@ def test_tracking_colour_is_in_the_units_the_map_holds():
     assert not tracking_colour(CompensatedColour(IrradianceColour(response), compensate=False), rgb).estimate_exposure
 
 
+@pytest.mark.slow
 def test_a_wrong_tracker_name_lists_the_valid_ones():
     assert tuple(TRACKERS) == ("auto", "icp", "hybrid", "coloured-icp")
     with pytest.raises(ValueError, match="tracker must be one of auto, icp, hybrid, coloured-icp, got 'orb'"):
@@ -238,6 +245,7 @@ def tiny_room(tmp_path_factory):
                          progress=False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["hybrid", "coloured-icp"])
 def test_reconstruct_tracker_option_end_to_end(tiny_room, tmp_path, name):
     """``radiomap reconstruct --tracker NAME`` on raw levels and on irradiance with exposure compensation:
@@ -260,6 +268,7 @@ def test_reconstruct_tracker_option_end_to_end(tiny_room, tmp_path, name):
         assert f"tracker {name}" in res.output
 
 
+@pytest.mark.slow
 def test_compare_tracker_option_end_to_end(tiny_room, tmp_path):
     import json
 
@@ -278,6 +287,7 @@ def test_compare_tracker_option_end_to_end(tiny_room, tmp_path):
     assert json.loads((out / "compare.json").read_text())["pose_source"] == "hybrid tracking (tracked with 'none')"
 
 
+@pytest.mark.slow
 def test_a_wrong_tracker_option_lists_the_valid_ones(tiny_room, tmp_path):
     from click.testing import CliRunner
     from mapping.cli import cli
@@ -355,6 +365,7 @@ def test_the_condition_number_tells_a_corner_from_a_wall():
     assert icp_condition(q * 10, n) == pytest.approx(corner, rel=1e-6)   # metres or decimetres alike
 
 
+@pytest.mark.slow
 def test_the_auto_tracker_uses_colour_where_icp_is_singular():
     """One textured wall, a sideways motion: ICP's system is singular, the auto tracker takes coloured ICP's pose
     (within 5 mm of the truth) and counts it; with hybrid odometry as the fallback, the same."""
@@ -371,6 +382,7 @@ def test_the_auto_tracker_uses_colour_where_icp_is_singular():
     assert make_tracker("auto").fallback == "coloured-icp"
 
 
+@pytest.mark.slow
 def test_the_auto_tracker_keeps_icp_where_geometry_fixes_the_pose():
     scene = Planes(CORNER)
     frame = _frame(scene, MOTION)
@@ -385,6 +397,7 @@ def test_the_auto_tracker_keeps_icp_where_geometry_fixes_the_pose():
     assert _error(results[0].pose, MOTION)[0] < 0.004
 
 
+@pytest.mark.slow
 def test_the_auto_tracker_fails_by_the_rules_on_a_blank_wall():
     """Nothing fixes a sideways motion on a blank wall: both fail, the frame is rejected with both reasons."""
     wall = Planes(WALL, textured=False)

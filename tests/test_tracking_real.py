@@ -22,12 +22,14 @@ def run_default(dataset, tracker="auto"):
     return run, tracker
 
 
+@pytest.mark.slow
 def test_the_realsense_office_fuses_95_percent_with_the_default_tracking():
     ds = open_dataset(shared_path("rgbd", "realsense_office_d435"), intrinsics="615,615,320,240")
     run, tracker = run_default(ds)
     assert run.fused >= 0.95 * len(ds), (run.fused, run.skip_reasons(), tracker.stats())
 
 
+@pytest.mark.slow
 def test_the_kitchen_ate_is_not_worse_than_icp_alone():
     """Every third frame of the kitchen at 1 cm voxels: point-to-plane ICP measured 1.090-1.090 cm here (2 runs),
     the default 1.090 cm: it keeps ICP where its system is well-conditioned (the kitchen's condition numbers are

@@ -14,6 +14,7 @@ from mapping.pipeline import reconstruct
 pytestmark = pytest.mark.slow
 
 
+@pytest.mark.slow
 def test_the_lampshade_fuses_95_percent_with_the_default_tracking():
     ds = open_dataset(shared_path("rgbd", "realsense_lampshade"))
     tracker = make_tracker(depth_max=3.0)   # the default: auto

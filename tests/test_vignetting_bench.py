@@ -7,8 +7,10 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 
+@pytest.mark.slow
 def test_bench_vignetting_rows(capsys):
     path = Path(__file__).resolve().parents[1] / "scripts" / "bench_vignetting.py"
     spec = importlib.util.spec_from_file_location("radiomap_script_bench_vignetting", path)

@@ -60,6 +60,7 @@ def radial_drift_sweep(tmp_path_factory):
     return sweep
 
 
+@pytest.mark.slow
 def test_lut_is_within_one_level_and_beats_the_polynomials_on_a_non_radial_field(xtion_sweep):
     s = xtion_sweep
     assert s["acc"].frames_used >= 190
@@ -171,6 +172,7 @@ def test_detect_sheet_skips_unusable_frames(kwargs, status):
     assert det.status == status and det.mask is None and not det.ok
 
 
+@pytest.mark.slow
 def test_random_noise_is_not_a_sheet():
     """Frames of random noise (a broken stream, a lens cap at high gain) or texture are rejected as
     "textured", and a sweep of nothing else ends in a one-line error naming the file and the fix."""
@@ -192,6 +194,7 @@ def test_detect_sheet_arguments():
         detect_sheet(np.zeros((10, 10, 3), np.float32))
 
 
+@pytest.mark.slow
 def test_clipped_flat_field_is_rejected():
     path = shared_path("vignetting", "flatfield_clipped_usbcam", "white_background_500us.jpg")
     frame = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
@@ -204,6 +207,7 @@ def test_clipped_flat_field_is_rejected():
         collect_vignetting(path.parent, CameraResponse.gamma(), progress=False)
 
 
+@pytest.mark.slow
 def test_no_sheet_in_any_frame_is_a_clear_error():
     frames = [np.full((H, W, 3), 3, np.uint8)] * 3
     with pytest.raises(CalibrationError, match="no white sheet found in any of the 3 frames.*evenly lit white sheet"):
@@ -304,6 +308,7 @@ def test_lut_fills_unobserved_pixels_from_the_polynomial():
     assert np.all(vignetting_error_levels(lut, v, response) < 0.3)
 
 
+@pytest.mark.slow
 def test_polynomial_fit_on_exact_data():
     truth = PolynomialVignetting([[-0.5, 0.1, -0.05], [-0.4, 0.05, 0.0], [-0.6, 0.15, -0.05]],
                                  [[84.0, 61.0], [79.5, 59.5], [90.0, 66.0]], (W, H))
@@ -317,6 +322,7 @@ def test_polynomial_fit_on_exact_data():
     assert fixed.info["method"] == "poly-fixed-center"
 
 
+@pytest.mark.slow
 def test_fit_dispatcher_lists_valid_names():
     acc = _synthetic_accumulation(_radial_v())
     with pytest.raises(ValueError, match="model must be one of lut, poly, poly-fixed-center, got 'spline'"):
@@ -334,6 +340,7 @@ def test_error_measure():
     assert np.all((err > 0.6) & (err < 1.5))
 
 
+@pytest.mark.slow
 def test_flat_rms_and_repeatability_on_synthetic_sessions():
     truth = _radial_v(centre=(88.0, 64.0)) * (1 + 0.02 * np.cos(np.linspace(0, 3, W)))[None, :, None]
     sessions = [_synthetic_accumulation(truth, noise=0.02, seed=i) for i in range(3)]
@@ -355,6 +362,7 @@ def _sheet_frames(n=6):
     return [_frame(rect=(10 + 8 * i, 10, 100 + 8 * i, 100), seed=i)[0] for i in range(n)]
 
 
+@pytest.mark.slow
 def test_frame_sources_folder_video_image(tmp_path):
     frames = _sheet_frames(4)
     folder = tmp_path / "frames"
@@ -401,6 +409,7 @@ def test_frame_source_arguments(tmp_path):
         open_frames(3.5)
 
 
+@pytest.mark.slow
 def test_collection_stops_when_covered_and_reports_coverage(tmp_path):
     full = [_frame(rect=(0, 0, W, H), seed=i)[0] for i in range(12)]
     acc = collect_vignetting(full, CameraResponse.gamma(), min_samples=5, stop_when_covered=True, progress=False)
@@ -420,6 +429,7 @@ def test_collection_stops_when_covered_and_reports_coverage(tmp_path):
         collect_vignetting(full, CameraResponse.gamma(), stop_when_covered=True)
 
 
+@pytest.mark.slow
 def test_accumulation_round_trip(tmp_path):
     acc = collect_vignetting(_sheet_frames(5), CameraResponse.gamma(), progress=False)
     back = VignettingAccumulation.load(acc.save(tmp_path / "acc.npz"))
@@ -512,6 +522,7 @@ def test_camera_frames_convert_bgra_and_keep_grayscale(fake_camera):
     assert grey.shape == (H, W) and np.all(grey == 77)
 
 
+@pytest.mark.slow
 def test_camera_that_cannot_be_opened_is_a_one_line_error(fake_camera):
     opened = fake_camera([], opened_ok=False)
     with pytest.raises(ImageError) as info:
@@ -527,6 +538,7 @@ def test_camera_that_cannot_be_opened_is_a_one_line_error(fake_camera):
         collect_vignetting("7", CameraResponse.gamma(), progress=False)
 
 
+@pytest.mark.slow
 def test_collect_vignetting_from_a_camera_matches_the_same_frames_in_memory(fake_camera):
     """Warm-up frames (noise here) are dropped, max_frames bounds the read, and the accumulated colours
     are RGB: the sheet is tinted, so swapped channels would change the sums."""
@@ -549,6 +561,7 @@ def test_collect_vignetting_from_a_camera_matches_the_same_frames_in_memory(fake
 # ==================================================================================================
 # mixed sequences: a lost sheet, a distractor at the image centre
 # ==================================================================================================
+@pytest.mark.slow
 def test_a_lost_sheet_is_skipped_counted_and_not_fused():
     sheets = _sheet_frames(3)
     dark, _ = _frame(level=5.0, background=2.0, seed=9)  # lens covered / the sheet left the view
@@ -562,6 +575,7 @@ def test_a_lost_sheet_is_skipped_counted_and_not_fused():
     assert mixed.count.max() == 3
 
 
+@pytest.mark.slow
 def test_the_seed_follows_the_sheet_not_a_bright_patch_at_the_image_centre():
     """The sheet sits left of the centre; from the second frame on a bright patch covers the image centre.
     The fill is seeded at the previous frame's sheet centre, so the patch is never accumulated."""

@@ -35,6 +35,7 @@ def sweep():
     return {"truth": truth, "table": table, "acc": acc, "model": model, "response": response}
 
 
+@pytest.mark.slow
 def test_the_standard_error_matches_the_actual_error(sweep):
     model, truth = sweep["model"], sweep["truth"]
     se = model.stderr
@@ -47,6 +48,7 @@ def test_the_standard_error_matches_the_actual_error(sweep):
     assert np.mean(np.abs(z) < 3.0) > 0.97
 
 
+@pytest.mark.slow
 def test_the_standard_error_grows_where_samples_are_few(sweep):
     se, count = sweep["model"].stderr, sweep["acc"].count
     thin = se[count < np.percentile(count, 10)]
@@ -81,6 +83,7 @@ def test_relative_sample_variance_of_known_samples():
     assert rel[0, 0, 1] == pytest.approx(1e-4)  # one sample: no variance of its own, nothing else in the channel
 
 
+@pytest.mark.slow
 def test_stderr_round_trips_through_the_model_file(sweep, tmp_path):
     model = sweep["model"]
     path = model.save(tmp_path / "v.npz")
@@ -94,6 +97,7 @@ def test_stderr_round_trips_through_the_model_file(sweep, tmp_path):
     assert set(budget) >= {"noise", "coverage", "normalisation", "response", "total", "level"}
 
 
+@pytest.mark.slow
 def test_an_old_model_file_without_stderr_still_loads(sweep, tmp_path):
     old = LUTVignetting(sweep["model"].lut, info={"method": "lut"})
     back = VignettingModel.load(old.save(tmp_path / "old.npz"))
@@ -113,6 +117,7 @@ def test_a_bad_stderr_is_refused(bad, match):
         LUTVignetting(np.ones((4, 5, 3)), stderr=np.zeros((4, 5, 1)))
 
 
+@pytest.mark.slow
 def test_the_budget_adds_up_and_matches_the_measured_error(sweep):
     model, truth = sweep["model"], sweep["truth"]
     budget = model.info["error_budget"]
@@ -125,6 +130,7 @@ def test_the_budget_adds_up_and_matches_the_measured_error(sweep):
     assert np.all(np.array(budget["response"]) < 0.2 * total)
 
 
+@pytest.mark.slow
 def test_a_rough_response_shows_in_the_budget(sweep):
     rng = np.random.default_rng(3)
     table = sweep["table"] * np.exp(rng.normal(0, 0.004, 256))
@@ -139,6 +145,7 @@ def test_a_rough_response_shows_in_the_budget(sweep):
                   > 3 * np.array(sweep["model"].info["error_budget"]["response"]))
 
 
+@pytest.mark.slow
 def test_correction_reports_the_relative_stderr_on_request(sweep):
     model, response = sweep["model"], sweep["response"]
     se = corrected_relative_stderr(model, H, W)
@@ -179,6 +186,7 @@ def test_centre_normalisation_is_not_biased_by_noise():
     assert np.mean(maxima) > 0.002 and np.mean(maxima) > 5 * abs(np.mean(errors))  # the maximum is biased upwards
 
 
+@pytest.mark.slow
 def test_kinked_response_sweep_stays_within_a_quarter_level_with_the_true_response():
     """4x steeper above level 180, at 160x120: below the knee the asymmetric field's steep corners are 4x steeper in
     levels than the sheet's centre; sheet detection compares slopes of ln f^-1 (the response passed in by
@@ -194,6 +202,7 @@ def test_kinked_response_sweep_stays_within_a_quarter_level_with_the_true_respon
         assert np.all(flat_rms_vs_truth(model.evaluate(), truth, table) < 0.25)
 
 
+@pytest.mark.slow
 def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumulation(sweep, tmp_path):
     """se(f^-1) = 0.5 % at every level: dlnV = sqrt(2) 0.5 % at every pixel, so the response part is
     sqrt(2) 0.005 times the RMS of dI/dlnV = z / 2.2 (gamma 2.2) of the flat field at 200."""
@@ -215,6 +224,7 @@ def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumula
     assert sweep["model"].info["error_budget"]["response_source"] == "roughness"
 
 
+@pytest.mark.slow
 def test_a_fitted_response_carries_its_stderr_into_the_budget():
     """A response calibrated by Debevec from brackets (its own renderer) carries ``inverse_stderr``; the sweep's
     budget propagates it (and says so) instead of the roughness lower bound."""

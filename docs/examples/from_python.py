@@ -1,4 +1,4 @@
-"""Calibrate a camera, correct an image and reconstruct a room, from Python (README, "From Python").
+"""Calibrate a camera, correct an image and reconstruct a room, from Python (docs/guides/python_api.md).
 
 Runs on radiomap's simulated sample recordings of one camera (bracketed exposures, a white-paper sweep and
 a room walk), made on first use and cached: python docs/examples/from_python.py [OUTPUT_FOLDER]

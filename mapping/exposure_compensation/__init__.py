@@ -72,8 +72,8 @@ The map stores ``f^-1(I) / V / k`` in first-frame units. Display levels are ``f(
   median of the sequence's accepted estimates, i.e. the map looks like a typical frame of the sequence),
   ``"first"`` (the first frame's exposure), a number or three numbers relative to the first frame.
 
-README-ready text
------------------
+User-facing summary
+-------------------
 ``radiomap reconstruct SEQ --response crf.npz [--vignetting v.npz] --exposure-compensation`` estimates
 every frame's exposure and white balance against the map and fuses exposure-normalised irradiance. It is
 ON by default whenever a response is given (irradiance fusion; a camera without auto exposure simply
