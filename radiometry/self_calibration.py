@@ -350,12 +350,16 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
     visibility = tilt_visibility(obs.x, obs.y, np.ones(len(point)), point, frame, obs.resolution, n_points,
                                  n_frames, fixed0)
     tilt_open = np.array(visibility.open)     # known exposures pin the tilt (their frames are held)
+    from radiometry.self_calibration_checks import FREE_VISIBILITY
+
+    tilt_free = np.array(visibility.visibility) >= FREE_VISIBILITY
     grid_how = "auto" if isinstance(grid, str) else "given"
     if isinstance(grid, str):
         if grid != "auto":
             raise ValueError(f"grid must be 'auto' or (columns, rows), got {grid!r}")
-        # a tilt the data leave open leaves every slow trend along that axis nearly open too: the coarse grid
-        grid = DEFAULT_GRID if tilt_open.any() else choose_grid(obs)
+        # where the data pin a tilt only weakly, every slow trend along that axis is nearly open too (a horizontal
+        # pan never moves points up or down): the coarse grid; a finer one only where both axes are well seen
+        grid = choose_grid(obs) if tilt_free.all() else DEFAULT_GRID
     logs = np.log(np.asarray(obs.irradiance, dtype=np.float64))
     all_bins, bx, by, bin_shape = _bins(obs)
     coverage = np.bincount(all_bins, minlength=bx.size).reshape(bin_shape)
@@ -363,9 +367,6 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
     bin_of, bx, by = _occupied(all_bins, bx, by)
     n_bins = bx.size
     model = _LogV(bx, by, obs.resolution, grid)
-    from radiometry.self_calibration_checks import FREE_VISIBILITY
-
-    tilt_free = np.array(visibility.visibility) >= FREE_VISIBILITY
     penalty = _grid_penalty(model.nodes, np.where(tilt_free, TILT_WEIGHT_VISIBLE, TILT_WEIGHT))
     per_cell = len(point) / float(grid[0] * grid[1])
     lam = smoothness * per_cell

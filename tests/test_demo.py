@@ -188,7 +188,8 @@ def test_self_calibration_step_on_a_room_it_can_constrain(tmp_path):
     assert isinstance(model, LUTVignetting) and model.stderr is not None
     err = np.array(record["vignetting_error_levels"])
     assert err.shape == (3,) and np.all(err < 1.5), err
-    assert record["exposure_error_median_percent"] < 2.0
+    # 2.0 % since issue 29 (V fitted on 24 of the 30 frames, every 5th withheld to validate it; 1.4 % before)
+    assert record["exposure_error_median_percent"] < 2.5
     assert 0 < record["stderr_median_percent"] < 5 and record["frames"] == 30 and timings["self_calibration"] > 0
     assert (tmp_path / "calib" / "self" / "vignetting.npz").is_file() and "self-calibration: V" in lines[0]
 

@@ -81,6 +81,7 @@ def _gauge_error(res, c=0, signed=False):
     return (err if signed else np.abs(err)), res.vignetting.stderr[:, :, c]
 
 
+@pytest.mark.slow
 def test_on_a_pan_the_ambiguity_is_stated_and_the_stderr_covers_the_truth(pan_fits):
     obs, k, blind, _ = pan_fits
     assert blind.info["tilt_open"] == [True, True]
@@ -90,6 +91,7 @@ def test_on_a_pan_the_ambiguity_is_stated_and_the_stderr_covers_the_truth(pan_fi
     assert np.mean(err <= 2 * se) >= 0.8, (np.mean(err <= 2 * se), np.median(err), np.median(se))
 
 
+@pytest.mark.slow
 def test_known_exposures_pin_the_tilt_on_the_same_pan(pan_fits):
     obs, k, blind, known = pan_fits
     # known exposures pin the left-right tilt; points of a pan never move up or down: that tilt stays open
@@ -105,6 +107,7 @@ def test_known_exposures_pin_the_tilt_on_the_same_pan(pan_fits):
     np.testing.assert_allclose(known.exposures, k, rtol=1e-9)     # given, not fitted (scaled to frame 0)
 
 
+@pytest.mark.slow
 def test_partly_known_exposures_fit_only_the_rest(pan_fits):
     obs, k, _, _ = pan_fits
     part = k.copy()
@@ -132,6 +135,7 @@ def _linear_tables():
     return np.repeat(np.linspace(0, 1, 256)[:, None], 3, axis=1)
 
 
+@pytest.mark.slow
 def test_validation_prefers_the_true_v_and_rejects_a_wrong_one():
     from dataclasses import replace
 
@@ -271,6 +275,7 @@ def room(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_cli_with_known_exposures_validation_and_checks(room, tmp_path):
     import json
 
@@ -302,6 +307,7 @@ def test_cli_with_known_exposures_validation_and_checks(room, tmp_path):
     np.testing.assert_allclose(got["k"], k[got["index"]] / k[0], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_strict_refuses_a_v_that_does_not_help_and_writes_nothing(room, tmp_path, monkeypatch):
     from click.testing import CliRunner
 
@@ -320,6 +326,7 @@ def test_strict_refuses_a_v_that_does_not_help_and_writes_nothing(room, tmp_path
     assert (out / "vignetting.npz").is_file()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("option, message", [
     (["--holdout", "every:1"], "--holdout"),
     (["--exposures", "missing.txt"], "no such exposure file"),
@@ -347,6 +354,7 @@ def _known_file(room, path, rows=None):
     return k
 
 
+@pytest.mark.slow
 def test_reconstruct_uses_given_exposures_instead_of_estimates(room, tmp_path):
     from click.testing import CliRunner
 
@@ -364,6 +372,7 @@ def test_reconstruct_uses_given_exposures_instead_of_estimates(room, tmp_path):
     np.testing.assert_allclose(got["k"], k[:8] / k[0], rtol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra, message", [
     ([], "--exposures"),                                     # no response: nothing to compensate
     (["-r", "RESPONSE", "--frames", "0:12"], "2 of 12 frames have no exposure"),
@@ -382,6 +391,7 @@ def test_reconstruct_refuses_given_exposures_it_cannot_use(room, tmp_path, extra
     assert not (out / "mesh.ply").exists()
 
 
+@pytest.mark.slow
 def test_compare_ec_methods_take_given_exposures(room, tmp_path):
     from click.testing import CliRunner
 
