@@ -116,11 +116,11 @@ DPI = 100
 
 
 def _save(fig, path, *, layout: bool = True) -> None:
-    from mapping.report import _save_figure
+    from mapping.figure_files import save_figure
 
     if layout:
         fig.tight_layout()
-    _save_figure(fig, path, dpi=DPI)
+    save_figure(fig, path, dpi=DPI)
 
 
 def plot_exposures(axes, exposures: Mapping[str, Mapping[str, np.ndarray]], *,
