@@ -83,7 +83,7 @@ def test_open3d_after_mapping_and_the_notebook_fix():
 
 # ------------------------------------------------------------------------------------------------ radiometry
 def test_calibrate_response_folder_and_arrays_match_the_command_path():
-    from radiometry.response_fit import fit_response, load_brackets
+    from radiometry.response.fit import fit_response, load_brackets
 
     response = radiometry.calibrate_response(BRACKETS, progress=False)
     images, times, _ = load_brackets(BRACKETS, progress=False)

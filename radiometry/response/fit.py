@@ -15,13 +15,13 @@ Methods (one function each, plus the :func:`fit_response` dispatcher):
   Noise biases any such fit towards the radiances that fill many pixels (errors in the regressor);
   averaging several frames per exposure, as radical does, reduces it.
   ``lam="auto"`` chooses the smoothness weight by cross-validation on held-out pixels
-  (:mod:`radiometry.response_lambda`).
-- ``"engel"`` (:func:`radiometry.response_engel.fit_response_engel`): maximum likelihood over all
+  (:mod:`radiometry.response.smoothness`).
+- ``"engel"`` (:func:`radiometry.response.engel.fit_response_engel`): maximum likelihood over all
   (subsampled) pixels without a smoothness prior, alternating closed-form updates of irradiance and response
   as TUM's ``mono_dataset_code`` and radical do. It keeps a knee, but needs exposure ratios that are not all
   equal: with brackets at exactly 2x steps ``f^-1`` is determined only up to a factor periodic in ``ln E``
   (period ``ln 2``) that nothing but noise and quantisation constrain.
-- ``"loglog"`` (:func:`radiometry.response_loglog.fit_response_loglog`): Debevec's data term over all (subsampled)
+- ``"loglog"`` (:func:`radiometry.response.loglog.fit_response_loglog`): Debevec's data term over all (subsampled)
   pixels with a prior on the log-log curvature of ``f^-1`` (zero for every gamma curve), which picks the member of
   the equal-ratio ambiguity closest to real curves and keeps knees. The default (``"auto"``): the most accurate
   over the test set of curves, equal ratios or not (figures in :func:`fit_response_auto`).
@@ -48,7 +48,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationError, DatasetError
 from radiometry.registry import Registry
-from radiometry.response import LEVELS, CameraResponse
+from radiometry.response.model import LEVELS, CameraResponse
 
 log = logging.getLogger(__name__)
 
@@ -252,7 +252,7 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
 
     n_img, n_pix = values.shape
     inside = (values >= levels[0]) & (values <= levels[1])
-    if stalled is not None:  # saturated pixels below the level cut (radiometry.response_levels)
+    if stalled is not None:  # saturated pixels below the level cut (radiometry.response.levels)
         inside &= ~stalled
     w_obs = np.where(inside, HAT_WEIGHTS[values], 0.0)
     seen = (w_obs > 0).any(axis=0)
@@ -352,14 +352,14 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     """Debevec & Malik on a sparse least-squares solve (see the module docstring).
 
     ``lam``: smoothness weight per level of data (> 0), or ``"auto"``: chosen by cross-validation on held-out
-    pixels among :data:`radiometry.response_lambda.LAMBDA_GRID` (``meta["lambda_scores"]`` records every
+    pixels among :data:`radiometry.response.smoothness.LAMBDA_GRID` (``meta["lambda_scores"]`` records every
     candidate's held-out error). ``samples``: target number of observations per
     intensity level. ``mask``: boolean ``(H, W)``, True = usable pixel (see :func:`blue_fill_mask`).
     ``levels``: the valid intensity range (inclusive, like radical's ``--valid-min/--valid-max``):
     observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
     still estimated (extrapolated) there; ``"auto"`` (default): per channel from the data, with the saturated
     observations below the cut left out too, and ``edges`` drops the pixels near strong edges
-    (:mod:`radiometry.response_levels`, as :func:`radiometry.response_loglog.fit_response_loglog`). ``seed``:
+    (:mod:`radiometry.response.levels`, as :func:`radiometry.response.loglog.fit_response_loglog`). ``seed``:
     sampling order. The result is repaired to strictly increasing only if the solve is not (``meta["repaired"]``,
     ``meta["repaired_levels"]``). ``meta``
     also records the sampled pixels and observations per channel, the levels never observed, those outside the
@@ -374,7 +374,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                          f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
-    from radiometry.response_levels import _pile, prepare, stalled_observations
+    from radiometry.response.levels import _pile, prepare, stalled_observations
 
     if not isinstance(levels, str):
         levels = _check_levels(levels)
@@ -400,7 +400,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         stalls.append(stalled_observations(values[:, idx], t, _pile(level_meta, c)) if levels == "auto" else None)
     scores = None
     if auto:
-        from radiometry.response_lambda import cross_validate_lambda
+        from radiometry.response.smoothness import cross_validate_lambda
 
         lam, scores = cross_validate_lambda(sampled, log_t, (max(lv[0] for lv in channel_levels),
                                                              min(lv[1] for lv in channel_levels)), seed=seed)
@@ -466,13 +466,13 @@ def _finish(g: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
 # dispatcher
 # --------------------------------------------------------------------------------------------------
 def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kwargs: Any) -> CameraResponse:
-    """The log-log fit (:func:`radiometry.response_loglog.fit_response_loglog`), the most accurate over the test set
+    """The log-log fit (:func:`radiometry.response.loglog.fit_response_loglog`), the most accurate over the test set
     of curves (``scripts/bench_calibration.py``, 640x480, max ``|f^-1 - truth|`` over levels 5..250, worst channel:
     at most 0.82 % of the range with exactly 2x brackets and 0.73 % with varied ratios, against Debevec's 1.59 % /
     1.67 % and Engel's 6.15 % / 0.82 %); Debevec & Malik when Debevec's own options are given (``samples``, or
     ``lam="auto"``: its cross-validation). A numeric ``lam`` is refused: it means the smoothness for Debevec
     (default 10) and the prior's weight for loglog (0.1), so name the method. ``meta["chosen_by"]`` says why."""
-    from radiometry.response_engel import equal_ratios
+    from radiometry.response.engel import equal_ratios
 
     kwargs = {k: v for k, v in kwargs.items() if not (k in ("lam", "samples") and v is None)}
     ratio = equal_ratios(np.asarray(times, dtype=np.float64))
@@ -495,10 +495,10 @@ def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kw
 FITTERS = Registry("method", {
     "auto": fit_response_auto,
     "debevec": fit_response_debevec,
-    "engel": "radiometry.response_engel:fit_response_engel",
-    "loglog": "radiometry.response_loglog:fit_response_loglog",
-    "opencv-debevec": "radiometry.response_opencv:fit_response_opencv_debevec",
-    "robertson": "radiometry.response_opencv:fit_response_robertson",
+    "engel": "radiometry.response.engel:fit_response_engel",
+    "loglog": "radiometry.response.loglog:fit_response_loglog",
+    "opencv-debevec": "radiometry.response.opencv:fit_response_opencv_debevec",
+    "robertson": "radiometry.response.opencv:fit_response_robertson",
 })
 #: the method names, in the order the CLI lists them
 METHODS = FITTERS.names()
@@ -516,7 +516,7 @@ def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method
 # --------------------------------------------------------------------------------------------------
 def _declared_weights(response: CameraResponse, channels: int) -> np.ndarray:
     """Hat weight per level and channel ``(256, C)``, 0 outside the response's declared levels (else 1..254)."""
-    from radiometry.response_quality import declared
+    from radiometry.response.quality import declared
 
     out = np.zeros((LEVELS, channels))
     for c, (lo, hi) in enumerate(declared(response, channels) if response.meta.get("declared_levels")

@@ -1,0 +1,28 @@
+"""The camera response ``f^-1``: its model, and its calibration from bracketed exposures.
+
+:class:`CameraResponse` (:mod:`~radiometry.response.model`) holds ``f^-1`` as 256 values per channel; the names of
+the model module are importable from here as they were when it was ``radiometry/response.py``
+(``from radiometry.response import CameraResponse``). :func:`fit_response` fits one from brackets.
+
+Modules, one job each: :mod:`~radiometry.response.model` (the model), :mod:`~radiometry.response.fit`
+(Debevec & Malik, the ``method=`` dispatcher, merging, reading brackets), :mod:`~radiometry.response.engel`,
+:mod:`~radiometry.response.loglog`, :mod:`~radiometry.response.opencv` (the other methods),
+:mod:`~radiometry.response.smoothness` (Debevec's smoothness by cross-validation), :mod:`~radiometry.response.levels`
+(which levels carry the response), :mod:`~radiometry.response.quality` (the truth-free quality figure).
+"""
+
+from radiometry.response.model import (KIND, LEVELS, CameraResponse, relative_stderr, repair_monotone,
+                                       srgb_to_linear, validate_inverse_table)
+
+__all__ = ["KIND", "LEVELS", "CameraResponse", "relative_stderr", "repair_monotone", "srgb_to_linear",
+           "validate_inverse_table", "fit_response", "METHODS", "load_brackets"]
+
+
+def __getattr__(name: str):
+    """``fit_response``, ``METHODS`` and ``load_brackets`` from :mod:`~radiometry.response.fit`, loaded when first
+    used (``import radiometry`` stays light: the model is all it needs)."""
+    if name in ("fit_response", "METHODS", "load_brackets"):
+        from radiometry.response import fit
+
+        return getattr(fit, name)
+    raise AttributeError(f"module 'radiometry.response' has no attribute {name!r}")
