@@ -4,11 +4,21 @@
 the model module are importable from here as they were when it was ``radiometry/response.py``
 (``from radiometry.response import CameraResponse``). :func:`fit_response` fits one from brackets.
 
-Modules, one job each: :mod:`~radiometry.response.model` (the model), :mod:`~radiometry.response.fit`
-(Debevec & Malik, the ``method=`` dispatcher, merging, reading brackets), :mod:`~radiometry.response.engel`,
-:mod:`~radiometry.response.loglog`, :mod:`~radiometry.response.opencv` (the other methods),
-:mod:`~radiometry.response.smoothness` (Debevec's smoothness by cross-validation), :mod:`~radiometry.response.levels`
-(which levels carry the response), :mod:`~radiometry.response.quality` (the truth-free quality figure).
+Modules, one job each, in the order they build on each other (none imports a later one, and none imports this
+package's ``__init__``; ``tests/test_architecture.py`` fails on an import cycle):
+
+- :mod:`~radiometry.response.model`: the model (``CameraResponse``, ``LEVELS``, table checks and repair).
+- :mod:`~radiometry.response.inputs`: the checks of a bracketed stack that every method shares (images, times,
+  brightness order, levels, mask) and :func:`~radiometry.response.inputs.equal_ratios`.
+- :mod:`~radiometry.response.levels`: which levels carry the response (ceiling, floor, saturation, JPEG edges),
+  and the levels a fitted response declares.
+- :mod:`~radiometry.response.debevec`: Debevec & Malik's sparse solve of one channel, its samples and hat weights.
+- :mod:`~radiometry.response.smoothness`: Debevec's smoothness weight by cross-validation.
+- :mod:`~radiometry.response.engel`, :mod:`~radiometry.response.loglog`, :mod:`~radiometry.response.opencv`:
+  the other methods.
+- :mod:`~radiometry.response.fit`: ``fit_response_debevec``, the ``method=`` dispatcher, merging and checking a
+  response against the images, reading brackets and their times file.
+- :mod:`~radiometry.response.quality`: the truth-free quality figure (held-out prediction, split halves).
 """
 
 from radiometry.response.model import (KIND, LEVELS, CameraResponse, relative_stderr, repair_monotone,

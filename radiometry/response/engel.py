@@ -69,7 +69,7 @@ import numpy as np
 
 from radiometry.errors import CalibrationError
 from radiometry.response.model import LEVELS, CameraResponse, repair_monotone
-from radiometry.response.fit import _as_stack, _check_brightness_order, _check_levels, _check_mask
+from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask, equal_ratios
 
 log = logging.getLogger(__name__)
 
@@ -101,22 +101,6 @@ def isotonic_increasing(values: np.ndarray, weights: np.ndarray) -> tuple[np.nda
         if last > first:
             pooled.append(list(range(first, last + 1)))
     return out, pooled
-
-
-def equal_ratios(times: np.ndarray, *, tolerance: float = 0.02) -> float | None:
-    """The common ratio of consecutive distinct exposure times if they are all equal within ``tolerance``
-    (relative), else None."""
-    distinct = np.unique(np.asarray(times, dtype=np.float64))
-    if distinct.size < 2:
-        return None
-    with np.errstate(invalid="ignore", divide="ignore"):  # bad times (<= 0, NaN): the fitter refuses them by name
-        ratios = distinct[1:] / distinct[:-1]
-        if distinct.size == 2:
-            return float(ratios[0])
-        spread = np.abs(np.log(ratios / ratios.mean()))
-    if np.all(spread <= tolerance):
-        return float(ratios.mean())
-    return None
 
 
 def _observations(values: np.ndarray, t: np.ndarray, levels: tuple[int, int], pixels: int | None,

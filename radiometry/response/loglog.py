@@ -56,7 +56,7 @@ from radiometry.errors import CalibrationError
 from radiometry.response.model import LEVELS, CameraResponse, repair_monotone
 from radiometry.response.engel import (DEFAULT_PIXELS, MIN_STEP, _complete, _observations, equal_ratios,
                                        loglog_curvature_rows)
-from radiometry.response.fit import _as_stack, _check_brightness_order, _check_levels, _check_mask
+from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,8 @@ import numpy as np
 
 from radiometry.errors import CalibrationError
 from radiometry.response.model import LEVELS, CameraResponse
-from radiometry.response.fit import _LEVELS, DEFAULT_LAMBDA, _as_stack, _check_brightness_order, _finish
+from radiometry.response.debevec import _LEVELS, DEFAULT_LAMBDA, _finish
+from radiometry.response.inputs import _as_stack, _check_brightness_order
 
 
 def _fill_log_table(ln_f: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import RadiomapError
+from radiometry.response.levels import declared
 from radiometry.response.model import LEVELS, CameraResponse
 
 #: held-out RMS over the images' own noise (x 1.2 for the merge's) up to which a response is trusted, and beyond which
@@ -51,16 +52,6 @@ HELD_OUT = 6
 MERGE_FACTOR = 1.2
 BLOCK = 32
 _HAT = np.maximum(np.minimum(np.arange(LEVELS, dtype=np.float64), 255.0 - np.arange(LEVELS)), 1.0)
-
-
-def declared(response: CameraResponse, channels: int) -> list[tuple[int, int]]:
-    """The levels a response declares constrained per channel (``meta["declared_levels"]``, else its observed range,
-    else 5..250)."""
-    given = response.meta.get("declared_levels") or response.meta.get("observed_range")
-    if isinstance(given, list) and len(given) in (1, channels):
-        pairs = [(max(int(lo), 1), min(int(hi), 254)) for lo, hi in given]
-        return pairs * channels if len(pairs) == 1 else pairs
-    return [(5, 250)] * channels
 
 
 def _usable(stack: np.ndarray, times: np.ndarray, levels: list[tuple[int, int]]) -> np.ndarray:
@@ -130,7 +121,7 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
     """Each exposure predicted from the others (``refit``: a function ``(images, times) -> response`` that fits
     without it; None: ``response`` for every exposure). Returns ``{"rms": overall, "per_exposure": [...]}``,
     levels."""
-    from radiometry.response.fit import _as_stack
+    from radiometry.response.inputs import _as_stack
 
     from radiometry.response.levels import BLOCKY, blockiness, edge_mask
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from radiometry.response.debevec import HAT_WEIGHTS, _solve_debevec_channel
 from radiometry.response.model import LEVELS
 
 LAMBDA_GRID = (0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
@@ -27,7 +28,6 @@ _LEVELS_F = np.arange(LEVELS, dtype=np.float64)
 def held_out_error(g: np.ndarray, values: np.ndarray, log_t: np.ndarray, levels: tuple[int, int]) -> tuple[float, int]:
     """Sum of squared level errors and observation count of predicting ``values`` (``(P, S)`` uint8 of held-out
     pixels) through ``g = ln f^-1`` (256,)."""
-    from radiometry.response.fit import HAT_WEIGHTS
 
     lo, hi = levels
     usable = (values >= lo) & (values <= hi)
@@ -51,7 +51,6 @@ def cross_validate_lambda(channels: list[np.ndarray], log_t: np.ndarray, levels:
     the score (mean squared held-out error, levels^2) of every candidate.
     """
     from radiometry.errors import CalibrationError
-    from radiometry.response.fit import _solve_debevec_channel
 
     rng = np.random.default_rng(seed)
     splits = [rng.integers(0, folds, values.shape[1]) for values in channels]
