@@ -54,6 +54,11 @@ CAMERA_TEXT = {
 }
 
 
+#: the methods whose mesh files the demo writes by default: the uncorrected map and the LUT correction (the paper's
+#: comparison); the geometry is the same for every method, and five 14 MB meshes made most of the demo's size
+MESH_METHODS = ("none", "lut")
+
+
 @dataclass(frozen=True)
 class DemoSize:
     """How big the demo is."""
@@ -131,10 +136,12 @@ def response_error_percent(estimate, truth, *, levels: tuple[int, int] = (5, 250
 
 def run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int = 0, force: bool = False,
              exposure_compensation: bool = True, backend: str = "tsdf", size: DemoSize | None = None,
-             camera: str = "asymmetric", progress: bool = True, log: Callable[[str], None] | None = None
-             ) -> DemoResult:
+             camera: str = "asymmetric", progress: bool = True, log: Callable[[str], None] | None = None,
+             mesh_formats: tuple[str, ...] = ("ply",), all_meshes: bool = False) -> DemoResult:
     """Run the demo (see the module doc) into ``output``, locked against a second run meanwhile and marked
-    ``RUNNING`` until it is complete (:class:`DemoFolder`). ``log`` receives one line per step (default: silent)."""
+    ``RUNNING`` until it is complete (:class:`DemoFolder`). ``log`` receives one line per step (default: silent).
+    ``mesh_formats``: the mesh files (``--formats``; PLY only by default), written for the uncorrected map and the
+    LUT method's (:data:`MESH_METHODS`), or for every method with ``all_meshes`` (each ~14 MB at the default size)."""
     say = log or (lambda _msg: None)
     size = size or (QUICK if quick else DEFAULT)
     t_start = time.perf_counter()
@@ -172,6 +179,7 @@ def run_demo(output: str | Path = "demo_out", *, quick: bool = False, seed: int 
                  _self_text(self_cal)]
         comparison, exposure = _compare(out, seq, response, models, rows, texts, backend=backend, size=size,
                                         exposure_compensation=exposure_compensation, progress=progress,
+                                        mesh_formats=mesh_formats, all_meshes=all_meshes,
                                         parameters={"demo": True, "quick": quick, "seed": seed, "camera": spec.name,
                                                     "exposure_compensation": exposure_compensation},
                                         timings=timings)
@@ -316,7 +324,7 @@ def _self_text(record: dict[str, Any]) -> str:
 
 def _compare(out: Path, seq: Path, response, models: dict, rows: list[dict], texts: list[str], *, backend: str,
              size: DemoSize, exposure_compensation: bool, progress: bool, parameters: dict[str, Any],
-             timings: dict[str, float]):
+             timings: dict[str, float], mesh_formats: tuple[str, ...] = ("ply",), all_meshes: bool = False):
     """6. The comparison at ground-truth poses, with the calibration accuracy as the report's first section (the
     exposure accuracy of the LUT run appended to ``rows``): (comparison, exposure accuracy or None)."""
     from mapping.compare import compare, make_methods
@@ -355,7 +363,8 @@ def _compare(out: Path, seq: Path, response, models: dict, rows: list[dict], tex
                          scene=load_room(seq / "truth" / "room.json"), render_width=size.render_width,
                          progress=progress, force=True,
                          title="radiomap demo: no correction vs polynomial, LUT and self-calibrated vignetting",
-                         report_sections=sections, parameters=parameters)
+                         report_sections=sections, parameters=parameters, mesh_formats=mesh_formats,
+                         mesh_methods=None if all_meshes else [n for n in names if n.split("+")[0] in MESH_METHODS])
     timings["compare"] = time.perf_counter() - t0
     return comparison, exposure_box.get("value")
 
