@@ -52,9 +52,9 @@ def _colour(use_c: bool):
 def _pyrdown(use_c: bool):
     if use_c:
         return _c().pyrdown
-    from mapping.tracking import _numba_pyrdown
+    from mapping._pyramid_kernels import numba_pyrdown
 
-    return _numba_pyrdown()
+    return numba_pyrdown()
 
 
 def tsdf_kernels():

@@ -34,7 +34,7 @@ _OWN = ("sequence", "output", "response", "vignetting", "exposure_compensation",
 
 
 # radiomap reconstruct's option names whose ReconstructConfig field is spelled otherwise
-_FIELD_OF = {"display_exposure": "reference_exposure", "mesh_exposure": "exposure_reference"}
+_FIELD_OF = {"display_exposure": "reference_exposure", "mesh_exposure": "exposure_reference", "formats": "mesh_formats"}
 
 
 def _option_fields() -> dict[str, str]:

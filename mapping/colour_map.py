@@ -434,9 +434,10 @@ def colour_map_stage(vertices: np.ndarray, triangles: np.ndarray, colours: np.nd
 
 
 def write_colour_map(folder, outcome: ColourMapOutcome, colour_model, *, normals: np.ndarray | None = None,
-                     formats: Sequence[str] = ("ply", "glb")) -> dict:
-    """Write the optimised mesh beside the plain one (``mesh_colourmap.<fmt>``, ``mesh_colourmap_colours.npz``;
-    only when it was kept) and ``colour_map.json`` (the outcome) into ``folder``; returns ``{name: path}``. The
+                     formats: Sequence[str] = ("ply",)) -> dict:
+    """Write the optimised mesh beside the plain one (``mesh_colourmap.<fmt>``, and ``mesh_colourmap_colours.npz``
+    with ``npz`` among the formats; only when it was kept) and ``colour_map.json`` (the outcome) into ``folder``;
+    returns ``{name: path}``. The
     names are in :data:`mapping.export.RESULT_NAMES` (a ``--force`` run removes them)."""
     from pathlib import Path
 
@@ -455,7 +456,7 @@ def write_colour_map(folder, outcome: ColourMapOutcome, colour_model, *, normals
 
 
 def colour_map_for_run(run, dataset, backend, colour_model, *, method: str, depth_max: float, folder=None,
-                       formats: Sequence[str] = ("ply", "glb"), **options: Any) -> ColourMapOutcome:
+                       formats: Sequence[str] = ("ply",), **options: Any) -> ColourMapOutcome:
     """The stage after :func:`mapping.pipeline.reconstruct`: the backend's fused surface
     (:func:`mapping.compare.geometry.map_geometry`), the run's poses by dataset position (``run.records``,
     ``run.poses``) and its withheld frames (``run.held_out_poses``, ``--holdout-every``) as the check; written into

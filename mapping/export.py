@@ -10,9 +10,10 @@ Layout (``radiomap reconstruct ... -o OUT``)::
     OUT/config.json                  the configuration the run started with (cli/_common.run_manifest)
     OUT/metrics.json                 "status": "running" -> "complete" | "interrupted" | "failed"
     OUT/trajectory.txt               estimated camera-to-world poses, TUM format
-    OUT/mesh.ply, OUT/mesh.glb       the map's surface, colours in display units (response at k_ref); the GLB
-                                     stores them linear (sRGB-decoded), as glTF defines COLOR_0
-    OUT/mesh_colours.npz             vertices, triangles and map-unit colours (irradiance), for evaluation
+    OUT/mesh.ply                     the map's surface, colours in display units (response at k_ref), sRGB-encoded
+    OUT/mesh.glb, OUT/mesh.obj       with --formats ply,glb,obj: the same mesh; the GLB stores the colours linear
+                                     (sRGB-decoded), as glTF defines COLOR_0 (docs/outputs.md: which file for what)
+    OUT/mesh_colours.npz             with --formats ...,npz: vertices, triangles and map-unit colours, for evaluation
     OUT/mesh_colourmap.*, OUT/mesh_colourmap_colours.npz, OUT/colour_map.json
                                      with --colour-map: the colour-map optimised mesh (when the held-out check kept
                                      it) and the stage's report (mapping.colour_map.write_colour_map)
@@ -40,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from mapping.validation import DEFAULT_MESH_FORMATS, MESH_FORMATS, check_mesh_formats  # noqa: F401 - re-exported
 from radiometry.errors import OutputError, RadiomapError
 from radiometry.response import srgb_to_linear
 from radiometry.fileio import (TEMP_TAG, atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text,
@@ -50,7 +52,6 @@ log = logging.getLogger(__name__)
 RUNNING_MARKER = "RUNNING"
 LOCK_NAME = "LOCK"
 MANIFEST = ".radiomap-files.json"
-MESH_FORMATS = ("ply", "glb", "obj")
 #: The files a run writes (the layout above, the surfel backend's, exposure compensation's, a comparison's per
 #: method). ``--force`` removes these and the files listed in the previous run's MANIFEST before a new run starts;
 #: any other file in the folder (the user's notes, say) is left alone.
@@ -445,17 +446,15 @@ def display_colours_uint8(colours: np.ndarray, to_display: Callable[[np.ndarray]
 
 def write_mesh(folder: Path, vertices: np.ndarray, triangles: np.ndarray, colours: np.ndarray,
                to_display: Callable[[np.ndarray], np.ndarray], *, normals: np.ndarray | None = None,
-               formats: tuple[str, ...] = ("ply", "glb"), stem: str = "mesh") -> dict[str, Path]:
+               formats: tuple[str, ...] = DEFAULT_MESH_FORMATS, stem: str = "mesh") -> dict[str, Path]:
     """Write a vertex-coloured triangle mesh: ``stem.<fmt>`` for each format (display colours; PLY and OBJ via
-    trimesh, GLB by :func:`glb_bytes` with linear COLOR_0)
-    and ``stem_colours.npz`` (vertices, triangles, map-unit colours, display colours).
+    trimesh, GLB by :func:`glb_bytes` with linear COLOR_0), and with ``"npz"`` among the formats ``stem_colours.npz``
+    (vertices, triangles, map-unit colours, display colours: for evaluation; nothing in radiomap reads it back).
 
-    Returns ``{"mesh_<fmt>": path, "mesh_colours": path}``; an empty mesh writes only the ``.npz``."""
+    Returns ``{"mesh_<fmt>": path, "mesh_colours": path}``; an empty mesh writes only the ``.npz`` (when asked)."""
     import trimesh
 
-    bad = [f for f in formats if f not in MESH_FORMATS]
-    if bad:
-        raise ValueError(f"mesh formats must be among {', '.join(MESH_FORMATS)}, got {bad}")
+    formats = check_mesh_formats(formats)
     folder = Path(folder)
     vertices = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -464,21 +463,23 @@ def write_mesh(folder: Path, vertices: np.ndarray, triangles: np.ndarray, colour
         raise ValueError(f"colours must have one row per vertex ({len(vertices)}), got {len(colours)}")
     shown = display_colours_uint8(colours, to_display)
     out: dict[str, Path] = {}
-    npz = folder / f"{stem}_colours.npz"
-    with atomic_path(npz) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, vertices=vertices, triangles=triangles.astype(np.int32), colours=colours,
-                                display=shown)
-    out["mesh_colours"] = npz
+    if "npz" in formats:
+        npz = folder / f"{stem}_colours.npz"
+        with atomic_path(npz) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, vertices=vertices, triangles=triangles.astype(np.int32), colours=colours,
+                                    display=shown)
+        out["mesh_colours"] = npz
     if len(vertices) == 0 or len(triangles) == 0:
-        log.warning("the map has no surface to export (no voxel observed often enough); wrote only %s", npz)
+        log.warning("the map has no surface to export (no voxel observed often enough); %s",
+                    f"wrote only {out['mesh_colours']}" if out else "no mesh written")
         return out
     rgba = np.concatenate([shown, np.full((len(shown), 1), 255, np.uint8)], axis=1)
     kwargs = {}
     if normals is not None and len(normals) == len(vertices):
         kwargs["vertex_normals"] = np.asarray(normals, dtype=np.float32)
     mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, vertex_colors=rgba, process=False, **kwargs)
-    for fmt in formats:
+    for fmt in (f for f in formats if f != "npz"):
         path = folder / f"{stem}.{fmt}"
         if fmt == "glb":  # trimesh would store the display (sRGB) bytes in COLOR_0, which glTF defines as linear
             atomic_write_bytes(path, glb_bytes(vertices, triangles, shown, normals=kwargs.get("vertex_normals")))

@@ -12,6 +12,7 @@ from typing import Any
 from mapping.colour import make_colour_model
 from radiometry.api import as_vignetting
 from mapping.fusion.base import FusionBackend
+from mapping.validation import check_mesh_formats
 from radiometry.errors import ModelMismatchError
 from radiometry.registry import Registry
 
@@ -45,6 +46,7 @@ class ReconstructConfig:
     exposures: str | None = None                # --exposures FILE: given per-frame exposures instead of estimates
     holdout_every: int | None = None            # --holdout-every: withhold every N-th frame (mapping.holdout)
     colour_map: str | None = None               # --colour-map: rigid | non-rigid after fusion (mapping.colour_map)
+    mesh_formats: tuple[str, ...] = ("ply",)    # --formats: the mesh files (mapping.validation.MESH_FORMATS)
     force: bool = False
     progress: bool = True
 
@@ -166,7 +168,7 @@ def build_run(config: ReconstructConfig) -> dict[str, Any]:
         if poses == "icp" else None
     return {"dataset": dataset, "colour_model": colour_model, "backend": backend, "tracker": tracker,
             "poses": poses, "progress": config.progress, "holdout_every": config.holdout_every,
-            "colour_map": config.colour_map}
+            "colour_map": config.colour_map, "mesh_formats": check_mesh_formats(config.mesh_formats)}
 
 
 __all__ = ["BACKENDS", "TRACKERS", "ReconstructConfig", "build_run", "make_backend", "make_tracker"]

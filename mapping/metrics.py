@@ -57,41 +57,29 @@ def associate_timestamps(stamps_a: np.ndarray, stamps_b: np.ndarray, *, max_diff
 # rotations
 # --------------------------------------------------------------------------------------------------
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Quaternions ``(..., 4)`` in TUM order ``qx qy qz qw`` -> rotation matrices ``(..., 3, 3)``."""
+    """Quaternions ``(..., 4)`` in TUM order ``qx qy qz qw`` (scipy's scalar-last order) -> rotation matrices
+    ``(..., 3, 3)``, normalised first (a zero quaternion gives the identity): scipy's ``Rotation``."""
+    from scipy.spatial.transform import Rotation
+
     q = np.asarray(q, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    q = q / np.where(norm > 0, norm, 1.0)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    flat = q.reshape(-1, 4).copy()
+    flat[np.linalg.norm(flat, axis=1) == 0] = (0.0, 0.0, 0.0, 1.0)
+    if len(flat) == 0:
+        return np.zeros(q.shape[:-1] + (3, 3))
+    return Rotation.from_quat(flat).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
 
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` -> unit quaternions ``(..., 4)`` as ``qx qy qz qw``, ``qw >= 0``."""
+    """Rotation matrices ``(..., 3, 3)`` -> unit quaternions ``(..., 4)`` as ``qx qy qz qw``, ``qw >= 0``:
+    scipy's ``Rotation``."""
+    from scipy.spatial.transform import Rotation
+
     R = np.asarray(R, dtype=np.float64)
     m = R.reshape(-1, 3, 3)
-    # Shepperd's method, vectorised: pick the largest of the four squared components
-    diag = np.stack([m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2],
-                     m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                     -m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                     -m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1)
-    k = np.argmax(diag, axis=1)
-    s = np.sqrt(np.maximum(1.0 + diag[np.arange(len(m)), k], 1e-300)) * 2.0
-    q = np.empty((len(m), 4))
-    c0, c1, c2, c3 = (k == 0), (k == 1), (k == 2), (k == 3)
-    q[c0] = np.stack([(m[c0, 2, 1] - m[c0, 1, 2]) / s[c0], (m[c0, 0, 2] - m[c0, 2, 0]) / s[c0],
-                      (m[c0, 1, 0] - m[c0, 0, 1]) / s[c0], 0.25 * s[c0]], 1)
-    q[c1] = np.stack([0.25 * s[c1], (m[c1, 0, 1] + m[c1, 1, 0]) / s[c1], (m[c1, 0, 2] + m[c1, 2, 0]) / s[c1],
-                      (m[c1, 2, 1] - m[c1, 1, 2]) / s[c1]], 1)
-    q[c2] = np.stack([(m[c2, 0, 1] + m[c2, 1, 0]) / s[c2], 0.25 * s[c2], (m[c2, 1, 2] + m[c2, 2, 1]) / s[c2],
-                      (m[c2, 0, 2] - m[c2, 2, 0]) / s[c2]], 1)
-    q[c3] = np.stack([(m[c3, 0, 2] + m[c3, 2, 0]) / s[c3], (m[c3, 1, 2] + m[c3, 2, 1]) / s[c3], 0.25 * s[c3],
-                      (m[c3, 1, 0] - m[c3, 0, 1]) / s[c3]], 1)
+    if len(m) == 0:
+        return np.zeros(R.shape[:-2] + (4,))
+    q = Rotation.from_matrix(m).as_quat()
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
     return q.reshape(R.shape[:-2] + (4,))
 
 
@@ -117,22 +105,15 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray, 
         return valid, out
     order = np.argsort(stamps)
     stamps, poses = stamps[order], poses[order]
-    quats = matrix_to_quaternion(poses[:, :3, :3])
-    pos = np.searchsorted(stamps, query)
+    from scipy.spatial.transform import Rotation, Slerp
+
+    rotations = Rotation.from_matrix(poses[:, :3, :3])
+    pos = np.searchsorted(stamps, query)   # stamps[p - 1] < t <= stamps[p]: the bracketing poses are p - 1 and p
     for j, (t, p) in enumerate(zip(query, pos)):
         if 0 < p < len(stamps) and stamps[p] - stamps[p - 1] <= max_gap:
             t0, t1 = stamps[p - 1], stamps[p]
-            a = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
-            q0, q1 = quats[p - 1], quats[p]
-            if np.dot(q0, q1) < 0:
-                q1 = -q1
-            dot = float(np.clip(np.dot(q0, q1), -1.0, 1.0))
-            theta = np.arccos(dot)
-            if theta < 1e-8:
-                q = q0
-            else:
-                q = (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
-            out[j, :3, :3] = quaternion_to_matrix(q)
+            a = (t - t0) / (t1 - t0)
+            out[j, :3, :3] = Slerp([t0, t1], rotations[[p - 1, p]])(t).as_matrix()   # the shorter arc
             out[j, :3, 3] = (1 - a) * poses[p - 1, :3, 3] + a * poses[p, :3, 3]
             valid[j] = True
             continue

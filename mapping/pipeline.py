@@ -36,7 +36,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -75,7 +75,8 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                 output=None, refresh_coverage: float = 0.5, max_consecutive_failures: int = 30,
                 progress: bool = True, histogram_label: str | None = None,
                 write_mesh: bool = True, holdout_every: int | None = None, colour_map: str | None = None,
-                colour_map_options: Mapping[str, Any] | None = None) -> RunResult:
+                colour_map_options: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply",)
+                ) -> RunResult:
     """Track (or take ground-truth poses), correct, fuse and measure colour disagreement over a sequence.
 
     dataset:       an :class:`~mapping.datasets.base.RGBDDataset` (frame range and stride applied).
@@ -96,6 +97,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                    (the folder stays marked unfinished).
     progress:      a progress bar on stderr when it is a terminal (:func:`radiometry.progress.progress_bar`).
     write_mesh:    export the map's mesh into ``output``.
+    mesh_formats:  its files (:data:`mapping.validation.MESH_FORMATS`; PLY only by default, ``npz`` adds
+                   ``mesh_colours.npz`` with the map-unit colours); also the colour-map mesh's unless
+                   ``colour_map_options`` gives ``formats``.
     holdout_every: None (fuse every frame) or N in ``2 .. len(dataset) - 1``: withhold every N-th frame from fusion and
                    judge the final map by them (:func:`mapping.holdout.evaluate_holdout`; ``holdout.csv``).
     colour_map:    None, ``rigid`` or ``non-rigid``: after the loop (and the held-out evaluation) optimise the map's
@@ -168,9 +172,10 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
             run.colour_map = colour_map_for_run(run, dataset, backend, colour_model, method=colour_map,
                                                 depth_max=backend.depth_max,
                                                 folder=None if output is None else output.path,
-                                                **dict(colour_map_options or {}))
+                                                **{"formats": mesh_formats, **dict(colour_map_options or {})})
         if output is not None:
-            write_results(run, dataset, colour_model, backend, tracker, output, write_mesh=write_mesh)
+            write_results(run, dataset, colour_model, backend, tracker, output, write_mesh=write_mesh,
+                          mesh_formats=tuple(mesh_formats))
     except BaseException as exc:
         run.status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         if output is not None:

@@ -116,11 +116,11 @@ DPI = 100
 
 
 def _save(fig, path, *, layout: bool = True) -> None:
-    from mapping.report import _save_figure
+    from mapping.figure_files import save_figure
 
     if layout:
         fig.tight_layout()
-    _save_figure(fig, path, dpi=DPI)
+    save_figure(fig, path, dpi=DPI)
 
 
 def plot_exposures(axes, exposures: Mapping[str, Mapping[str, np.ndarray]], *,
@@ -167,11 +167,40 @@ def save_exposure_figure(path, exposures: Mapping[str, Mapping[str, np.ndarray]]
     axes = fig.subplots(1, 3, sharey=True)
     plot_exposures(axes, exposures, truth=truth, legend=False)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), frameon=False)   # below, off the data
+    legend_below(fig, handles, labels)   # below, off the data
     if title:
         fig.suptitle(title, fontsize=13)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, fig.legends[0].get_window_extent().y1 / fig.bbox.height, 1, 1))
     _save(fig, path, layout=False)
+
+
+def legend_below(fig, handles, labels, *, max_columns: int = 4):
+    """A legend under the axes that fits the figure's width: as many columns as fit (at most ``max_columns``), the
+    figure made taller by the legend's height so that the axes keep theirs. Measured by drawing (Agg), not guessed
+    from the labels' lengths: the old fixed 4 columns ran off both sides with the demo's long method names."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
+    renderer = fig.canvas.get_renderer()
+    margin = 0.1 * fig.dpi   # pixels kept free at the sides and below
+    legend = None
+    for fontsize in ("medium", "small", "x-small"):
+        for ncol in range(min(len(labels), max_columns), 0, -1):
+            legend = fig.legend(handles, labels, loc="lower center", ncol=ncol, frameon=False, fontsize=fontsize)
+            if legend.get_window_extent(renderer).width <= fig.bbox.width - 2 * margin:
+                break
+            legend.remove()
+            legend = None
+        if legend is not None:
+            break
+    if legend is None:   # wider than the figure even in one column of the smallest text: widen the figure
+        legend = fig.legend(handles, labels, loc="lower center", ncol=1, frameon=False, fontsize="x-small")
+        fig.set_figwidth((legend.get_window_extent(renderer).width + 2 * margin) / fig.dpi)
+    height = (legend.get_window_extent(renderer).height + margin) / fig.dpi
+    fig.set_figheight(fig.get_figheight() + height)
+    legend.set_bbox_to_anchor((0.5, margin / fig.bbox.height), transform=fig.transFigure)
+    return legend
 
 
 def top_view_axes(positions: np.ndarray, up: np.ndarray | None = None) -> tuple[int, int]:

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import OutputError
-from radiometry.fileio import atomic_path, atomic_write_text
+from mapping.figure_files import save_figure
+from radiometry.fileio import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -193,16 +194,6 @@ def scaled_intrinsics(K: np.ndarray, width: int, height: int, new_width: int) ->
 # --------------------------------------------------------------------------------------------------
 # figures
 # --------------------------------------------------------------------------------------------------
-def _save_figure(fig, path: str | os.PathLike, *, dpi: int = 100) -> Path:
-    """PNG, or JPEG (quality 90) for a ``.jpg``/``.jpeg`` path; atomic."""
-    path = Path(path)
-    fmt = (path.suffix.lstrip(".") or "png").lower()
-    kwargs = {"pil_kwargs": {"quality": 90}} if fmt in ("jpg", "jpeg") else {}
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="jpeg" if fmt == "jpg" else fmt, **kwargs)
-    return path
-
-
 @dataclass(frozen=True)
 class GridLayout:
     """Where :func:`save_render_grid` puts things (pixels): one row per method (its label on the left), one
@@ -289,7 +280,7 @@ def save_render_grid(path: str | os.PathLike, columns: Mapping[str, Sequence[np.
         fig.text(*at(x + tw / 2, y - 6), text, ha="center", va="bottom", fontsize=points)
     if title:
         fig.text(*at(layout.width / 2, 6), str(title), ha="center", va="top", fontsize=points * 1.15)
-    return _save_figure(fig, path, dpi=dpi)
+    return save_figure(fig, path, dpi=dpi)
 
 
 def save_bar_chart(path: str | os.PathLike, values: Mapping[str, float], *, ylabel: str, title: str | None = None
@@ -314,7 +305,7 @@ def save_bar_chart(path: str | os.PathLike, values: Mapping[str, float], *, ylab
     if title:
         ax.set_title(title, fontsize=13)
     fig.tight_layout()
-    return _save_figure(fig, path, dpi=DPI)
+    return save_figure(fig, path, dpi=DPI)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -178,7 +178,8 @@ def describe_run(dataset, colour_model, backend, tracker) -> dict:
             "tracker": None if tracker is None else {"class": type(tracker).__name__, **params(tracker)}}
 
 
-def write_results(run: RunResult, dataset, colour_model, backend, tracker, output, *, write_mesh: bool) -> None:
+def write_results(run: RunResult, dataset, colour_model, backend, tracker, output, *, write_mesh: bool,
+                  mesh_formats: tuple[str, ...] = ("ply",)) -> None:
     """Every result file of a finished run into ``output`` (a :class:`~mapping.export.ResultsFolder`), then mark it
     complete: the last step of :func:`mapping.pipeline.reconstruct` (after the held-out evaluation and the colour-map
     stage, whose files are already in place; its line ends ``summary.txt``)."""
@@ -199,7 +200,7 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
                               title="colour disagreement before fusion")
         files["histogram_png"] = output.file("histogram.png")
     if write_mesh:  # colours e.g. at the sequence's median exposure
-        files.update(backend.export(output.path, colour_model.display_for_export()))
+        files.update(backend.export(output.path, colour_model.display_for_export(), formats=tuple(mesh_formats)))
     files.update(colour_model.save_results(output.path))  # e.g. per-frame exposure estimates
     if run.holdout is not None:
         files["holdout"] = output.write_text("holdout.csv", run.holdout.csv())

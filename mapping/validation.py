@@ -188,6 +188,35 @@ def option_range(limits: tuple[float, float], unit: str = "", why: str = ""):
     return callback
 
 
+#: the mesh files a run can write (``--formats``): PLY (sRGB-encoded display colours, what most tools show as they
+#: are), binary glTF (linear COLOR_0, as glTF defines it), OBJ, and npz (``mesh_colours.npz``: vertices, triangles,
+#: map-unit colours and display colours, for evaluation); docs/outputs.md says which file suits which tool
+MESH_FORMATS = ("ply", "glb", "obj", "npz")
+#: one mesh by default (issue 32: the same mesh three times made the demo 223 MB)
+DEFAULT_MESH_FORMATS = ("ply",)
+
+
+def check_mesh_formats(value, name: str = "formats") -> tuple[str, ...]:
+    """``"ply,glb"`` (or a sequence of names) -> ``("ply", "glb")``: each of :data:`MESH_FORMATS` at most once, in
+    the order given; an empty list or an unknown name is an :class:`ImplausibleValueError` naming the option and
+    the accepted values."""
+    accepted = ", ".join(MESH_FORMATS)
+    if isinstance(value, str):
+        names = value.split(",")
+    elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+        names = list(value)
+    else:
+        raise ImplausibleValueError(f"{_label(name)} must be a comma-separated list of mesh formats ({accepted}), "
+                                    f"got {quote(value)}")
+    names = [n.strip().lower().lstrip(".") for n in names]
+    unknown = [n for n in names if n not in MESH_FORMATS]
+    if unknown or not any(names):
+        what = f"unknown mesh format {quote(unknown[0])}" if unknown and unknown[0] else "an empty format"
+        raise ImplausibleValueError(f"{_label(name)} {quote(value if isinstance(value, str) else ','.join(value))}: "
+                                    f"{what}; choose from {accepted}, comma-separated (e.g. {_label(name)} ply,glb)")
+    return tuple(dict.fromkeys(names))
+
+
 def check_voxel_size(value, name: str = "voxel_size") -> float:
     return check_range(name, value, VOXEL_SIZE_M, "m", "1 mm for small objects, 5 mm-2 cm for rooms")
 

@@ -88,16 +88,16 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
               in seconds (required).
     method:   ``auto`` (the log-log fit; Debevec with ``samples`` or ``lam="auto"``; the default), ``loglog``,
               ``debevec`` (sparse Debevec & Malik), ``engel``, ``opencv-debevec`` or ``robertson``.
-    quality:  the truth-free quality figure (:mod:`radiometry.response_quality`, in ``meta["quality"]``):
+    quality:  the truth-free quality figure (:mod:`radiometry.response.quality`, in ``meta["quality"]``):
               ``"full"`` (each exposure predicted by a fit without it, and two fits on disjoint pixel halves),
               ``"fast"`` (each exposure predicted through this response, no refits) or ``"none"``.
     options:  the method's keywords (``lam``, ``samples``, ``mask``, ...; see
-              :func:`radiometry.response_fit.fit_response`).
+              :func:`radiometry.response.fit.fit_response`).
 
     The fit's prediction error over every unsaturated pixel is in ``response.meta["prediction_rms_levels"]``;
     a value above 10 levels is logged as a warning (motion, wrong times, auto exposure).
     """
-    from radiometry.response_fit import fit_response, load_brackets, prediction_rms
+    from radiometry.response.fit import fit_response, load_brackets, prediction_rms
 
     if isinstance(brackets, (str, os.PathLike)):
         folder = Path(brackets)
@@ -121,7 +121,7 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
     if quality not in ("full", "fast", "none"):
         raise ValueError(f"quality must be 'full', 'fast' or 'none', got {quality!r}")
     if quality != "none":
-        from radiometry.response_quality import assess
+        from radiometry.response.quality import assess
 
         response.meta["quality"] = assess(images, stack_times, response, mask=options.get("mask"),
                                           method=method if quality == "full" else None,

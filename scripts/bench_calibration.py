@@ -12,8 +12,8 @@ pcalib when ``../shared/data`` is present. Each is rendered into 12 exposures of
 
 Methods: ``debevec`` (lambda 10), ``debevec`` with lambda chosen by cross-validation (``lam="auto"``), ``engel``
 (the eigen solver), ``engel-prior`` (Engel's energy with the log-log curvature prior, weight 1), ``loglog``
-(:func:`radiometry.response_loglog.fit_response_loglog`: Debevec's data term over all pixels with the log-log
-curvature prior), ``auto`` (the default: what :func:`radiometry.response_fit.fit_response` picks), OpenCV's
+(:func:`radiometry.response.loglog.fit_response_loglog`: Debevec's data term over all pixels with the log-log
+curvature prior), ``auto`` (the default: what :func:`radiometry.response.fit.fit_response` picks), OpenCV's
 ``CalibrateDebevec`` and ``CalibrateRobertson``. For each the table
 gives the largest ``|f^-1 - truth|`` over levels 5..250 and 5..240 in % of the range (R/G/B, both curves
 normalised ``f^-1(255) = 1``) and the fit time.
@@ -85,7 +85,7 @@ def _fitter(method: str):
 
         module, name = method.split(":")
         return getattr(importlib.import_module(module), name)
-    from radiometry.response_fit import fit_response
+    from radiometry.response.fit import fit_response
 
     return lambda images, times, **kwargs: fit_response(images, times, method=method, **kwargs)
 
@@ -190,8 +190,8 @@ def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, qual
     from camera_pipelines import PIPELINES, ceiling_level, max_error_scale_free, render
     from response_curves import curves, scene
 
-    from radiometry.response_fit import fit_response
-    from radiometry.response_quality import assess
+    from radiometry.response.fit import fit_response
+    from radiometry.response.quality import assess
 
     width, height = size
     radiance = scene(height, width, seed=seed + 1)
@@ -226,10 +226,10 @@ def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, qual
 
 def _end_to_end(args: argparse.Namespace, rest: list[str]) -> int:
     """``--end-to-end``: :mod:`bench_vignetting` once per design, with this command's ``--seed`` and, when given,
-    the ``--methods`` that are :func:`radiometry.response_fit.fit_response` methods; ``rest`` (its own options,
+    the ``--methods`` that are :func:`radiometry.response.fit.fit_response` methods; ``rest`` (its own options,
     e.g. ``--vignettes``, ``-n``, ``--out``) goes through. With two designs, ``--out FILE`` gets the design in its
     name."""
-    from radiometry.response_fit import METHODS as FIT_METHODS
+    from radiometry.response.fit import METHODS as FIT_METHODS
 
     scripts = str(Path(__file__).resolve().parent)
     if scripts not in sys.path:

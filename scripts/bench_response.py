@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     from radiometry.tables import format_table
     from radiometry.response import CameraResponse
-    from radiometry.response_fit import blue_fill_mask, fit_response_debevec, load_brackets, prediction_rms
-    from radiometry.response_opencv import fit_response_opencv_debevec
+    from radiometry.response.fit import blue_fill_mask, fit_response_debevec, load_brackets, prediction_rms
+    from radiometry.response.opencv import fit_response_opencv_debevec
 
     stacks = []
     sample = REPO / "data_samples" / "brackets"

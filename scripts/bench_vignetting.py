@@ -43,7 +43,7 @@ def run(vignettes: list[str], curve_names: list[str], methods: list[str], design
         bracket_size: tuple[int, int], seed: int = 0) -> list[dict]:
     """One row per vignette x curve x response (``"truth"`` and each of ``methods``), as printed."""
     from radiometry.response import CameraResponse
-    from radiometry.response_fit import fit_response
+    from radiometry.response.fit import fit_response
     from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
     from response_curves import TIMES, curves, max_error_percent, render_brackets, scene
     from vignetting_sweeps import bracket_times, default_size, flat_rms_vs_truth, render_sweep, vignette_field

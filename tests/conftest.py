@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("RADIOMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+# radiomap's cache (the sample sequences, mapping/simulation/samples.py) in the temporary folder, not in the user's
+# home: set before any test runs, so that the commands the tests start inherit it. Kept between sessions (a sample is
+# rebuilt only when its recipe or radiomap's version changes); per user, as /tmp is shared.
+TEST_CACHE = Path(os.environ.setdefault("RADIOMAP_CACHE_DIR", str(Path(tempfile.gettempdir()) /
+                                                                   f"radiomap-test-cache-{os.getuid()}")))
 
 
 def shared_path(*parts: str) -> Path:

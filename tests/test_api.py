@@ -85,7 +85,7 @@ def test_open3d_after_mapping_and_the_notebook_fix():
 # ------------------------------------------------------------------------------------------------ radiometry
 @pytest.mark.slow
 def test_calibrate_response_folder_and_arrays_match_the_command_path():
-    from radiometry.response_fit import fit_response, load_brackets
+    from radiometry.response.fit import fit_response, load_brackets
 
     # quality="fast": the full figure (a refit per exposure and two half fits, 50 of this call's 56 s of CPU) is the
     # command's default, tested through `radiomap response` (tests/test_cli_response.py, test_calibration_pipelines.py)

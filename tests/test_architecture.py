@@ -62,3 +62,86 @@ def test_radiometry_does_not_import_mapping():
     offenders = [str(p.relative_to(ROOT)) for p in _sources("radiometry")
                  if any(m == "mapping" or m.startswith("mapping.") for m in _imported_modules(p))]
     assert not offenders, f"radiometry must stand alone (mapping builds on it): {offenders}"
+
+
+def _module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the radiometry/mapping modules it imports, from every ``import`` statement: at the top of the file
+    and inside functions alike (a function-level import is a cycle that only waits for its call). ``from pkg import
+    sub`` counts as importing the module ``pkg.sub``; ``from pkg import name`` as importing ``pkg``. The parent
+    packages Python imports on the way are not counted (they are not a choice of the importing module), nor are
+    imports by a string (``Registry`` entries, ``importlib``)."""
+    files = {_module_name(p, root): p for f in PACKAGES for p in (root / f).rglob("*.py") if "__pycache__" not in p.parts}
+    graph = {}
+    for name, path in files.items():
+        edges = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                edges.update(a.name for a in node.names if a.name in files)
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                base = node.module
+                if node.level:  # relative: resolve against this module's package
+                    pkg = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+                    base = ".".join(pkg[:len(pkg) - node.level + 1] + [node.module])
+                for a in node.names:
+                    edges.add(f"{base}.{a.name}" if f"{base}.{a.name}" in files else base)
+        graph[name] = {e for e in edges if e in files and e != name}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan, iterative), each sorted."""
+    index, low, on_stack, stack, cycles = {}, {}, set(), [], []
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            v, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[v] = min(low[v], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.append(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    cycles.append(sorted(component))
+    return cycles
+
+
+def test_import_cycle_finder_finds_a_cycle_of_function_level_imports():
+    # the shape of the old radiometry.response_fit <-> response_lambda cycle: one side imports inside a function
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert import_cycles(graph) == [["a", "b", "c"]]
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
+    real = import_graph()
+    assert "radiometry.response.model" in real["radiometry.response.fit"]      # a top-level import
+    assert "radiometry.response.fit" in real["radiometry.response.quality"]    # an import inside a function
+
+
+def test_no_import_cycles_among_radiometry_and_mapping_modules():
+    cycles = import_cycles(import_graph())
+    assert not cycles, ("these modules import each other (at the top or inside functions); move what they share "
+                        f"into a small module below both: {cycles}")

@@ -16,8 +16,8 @@ import pytest
 from camera_pipelines import PIPELINES, ceiling_level, max_error_scale_free, render, sweep
 from radiometry.errors import CalibrationError
 from radiometry.response import CameraResponse
-from radiometry.response_fit import fit_response
-from radiometry.response_quality import assess
+from radiometry.response.fit import fit_response
+from radiometry.response.quality import assess
 from response_curves import TIMES, curves, scene
 
 VARIED = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
@@ -170,7 +170,7 @@ def test_the_quality_of_real_stacks_is_stated_and_a_moved_one_is_broken():
     13.4 levels); the same stack with every other exposure moved by 2 px, or with gamma 2.2 given, is worse."""
     from conftest import shared_path
 
-    from radiometry.response_fit import load_brackets
+    from radiometry.response.fit import load_brackets
 
     images, times, _ = load_brackets(shared_path("brackets", "taipei"), progress=False)
     response = fit_response(images, times)

@@ -191,7 +191,7 @@ def test_the_defaults_that_differ_are_the_ones_the_summaries_name():
     assert default("reconstruct", "exposure_compensation") is None     # on with --response
     assert default("compare", "exposure_compensation") is False and \
         DIFFERENT_DEFAULTS["exposure_compensation"]["compare"] == "off"
-    assert default("compare", "glb") is True
+    assert default("compare", "formats") == default("reconstruct", "formats") == "ply"   # one mesh, the PLY
     shared = {"backend", "voxel_size", "depth_max", "frames", "depth_scale", "intrinsics", "format"}
     assert all(default("reconstruct", n) == default("compare", n) for n in shared)
 

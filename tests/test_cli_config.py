@@ -143,14 +143,14 @@ def test_compare_replay_gives_the_same_table(room, tmp_path):
     out = tmp_path / "cmp"
     res = invoke("compare", room, "-r", room / "truth" / "response.npz", "--vignetting-lut",
                  room / "truth" / "vignetting.npy", "--methods", "none,lut", "--frames", "0:6", "--voxel-size",
-                 "0.04", "--depth-max", "4", "--views", "0", "-o", out, "--no-progress")
+                 "0.04", "--depth-max", "4", "--views", "0", "-o", out, "--formats", "ply,glb", "--no-progress")
     assert res.exit_code == 0, res.output
     config = json.loads((out / "config.json").read_text())
     assert_plain_json(config)
     assert config["parameters"]["methods"] == "none,lut" and config["methods_run"] == ["none", "lut"]
-    assert config["parameters"]["glb"] is True and (out / "lut" / "mesh.glb").is_file()   # as reconstruct
+    assert config["parameters"]["formats"] == ["ply", "glb"] and (out / "lut" / "mesh.glb").is_file()
     summary = (out / "summary.txt").read_text()
-    assert "poses gt (compare's default; reconstruct's is icp)" in summary and "glb on" in summary
+    assert "poses gt (compare's default; reconstruct's is icp)" in summary and "formats ply,glb (given)" in summary
     res = invoke("compare", "--config", out / "config.json", "-o", tmp_path / "again", "--no-progress")
     assert res.exit_code == 0, res.output
     table = [{k: v for k, v in row.items() if k != "seconds"}

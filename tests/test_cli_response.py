@@ -252,7 +252,7 @@ def test_standard_response_usage_errors(tmp_path, args, message):
 @pytest.mark.slow
 def test_method_choices_are_the_registry():
     from mapping.cli.response import RESPONSE_METHODS
-    from radiometry.response_fit import FITTERS, METHODS
+    from radiometry.response.fit import FITTERS, METHODS
 
     assert RESPONSE_METHODS == METHODS == FITTERS.names()
 

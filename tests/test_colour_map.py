@@ -290,7 +290,7 @@ def test_written_beside_the_plain_mesh_only_when_kept(wall, tmp_path):
     fused = [None if k in (2, 7, 12) else p for k, p in enumerate(poses)]
     kept = colour_map_stage(vertices, triangles, plain, frames, fused, RawIntensity(), iterations=0,
                             holdout=[(k, poses[k]) for k in (2, 7, 12)], depth_max=3.0)
-    files = write_colour_map(tmp_path / "a", kept, RawIntensity(), formats=("ply",))
+    files = write_colour_map(tmp_path / "a", kept, RawIntensity(), formats=("ply", "npz"))
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["colour_map.json", "mesh_colourmap.ply",
                                                                     "mesh_colourmap_colours.npz"]
     assert {p.name for p in files.values()} <= RESULT_NAMES
@@ -402,7 +402,7 @@ def test_compare_colour_map_is_a_variant_of_each_method(tmp_path):
     out = tmp_path / "cmp"
     res = _cli("compare", str(seq), "-r", str(seq / "truth" / "response.npz"), "--methods", "none,response",
                "--poses", "gt", "--frames", "0:15", "--voxel-size", "0.04", "--depth-max", "5", "--views", "0",
-               "--no-glb", "--holdout-every", "5", "--colour-map", "non-rigid", "--no-progress", "-o", str(out))
+               "--formats", "ply", "--holdout-every", "5", "--colour-map", "non-rigid", "--no-progress", "-o", str(out))
     assert res.exit_code == 0, res.output
     for method in ("none", "response"):
         doc = json.loads((out / method / "colour_map.json").read_text())
@@ -471,7 +471,7 @@ def test_a_crash_in_the_stage_of_compare_leaves_that_method_unfinished(tmp_path,
     seq = sample_sequence("room")
     out = tmp_path / "cmp"
     args = ["compare", str(seq), "-r", str(seq / "truth" / "response.npz"), "--methods", "none,response", "--poses",
-            "gt", "--frames", "0:10", "--voxel-size", "0.04", "--depth-max", "5", "--views", "0", "--no-glb",
+            "gt", "--frames", "0:10", "--voxel-size", "0.04", "--depth-max", "5", "--views", "0", "--formats", "ply",
             "--colour-map", "rigid", "--no-progress", "-o", str(out)]
     with pytest.raises(ZeroDivisionError):
         _cli(*args)

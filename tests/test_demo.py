@@ -128,8 +128,10 @@ def test_everything_is_written_into_out_only(demo):
                 "calibration/camera.json", "sequence/radiomap_sequence.json", "sequence/truth/room.json",
                 "compare/histograms.png", "compare/renders.jpg", "compare/compare.csv", "demo.json", "demo.txt"):
         assert (out / rel).is_file(), rel
-    for name in demo["table"]:
-        assert (out / "compare" / name / "mesh.ply").is_file()
+    for name in demo["table"]:   # the meshes of the uncorrected map and the LUT correction (--all-meshes: all)
+        assert (out / "compare" / name / "mesh.ply").is_file() == (name.split("+")[0] in ("none", "lut")), name
+        assert not (out / "compare" / name / "mesh_colours.npz").exists() and not (out / "compare" / name /
+                                                                                   "mesh.glb").exists()
     assert demo["compare"]["poses_identical"] is True
     assert demo["demo"]["quick"] is True and demo["demo"]["size"]["width"] == 160
     assert demo["demo"]["camera"] == "asymmetric" and "asymmetric preset" in demo["output"]

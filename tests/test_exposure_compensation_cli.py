@@ -123,7 +123,8 @@ def test_cli_mesh_colours_are_exported_at_the_reference_exposure(tmp_path):
     true_k /= true_k[0]
     assert np.median(true_k, axis=0).max() < 0.45                   # the median frame is far from the first
     common = [str(seq), "--response", str(seq / "truth" / "response.npz"), "--vignetting",
-              str(seq / "truth" / "vignetting.npy"), "--poses", "gt", "--voxel-size", "0.04", "--no-progress"]
+              str(seq / "truth" / "vignetting.npy"), "--poses", "gt", "--voxel-size", "0.04", "--formats", "ply,npz",
+              "--no-progress"]
     meshes = {}
     for reference in ("median", "first"):
         out = tmp_path / reference

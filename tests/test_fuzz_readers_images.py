@@ -129,7 +129,7 @@ def times_input(rng: random.Random) -> bytes | str:
 @fuzz(3000)
 @given(seed=SEEDS)
 def test_times_file(workdir, seed):
-    from radiometry.response_fit import read_times_file
+    from radiometry.response.fit import read_times_file
 
     entries = only_own_errors(read_times_file, put(workdir, "times.txt", times_input(random.Random(seed))))
     if entries is not None:
@@ -151,7 +151,7 @@ def bracket_folder(workdir) -> Path:
 @given(seed=SEEDS)
 def test_bracket_folder_with_mutated_times(bracket_folder, seed):
     """load_brackets (what 'radiomap response' reads): the times file against the folder's images."""
-    from radiometry.response_fit import load_brackets
+    from radiometry.response.fit import load_brackets
 
     put(bracket_folder, "times.txt", times_input(random.Random(seed)))
     result = only_own_errors(load_brackets, bracket_folder)

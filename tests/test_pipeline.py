@@ -167,9 +167,10 @@ def test_sevenscenes_run_writes_results(tmp_path):
     assert run.fused == len(ds) == 34 and run.ate.rmse < 0.05
     folder = out.path
     assert is_complete(folder) and not (folder / RUNNING_MARKER).exists()
-    for name in ("mesh.ply", "mesh.glb", "mesh_colours.npz", "trajectory.txt", "histogram.json", "histogram.npz",
+    for name in ("mesh.ply", "trajectory.txt", "histogram.json", "histogram.npz",
                  "histogram.png", "metrics.json", "frames.csv", "summary.txt"):
         assert (folder / name).is_file(), name
+    assert not (folder / "mesh.glb").exists() and not (folder / "mesh_colours.npz").exists()   # one mesh by default
     metrics = json.loads((folder / "metrics.json").read_text())
     assert metrics["status"] == "complete" and metrics["frames"]["fused"] == 34
     assert metrics["ate"]["rmse"] == pytest.approx(run.ate.rmse)

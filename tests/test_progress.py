@@ -172,7 +172,7 @@ def test_compare_has_one_bar_over_every_method(bars, tmp_path):
 @pytest.mark.slow
 def test_simulation_and_calibration_loops_count(bars, tmp_path):
     from mapping.simulation import simulate_room
-    from radiometry.response_fit import load_brackets
+    from radiometry.response.fit import load_brackets
 
     simulate_room(tmp_path / "room", seed=1, n_frames=2, width=64, height=48, progress=True)
     images, _, _ = load_brackets(BRACKETS, progress=True)

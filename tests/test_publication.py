@@ -35,7 +35,7 @@ OTHER = {"debevec": "robertson", "robertson": "debevec"}
 ZYGOTE = r"""
 import json, os, signal, sys
 from mapping.cli import main
-import mapping.cli.response, radiometry.response_fit, radiometry.plots, scipy.sparse.linalg  # noqa: F401
+import mapping.cli.response, radiometry.response.fit, radiometry.plots, scipy.sparse.linalg  # noqa: F401
 import matplotlib.pyplot  # noqa: F401
 print("ready", flush=True)
 for line in sys.stdin:

@@ -309,7 +309,7 @@ def test_bar_labels_stay_inside_the_frame(monkeypatch):
         captured["fig"] = fig
         return path
 
-    monkeypatch.setattr(report, "_save_figure", keep)
+    monkeypatch.setattr(report, "save_figure", keep)
     save_bar_chart("unused.png", {"none": 11.56, "lut": 2.03}, ylabel="levels")
     fig = captured["fig"]
     ax = fig.axes[0]

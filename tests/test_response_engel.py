@@ -1,4 +1,4 @@
-"""Engel-style response calibration (radiometry.response_engel): accuracy on the independent test set of
+"""Engel-style response calibration (radiometry.response.engel): accuracy on the independent test set of
 curves (tests/response_curves.py), monotonicity, extrapolated levels, the exposure-design warning, inputs.
 
 Accuracy: max ``|f^-1 - truth|`` over levels 5..250, % of the range, both normalised ``f^-1(255) = 1``.
@@ -13,8 +13,8 @@ import pytest
 from response_curves import TIMES, curves, kink_curve, max_error_percent, render_brackets, scene
 
 from radiometry.errors import CalibrationError
-from radiometry.response_engel import equal_ratios, fit_response_engel, isotonic_increasing
-from radiometry.response_fit import fit_response
+from radiometry.response.engel import equal_ratios, fit_response_engel, isotonic_increasing
+from radiometry.response.fit import fit_response
 
 #: the 12 bracket times moved by 2^(-0.35..0.35): exposure ratios that differ (as scripts/bench_calibration.py)
 VARIED_TIMES = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
@@ -81,7 +81,7 @@ def test_equal_ratios_are_detected_and_warned(radiance, caplog):
     assert equal_ratios(np.array([1.0, 4.0])) == 4.0
     small = scene(40, 60)
     images = render_brackets(kink_curve(), small, TIMES)
-    with caplog.at_level(logging.WARNING, logger="radiometry.response_engel"):
+    with caplog.at_level(logging.WARNING, logger="radiometry.response.engel"):
         response = fit_response_engel(images, TIMES, max_iter=50, solver="alternate")
     assert response.meta["equal_ratios"] == pytest.approx(2.0) and response.meta["solver"] == "alternate"
     assert "all 2x apart" in caplog.text and "periodic in ln E" in caplog.text

@@ -13,7 +13,7 @@ from conftest import shared_path
 from radiometry.errors import CalibrationError, DatasetError
 from radiometry.images import write_image
 from radiometry.response import CameraResponse
-from radiometry.response_fit import (
+from radiometry.response.fit import (
     METHODS,
     blue_fill_mask,
     find_times_file,
@@ -25,7 +25,7 @@ from radiometry.response_fit import (
     read_times_file,
     select_samples,
 )
-from radiometry.response_opencv import fit_response_opencv_debevec, fit_response_robertson
+from radiometry.response.opencv import fit_response_opencv_debevec, fit_response_robertson
 
 # --------------------------------------------------------------------------------------------------
 # synthetic brackets: known irradiance, known CRF, photon + read noise, 8-bit quantisation
@@ -491,7 +491,7 @@ def test_agreement_with_opencv(request, name):
 
 
 # --------------------------------------------------------------------------------------------------
-# lambda by cross-validation (radiometry.response_lambda), on the independent test set of curves
+# lambda by cross-validation (radiometry.response.smoothness), on the independent test set of curves
 # --------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def two_x_stacks():
@@ -530,7 +530,7 @@ def test_numeric_lambda_keeps_its_record(two_x_stacks):
 
 
 def test_held_out_error_prefers_the_truth(two_x_stacks):
-    from radiometry.response_lambda import held_out_error
+    from radiometry.response.smoothness import held_out_error
 
     times, stacks = two_x_stacks
     images, truth = stacks["kink-4x"]

@@ -1,4 +1,4 @@
-"""The log-log prior fit for brackets at one exposure ratio (radiometry.response_loglog): accuracy on kinked curves
+"""The log-log prior fit for brackets at one exposure ratio (radiometry.response.loglog): accuracy on kinked curves
 of the independent test set (tests/response_curves.py) at exact 2x steps, where Debevec's prior rounds the knee;
 monotonicity, extrapolated levels, mask, options.
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from response_curves import TIMES, break_curves, curves, kink_curve, max_error_percent, render_brackets, scene
 
-from radiometry.response_fit import fit_response
-from radiometry.response_loglog import fit_response_loglog, prior_rows
+from radiometry.response.fit import fit_response
+from radiometry.response.loglog import fit_response_loglog, prior_rows
 
 VARIED_TIMES = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
 
@@ -161,7 +161,7 @@ def test_a_singular_hessian_states_no_error_rather_than_zero(radiance, monkeypat
     diagonally scaled Hessian's condition number, measured, is 9e10-3e11 on 24 curves x 2 designs, 3.5e8-4.5e10 on
     memorial and 2.3e12-7.3e13 on taipei (lam 0.1 to 30; unscaled taipei at lam 30 reaches 5e15), against the
     threshold 1/eps = 4.5e15."""
-    import radiometry.response_loglog as ll
+    import radiometry.response.loglog as ll
     from radiometry.response import relative_stderr
 
     singular = np.diag([1.0, 2.0, 0.0, 3.0])
@@ -175,7 +175,7 @@ def test_a_singular_hessian_states_no_error_rather_than_zero(radiance, monkeypat
     fine = fit_response_loglog(images, TIMES)
     assert relative_stderr(fine) is not None and fine.meta["inverse_stderr_source"].startswith("loglog:")
     monkeypatch.setattr(ll, "_log_covariance", lambda *a: None)
-    with caplog.at_level("WARNING", logger="radiometry.response_loglog"):
+    with caplog.at_level("WARNING", logger="radiometry.response.loglog"):
         response = fit_response_loglog(images, TIMES)
     assert "inverse_stderr" not in response.meta and relative_stderr(response) is None
     assert response.meta["inverse_stderr_source"].startswith("none: the energy's Hessian is singular in channel(s) 0, 1, 2")

@@ -13,7 +13,7 @@ import pytest
 
 from radiometry.plots import new_figure, plot_response
 from radiometry.response import CameraResponse, relative_stderr
-from radiometry.response_fit import fit_response_debevec
+from radiometry.response.fit import fit_response_debevec
 from response_curves import TIMES, gamma_curve, kink_curve, render_brackets, scene
 
 W, H = 160, 120
@@ -56,7 +56,7 @@ def test_loglog_stderr_is_the_size_of_the_fit_to_fit_spread(varied, levels):
     Measured over eight fits, stated / actual per band: 0.90-1.02 (2x), 1.21-1.40 (varied), 1.14-1.17 (levels
     10..220); before the extrapolation was carried, 0 at 254 and 2.5-5x too small above 220. The spread of six
     fits is itself uncertain by about 30 %."""
-    from radiometry.response_loglog import fit_response_loglog
+    from radiometry.response.loglog import fit_response_loglog
 
     times = TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size) if varied else TIMES
     radiance = scene(H, W, seed=0)

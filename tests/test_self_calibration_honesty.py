@@ -401,7 +401,7 @@ def test_compare_ec_methods_take_given_exposures(room, tmp_path):
     k = _known_file(room, tmp_path / "k.txt")
     out = tmp_path / "cmp"
     base = ["compare", str(room), "-o", str(out), "-r", str(room / "truth" / "response.npz"), "--poses", "gt",
-            "--frames", "0:6", "--no-progress", "--views", "0", "--no-glb", "--exposures", str(tmp_path / "k.txt")]
+            "--frames", "0:6", "--no-progress", "--views", "0", "--exposures", str(tmp_path / "k.txt")]
     res = CliRunner().invoke(cli, [*base, "--methods", "response+ec"])
     assert res.exit_code == 0, res.output
     got = read_exposures(next(out.rglob("exposures.txt")))

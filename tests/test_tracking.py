@@ -236,3 +236,53 @@ def test_interpolate_poses():
     np.testing.assert_allclose(out[0][:3, 3], [0.25, 0, 0])
     assert np.degrees(rotation_angle(out[0][:3, :3])) == pytest.approx(5.0)
     np.testing.assert_allclose(out[2], b)                        # nearest within 20 ms past the end
+
+
+def _old_quaternion_to_matrix(q):
+    """The hand-written formula scipy's Rotation replaced (issue 32), kept here as the reference."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _old_slerp(q0, q1, a):
+    """The hand-written SLERP scipy's Slerp replaced: the shorter arc, ``sin`` weights."""
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
+    theta = np.arccos(np.clip(np.dot(q0, q1), -1.0, 1.0))
+    return q0 if theta < 1e-8 else (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
+
+
+def test_scipy_rotations_give_the_old_hand_written_numbers():
+    from mapping.simulation import quaternion_to_rotation, rotation_to_quaternion
+
+    rng = np.random.default_rng(32)
+    quats = rng.normal(size=(8, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats[0] = [0.0, 0.0, 0.0, 1.0]                          # identity
+    s, c = np.sin(0.4999 * np.pi), np.cos(0.4999 * np.pi)
+    quats[1] = [0.6 * s, 0.8 * s, 0.0, c]                    # just short of a half turn
+    quats[2] = [1.0, 0.0, 0.0, 0.0]                          # half turn (qw = 0)
+    for q in quats:
+        R = _old_quaternion_to_matrix(q)
+        np.testing.assert_allclose(quaternion_to_matrix(q), R, atol=1e-14)
+        np.testing.assert_allclose(quaternion_to_rotation(q), R, atol=1e-14)
+        # back to the quaternion (qw >= 0; at qw = 0 either sign is the same rotation)
+        for back in (matrix_to_quaternion(R), rotation_to_quaternion(R)):
+            np.testing.assert_allclose(_old_quaternion_to_matrix(back), R, atol=1e-12)
+            assert back[3] >= 0 and abs(abs(np.dot(back, q)) - 1) < 1e-12
+    # SLERP between consecutive poses (never exactly 180 degrees apart, where both arcs are as short and either is
+    # right); a negative quaternion dot product among them: the shorter arc is taken
+    poses = np.repeat(np.eye(4)[None], len(quats), axis=0)
+    poses[:, :3, :3] = [_old_quaternion_to_matrix(q) for q in quats]
+    poses[:, :3, 3] = rng.normal(size=(len(quats), 3))
+    stamps = np.arange(len(quats)) * 0.1
+    query = stamps[:-1] + 0.1 * np.array([0.25, 0.5, 0.75, 0.1, 0.9, 0.33, 0.6])
+    valid, out = interpolate_poses(stamps, poses, query, max_gap=0.2)
+    assert valid.all()
+    for j, t in enumerate(query):
+        a = (t - stamps[j]) / 0.1
+        q0, q1 = matrix_to_quaternion(poses[j, :3, :3]), matrix_to_quaternion(poses[j + 1, :3, :3])
+        np.testing.assert_allclose(out[j, :3, :3], _old_quaternion_to_matrix(_old_slerp(q0, q1, a)), atol=1e-12)
+        np.testing.assert_allclose(out[j, :3, 3], (1 - a) * poses[j, :3, 3] + a * poses[j + 1, :3, 3], atol=1e-12)

@@ -317,7 +317,8 @@ def test_export_and_stats(tmp_path):
     backend = TSDFBackend(voxel_size=0.04, depth_max=5.0)
     for f in ds:
         backend.integrate(f.depth, f.rgb.astype(np.float32), f.K, f.pose)
-    files = backend.export(tmp_path, lambda c: np.clip(c * 0.5, 0, 255))
+    assert set(backend.export(tmp_path / "default", lambda c: c)) == {"mesh_ply"}      # one mesh by default
+    files = backend.export(tmp_path, lambda c: np.clip(c * 0.5, 0, 255), formats=("ply", "glb", "npz"))
     assert set(files) == {"mesh_ply", "mesh_glb", "mesh_colours"}
     mesh = trimesh.load(files["mesh_ply"], process=False)
     data = np.load(files["mesh_colours"])
@@ -329,8 +330,9 @@ def test_export_and_stats(tmp_path):
     stats = backend.stats()
     assert stats["frames_integrated"] == 3 and stats["blocks"] > 0
     assert stats["used_mb"] <= stats["allocated_mb"] and stats["truncation_m"] == pytest.approx(0.32)
-    # an empty map writes only the colour archive
-    assert set(TSDFBackend().export(tmp_path / "empty", lambda c: c)) == {"mesh_colours"}
+    # an empty map writes only the colour archive, when asked for
+    assert set(TSDFBackend().export(tmp_path / "empty", lambda c: c, formats=("ply", "npz"))) == {"mesh_colours"}
+    assert TSDFBackend().export(tmp_path / "empty2", lambda c: c) == {}
 
 
 def test_arguments():

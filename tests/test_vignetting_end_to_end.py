@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from radiometry.response import CameraResponse
-from radiometry.response_fit import fit_response
+from radiometry.response.fit import fit_response
 from radiometry.vignetting_calibration import collect_vignetting, fit_vignetting
 from response_curves import TIMES, curves, render_brackets, scene
 from vignetting_sweeps import (default_size, flat_rms_vs_truth, render_sweep, shared_available, sheet_masks,

@@ -228,7 +228,7 @@ def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumula
 def test_a_fitted_response_carries_its_stderr_into_the_budget():
     """A response calibrated by Debevec from brackets (its own renderer) carries ``inverse_stderr``; the sweep's
     budget propagates it (and says so) instead of the roughness lower bound."""
-    from radiometry.response_fit import fit_response_debevec
+    from radiometry.response.fit import fit_response_debevec
     from response_curves import TIMES, render_brackets, scene
 
     table = gamma_curve(2.2)

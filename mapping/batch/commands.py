@@ -87,10 +87,11 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     vignetting_poly: Path | None, vignetting_self: Path | None = None, methods: list[str] | None,
                     exposure_compensation: bool, backend: str, poses: str, frames: slice | None, voxel_size: float,
                     depth_max: float, brightness: str, depth_scale: float | None, intrinsics: str | None,
-                    format: str | None, views: int, render_width: int, glb: bool, force: bool, progress: bool,
+                    format: str | None, views: int, render_width: int, force: bool, progress: bool,
                     manifest: dict, settings: str, notify: Callable[[str], None] = log.warning,
                     holdout_every: int | None = None, tracker: str = "auto", colour_map: str | None = None,
-                    poses_max_difference: float = 0.02, exposures: str | None = None):
+                    poses_max_difference: float = 0.02, mesh_formats: tuple[str, ...] = ("ply",),
+                    exposures: str | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -138,7 +139,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      depth_max=depth_max, brightness=brightness, scene=scene, views=views,
                      render_width=render_width, progress=progress, force=force,
                      title=f"radiomap compare: {Path(sequence).name}",
-                     mesh_formats=("ply", "glb") if glb else ("ply",),
+                     mesh_formats=mesh_formats,
                      config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
                      holdout_every=holdout_every, tracker_options={"name": tracker}, colour_map=colour_map,
                      given_exposures=None if given is None else given.known)

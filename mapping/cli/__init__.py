@@ -152,6 +152,20 @@ def _os_fix(exc: OSError) -> str:
         exc.errno, "check the path and the system's limits")
 
 
+#: the loggers -v/-vv open up: radiomap's own (``logging.getLogger(__name__)`` in both packages, and the CLI's)
+OWN_LOGGERS = ("radiometry", "mapping", "radiomap")
+
+
+def configure_logging(verbose: int) -> None:
+    """``-v`` INFO, ``-vv`` DEBUG for radiomap's own loggers only; everything else (matplotlib's font manager,
+    numba, PIL, ray, urllib3, ...) stays at WARNING, as the root logger is. One handler on stderr."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    # without -v radiomap's loggers follow the root (WARNING here; a program embedding the CLI keeps its own setting)
+    level = logging.NOTSET if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    for name in OWN_LOGGERS:
+        logging.getLogger(name).setLevel(level)
+
+
 def _print_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     if not value or ctx.resilient_parsing:
         return
@@ -173,8 +187,7 @@ def cli(verbose: int) -> None:
     Calibrate a camera's response and vignetting, undo them (and auto exposure), and fuse physically
     meaningful irradiance into TSDF or surfel maps; measure colour coherence like Alexandrov et al.
     """
-    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    configure_logging(verbose)
     from radiometry._native import choice, compiled
 
     if choice() == "c":  # a wrong RADIOMAP_KERNELS fails here, before a command writes anything

@@ -476,3 +476,72 @@ __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "Deprecate
            "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive",
            "refuse_sequence_as_output", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
            "warn_far_depth"]
+
+
+class MeshFormats(click.ParamType):
+    """``--formats ply,glb``: the mesh files a command writes, checked by
+    :func:`mapping.validation.check_mesh_formats` as the option is parsed (an unknown name is one line naming the
+    option and the accepted values, exit 1, before anything is read or written)."""
+
+    name = "LIST"
+
+    def convert(self, value, param, ctx):
+        from mapping.validation import check_mesh_formats
+
+        return check_mesh_formats(value, max(param.opts, key=len) if isinstance(param, click.Option) else "formats")
+
+
+def formats_option(f):
+    """``--formats``: the mesh files of reconstruct, compare, demo (and batch through them); PLY by default."""
+    return click.option(
+        "--formats", type=MeshFormats(), default="ply", show_default=True,
+        help="Mesh files to write, comma-separated: ply (sRGB-encoded display colours: MeshLab, Blender, Open3D, "
+             "trimesh), glb (binary glTF, linear COLOR_0: three.js and other glTF viewers), obj, npz "
+             "(mesh_colours.npz: map-unit colours, for evaluation). docs/outputs.md: which file for which tool.")(f)
+
+
+def _size_text(n: int) -> str:
+    for unit, scale in (("GB", 2 ** 30), ("MB", 2 ** 20), ("kB", 2 ** 10)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
+
+
+def written_text(folder: Path, *, limit: int = 12) -> str:
+    """What a command wrote into ``folder``: one line per file or folder at its top (folders with their file
+    count), biggest first, at most ``limit`` (the rest summed in one line), and the total. Hidden entries and the
+    lock are left out (they are bookkeeping). Printed at the end of reconstruct, compare, demo and batch."""
+    from mapping.export import LOCK_NAME
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return ""
+    rows = []
+    for entry in folder.iterdir():
+        if entry.name.startswith(".") or entry.name == LOCK_NAME:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            files = [p for p in entry.rglob("*") if p.is_file() and not p.is_symlink()]
+            rows.append((sum(p.stat().st_size for p in files), f"{entry.name}/ ({len(files)} files)"))
+        elif entry.is_file():
+            rows.append((entry.stat().st_size, entry.name))
+    rows.sort(key=lambda r: (-r[0], r[1]))
+    shown, rest = rows[:limit], rows[limit:]
+    width = max((len(name) for _, name in shown), default=0)
+    lines = [f"wrote {folder}: {_size_text(sum(n for n, _ in rows))}"]
+    lines += [f"  {name:<{width}}  {_size_text(n):>9}" for n, name in shown]
+    if rest:
+        lines.append(f"  ... {len(rest)} more  {_size_text(sum(n for n, _ in rest))}")
+    return "\n".join(lines)
+
+
+def written_files_text(paths) -> str:
+    """What a command wrote as separate files (``radiomap vignetting``): one line per file with its size, and the
+    total."""
+    files = [Path(p) for p in paths if p is not None and Path(p).is_file()]
+    if not files:
+        return ""
+    sizes = [f.stat().st_size for f in files]
+    width = max(len(str(f)) for f in files)
+    return "\n".join([f"wrote {len(files)} file{'s' if len(files) != 1 else ''}: {_size_text(sum(sizes))}"] +
+                     [f"  {str(f):<{width}}  {_size_text(n):>9}" for f, n in zip(files, sizes)])

@@ -89,6 +89,9 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
     shown = [{k: "-" if v is None else v for k, v in row.items()} for row in rows]
     click.echo(format_table(shown, [c for c in columns_of(rows) if c != "error"]))
     click.echo(f"summary: {files['csv']}, {files['html']}")
+    from mapping.cli._common import written_text
+
+    click.echo(written_text(output), err=True)
     failed = [o.task.name for o in outcomes if o.status == "failed"]
     if failed:
         click.echo(f"radiomap: error: {len(failed)} of {len(outcomes)} sequences failed ({', '.join(failed)}); "

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, fusion_options,
+from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, formats_option,
+                                 fusion_options,
                                  pose_arguments, pose_options, replay_manifest, sequence_options, settings_line,
-                                 warn_far_depth)
+                                 warn_far_depth, written_text)
 from mapping.factory import TRACKERS
 
 EPILOG = """\b
@@ -30,8 +31,8 @@ Examples:
 \b
 OUT/report.html holds everything (figures embedded); OUT/compare.csv/.json/.txt the table;
 OUT/histograms.png the histograms (Fig. 9 of Alexandrov et al.); OUT/renders.jpg the meshes side by
-side; OUT/<method>/ one results folder per method (mesh.ply and .glb [not with --no-glb],
-mesh_colours.npz with the map-unit colours, histogram, trajectory, metrics); OUT/summary.txt what was
+side; OUT/<method>/ one results folder per method (mesh.ply, other mesh files with --formats,
+histogram, trajectory, metrics); OUT/summary.txt what was
 printed, with the settings used; OUT/config.json the options (replayable with --config).
 """
 
@@ -86,8 +87,9 @@ def _methods(ctx, param, value):
               help="Viewpoints of the side-by-side renders (0: none).")
 @click.option("--render-width", type=click.IntRange(32, 1920), default=320, show_default=True,
               help="Width of each render in pixels.")
-@click.option("--glb/--no-glb", default=True, show_default=True,
-              help="Also write each mesh as binary glTF (mesh.glb) for web viewers, as reconstruct does.")
+@click.option("--glb/--no-glb", default=None, hidden=True,
+              help="Deprecated: --formats ply,glb (or --formats ply) says which mesh files to write.")
+@formats_option
 @evaluation_options
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite an earlier comparison in OUTPUT.")
@@ -98,7 +100,8 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
             tracker: str,
             poses_max_difference: float | None,
             frames: slice | None, voxel_size: float, depth_max: float, brightness: str, depth_scale: float | None,
-            intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool,
+            intrinsics: str | None, format: str | None, views: int, render_width: int, glb: bool | None,
+            formats: tuple[str, ...],
             holdout_every: int | None, colour_map: str | None, force: bool, no_progress: bool) -> None:
     """Reconstruct SEQUENCE once per radiometric correction (no correction, polynomial and LUT vignetting,
     optionally with exposure compensation) at identical poses, and compare the colour disagreement
@@ -110,6 +113,7 @@ def command(sequence: Path, response: Path, vignetting_lut: Path | None, vignett
     result, summary = compare_command(**task_arguments(click.get_current_context()),
                                       notify=lambda note: click.echo(note, err=True))
     click.echo(summary, nl=False)
+    click.echo(written_text(output), err=True)
     click.echo(f"report: {result.files['report']}")
     warn_far_depth(max((r.run.depth_beyond_range for r in result.results), default=0.0), depth_max)
 
@@ -122,6 +126,12 @@ def task_arguments(ctx: click.Context) -> dict:
     from mapping.batch.commands import MethodChoiceError, compare_methods
 
     p = ctx.params
+    formats = p["formats"]
+    if p["glb"] is not None:   # the old spelling: --glb added glb to the PLY (the default then), --no-glb left PLY only
+        formats = tuple(dict.fromkeys([*formats, "glb"])) if p["glb"] else tuple(f for f in formats if f != "glb")
+        new = ",".join(formats or ("ply",))
+        click.echo(f"warning: --{'' if p['glb'] else 'no-'}glb is deprecated, use --formats {new}", err=True)
+        formats = formats or ("ply",)
     from mapping.cli._common import refuse_sequence_as_output
 
     refuse_sequence_as_output(p["sequence"], p["output"])
@@ -151,7 +161,7 @@ def task_arguments(ctx: click.Context) -> dict:
     settings = settings_line(ctx, [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                                    ("exposure compensation", "exposure_compensation", ec) if methods is None
                                    else ("exposure compensation", None, f"{ec}, as --methods lists"),
-                                   ("glb", "glb", "on" if p["glb"] else "off")])
+                                   ("formats", "formats", ",".join(formats))])
     from mapping.validation import check_colour_map
 
     try:   # the library's check (mapping.validation), shown as a usage error before anything is read
@@ -160,8 +170,8 @@ def task_arguments(ctx: click.Context) -> dict:
         raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
     options = {k: p[k] for k in ("sequence", "output", "backend", "poses", "tracker", "frames", "voxel_size",
                                  "depth_max", "brightness", "depth_scale", "intrinsics", "format", "views",
-                                 "render_width", "glb", "holdout_every", "colour_map", "force")}
-    return {**options, **models, "methods": [m.name for m in method_list],
+                                 "render_width", "holdout_every", "colour_map", "force")}
+    return {**options, **models, "methods": [m.name for m in method_list], "mesh_formats": formats,
             "poses_max_difference": max_difference,
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
             "exposures": p["exposures"],

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from mapping.cli._common import formats_option, written_text
 from mapping.demo import DEMO_CAMERAS, run_demo, summary_text
 from mapping.factory import BACKENDS
 
@@ -36,15 +37,21 @@ demo in OUT, or any other non-empty folder, is refused without --force.
                    "polynomial), 'xtion' (the paper's nearly radial Xtion), 'mild'.")
 @click.option("--exposure-compensation/--no-exposure-compensation", "exposure_compensation", default=True,
               help="Compensate auto exposure [default: on].")
+@formats_option
+@click.option("--all-meshes", is_flag=True,
+              help="Write every method's mesh (about 14 MB each at the default size), not only those of 'none' and "
+                   "the LUT correction (the others are measured and rendered all the same).")
 @click.option("--force", is_flag=True, help="Overwrite an earlier demo in OUTPUT (or write into another non-empty "
                                             "folder; files that are not the demo's are kept).")
 @click.option("--no-progress", is_flag=True, help="No progress bars.")
 def command(output: Path, quick: bool, seed: int, backend: str, camera: str, exposure_compensation: bool,
-            force: bool, no_progress: bool) -> None:
+            formats: tuple[str, ...], all_meshes: bool, force: bool, no_progress: bool) -> None:
     """Simulate a camera with strong vignetting and auto exposure, calibrate its response and vignetting,
     reconstruct a simulated room with no correction, polynomial and LUT vignetting correction, and compare
     them (table, histograms, meshes, HTML report). Needs no data."""
     result = run_demo(output, quick=quick, seed=seed, force=force, exposure_compensation=exposure_compensation,
                       backend=backend, camera=camera, progress=not no_progress,
-                      log=lambda msg: click.echo(msg, err=True))
+                      log=lambda msg: click.echo(msg, err=True), mesh_formats=formats,
+                      all_meshes=all_meshes)
     click.echo(summary_text(result))
+    click.echo(written_text(output), err=True)

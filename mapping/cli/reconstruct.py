@@ -7,8 +7,8 @@ from pathlib import Path
 import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
-                                 fusion_options, Number, pose_arguments, pose_options, replay_manifest,
-                                 sequence_options, settings_line, warn_far_depth)
+                                 formats_option, fusion_options, Number, pose_arguments, pose_options, replay_manifest,
+                                 sequence_options, settings_line, warn_far_depth, written_text)
 from mapping.validation import EXPOSURE_FACTOR
 from mapping.factory import TRACKERS
 
@@ -25,10 +25,10 @@ Examples:
   radiomap reconstruct --config run_corrected/config.json -o run_again
       replay a run with the options it recorded (options given here override them)
 \b
-The results folder holds mesh.ply/.glb (colours through the response at --display-exposure, or with
-exposure compensation at --mesh-exposure; with --backend surfel surfels.ply, and surfels_mesh.ply with
---surfel-mesh), trajectory.txt (TUM), histogram.json/.npz/.png (colour disagreement before fusion, Fig. 9
-of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --config) and summary.txt;
+The results folder holds mesh.ply (--formats adds GLB, OBJ, npz; colours through the response at
+--display-exposure, or with exposure compensation at --mesh-exposure; with --backend surfel surfels.ply,
+and surfels_mesh.ply with --surfel-mesh), trajectory.txt (TUM), histogram.json/.npz/.png (colour
+disagreement before fusion, Fig. 9 of Alexandrov et al.), metrics.json, frames.csv, config.json (replayable with --config) and summary.txt;
 with exposure compensation exposures.txt/.json (per-frame k_r k_g k_b relative to the first frame, source
 map|frame|fallback). A RUNNING file marks a run that has not finished. With --force over a complete run,
 that run stays in OUT until the new one is complete and replaces it (never neither).
@@ -86,6 +86,7 @@ def _mesh_exposure(ctx, param, value):
               help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
                    "median (of the sequence's estimates; the default), first, a number or r,g,b.")
 @evaluation_options
+@formats_option
 @config_option
 @click.option("--force", is_flag=True, help="Overwrite the results of a previous run in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
@@ -97,8 +98,8 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
             voxel_size: float, frames: slice | None, depth_scale: float | None, intrinsics: str | None,
             backend: str, surfel_mesh: bool, format: str | None, depth_max: float, display_exposure: float,
             exposure_compensation: bool | None, exposures: Path | None, mesh_exposure: str | None,
-            holdout_every: int | None,
-            colour_map: str | None, force: bool, no_progress: bool) -> None:
+            holdout_every: int | None, colour_map: str | None, formats: tuple[str, ...], force: bool,
+            no_progress: bool) -> None:
     """Reconstruct SEQUENCE (TUM, 7-Scenes, Redwood or a radiomap simulation) into a TSDF or surfel map of
     irradiance (or raw intensities), recording the colour disagreement of every fused sample.
 
@@ -112,6 +113,7 @@ def command(sequence: Path, output: Path, response: Path | None, vignetting: Pat
         click.echo(f"warning: skipped {run.skipped} of {run.frames} frames ({reasons}); see {output / 'frames.csv'}",
                    err=True)
     warn_far_depth(run.depth_beyond_range, depth_max)
+    click.echo(written_text(output), err=True)
     click.echo(f"results in {output}")
 
 
@@ -164,12 +166,12 @@ def task_arguments(ctx: click.Context) -> dict:
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
                    exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"],
                    exposures=None if p["exposures"] is None else str(p["exposures"]),
-                   colour_map=p["colour_map"], force=p["force"],
+                   colour_map=p["colour_map"], mesh_formats=p["formats"], force=p["force"],
                    progress=not p["no_progress"])
     settings = [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
-        settings.append(("glb", None, "on"))
+        settings.append(("formats", "formats", ",".join(p["formats"])))
     return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
             "settings": settings_line(ctx, settings)}

@@ -11,7 +11,7 @@ from mapping.cli._common import Number
 from mapping.validation import GAMMA, SMOOTHNESS
 
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
-#: the names of radiometry.response_fit.FITTERS (listed here so that --help imports no NumPy)
+#: the names of radiometry.response.fit.FITTERS (listed here so that --help imports no NumPy)
 RESPONSE_METHODS = ("auto", "debevec", "engel", "loglog", "opencv-debevec", "robertson")
 
 
@@ -102,7 +102,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from radiometry.errors import CalibrationError, DatasetError, OutputError
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set, refuse_inputs
     from radiometry.api import calibrate_response
-    from radiometry.response_fit import blue_fill_mask, find_times_file, load_brackets
+    from radiometry.response.fit import blue_fill_mask, find_times_file, load_brackets
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
               "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,

@@ -54,6 +54,11 @@ def command(sequence: str, response_path: str | None, poses, poses_max_differenc
 
     run = run_self_calibration(**task_arguments(click.get_current_context()))
     click.echo(run.summary)
+    from pathlib import Path
+
+    from mapping.cli._common import written_text
+
+    click.echo(written_text(Path(output)), err=True)
 
 
 def task_arguments(ctx: click.Context) -> dict:

@@ -162,3 +162,6 @@ def command(kind: str, output: Path, seed: int, num_frames: int | None, width: i
            "vignetting": spec.vignetting.source or spec.vignetting.kind, "crf": spec.crf["family"],
            "seed": seed, "seconds": round(elapsed, 1), "output": str(out)}
     click.echo(format_table([row]))
+    from mapping.cli._common import written_text
+
+    click.echo(written_text(Path(out)), err=True)

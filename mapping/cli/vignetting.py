@@ -145,6 +145,10 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
                                                               "smooth_sigma": smooth_sigma if model_name == "lut"
                                                               else None})})
     click.echo(text)
+    from mapping.cli._common import written_files_text
+
+    click.echo(written_files_text([out, save_accumulation, *figures.values(), Path(prefix).with_name(
+        Path(prefix).name + "_summary.txt"), Path(prefix).with_name(Path(prefix).name + "_summary.json")]), err=True)
 
 
 

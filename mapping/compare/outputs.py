@@ -118,8 +118,10 @@ def write_outputs(result: CompareResult, dataset, scene, *, views: int, render_w
             links += [(f"{r.method.name}: {name}", str(r.folder / name))
                       for name in ("mesh_colourmap.ply", "colour_map.json") if (r.folder / name).is_file()]
     links += [("table (CSV)", str(files["csv"])), ("table (JSON)", str(out / MARKER))]
-    sections.append(ReportSection("Files", ["PLY meshes (display colours) open in MeshLab or Blender; "
-                                            "mesh_colours.npz beside each holds the map-unit colours."], links=links))
+    files_text = ("PLY meshes (display colours, sRGB-encoded) open as they are in MeshLab, Blender, Open3D and "
+                  "trimesh; --formats adds GLB (three.js), OBJ and mesh_colours.npz (map-unit colours). "
+                  "docs/outputs.md: which file for which tool.")
+    sections.append(ReportSection("Files", [files_text], links=links))
     files["report"] = write_html_report(out / "report.html", title=title or "radiomap: comparison of corrections",
                                         sections=sections, intro=intro)
 

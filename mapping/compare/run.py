@@ -14,7 +14,7 @@ import contextlib
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -69,10 +69,11 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
             display_response: CameraResponse | None = None, views: int = 3, render_width: int = 320,
             progress: bool = True, force: bool = False, title: str | None = None,
             report_sections: Sequence[Any] | Callable[[CompareResult], Sequence[Any]] = (),
-            parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply", "glb"),
+            parameters: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply",),
             config: Mapping[str, Any] | None = None,
             summary: Callable[[CompareResult], str] | None = None, holdout_every: int | None = None,
-            colour_map: str | None = None, given_exposures: Mapping[int, np.ndarray] | None = None) -> CompareResult:
+            colour_map: str | None = None, mesh_methods: Collection[str] | None = None,
+            given_exposures: Mapping[int, np.ndarray] | None = None) -> CompareResult:
     """Fuse ``dataset`` once per method with identical poses; write the table, figures, meshes and report. The
     folder ``output`` and each method's folder in it are locked against a second run
     (:class:`mapping.export.FolderLock`) from their creation until the comparison ends.
@@ -91,9 +92,12 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
     views:            viewpoints of the side-by-side renders (0 for none); ``render_width`` pixels wide each.
     report_sections:  extra :class:`mapping.report.ReportSection` s placed before the results (e.g. the demo's
                       calibration accuracy), or a function of the (unfinished) :class:`CompareResult` returning them.
-    mesh_formats:     formats of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj; PLY and GLB
-                      by default, as :func:`mapping.pipeline.reconstruct` writes); the ``mesh_colours.npz`` with
-                      map-unit colours is always written.
+    mesh_formats:     files of each method's mesh (:func:`mapping.export.write_mesh`: ply, glb, obj, npz; PLY only
+                      by default, as :func:`mapping.pipeline.reconstruct` writes; ``npz`` adds ``mesh_colours.npz``
+                      with the map-unit colours).
+    mesh_methods:     the names of the methods whose mesh files are written (None: every method's); the others'
+                      maps are still measured and rendered (the geometry is the same for all methods, only the
+                      colours differ), e.g. the demo writes two of five.
     config, summary:  written as ``config.json`` (a JSON document, e.g. the CLI's replay manifest) and
                       ``summary.txt`` (the text ``summary(result)`` returns) when the comparison has finished, in
                       the locked folder before it is marked complete: they belong to this run (its MANIFEST).
@@ -183,7 +187,9 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                         ate = run.ate
                     results.append(_method_result(method, run, folder.path, fusion, colour_model, seconds,
                                                   backend=backend, scene=scene, display_response=display_response,
-                                                  max_distance=max(3 * voxel_size, 0.03), mesh_formats=mesh_formats))
+                                                  max_distance=max(3 * voxel_size, 0.03),
+                                                  mesh_formats=mesh_formats if mesh_methods is None or
+                                                  method.name in mesh_methods else ()))
                     del fusion
         finally:
             bar.close()
@@ -234,8 +240,9 @@ def _method_result(method: Method, run, folder: Path, fusion, colour_model, seco
     files = dict(run.files)
     if backend == "surfel" and hasattr(fusion, "export"):
         files.update(fusion.export(folder, colour_model.to_display))
-    files.update(write_mesh(folder, geometry.vertices, geometry.triangles, geometry.colours,
-                            colour_model.to_display, normals=geometry.normals, formats=mesh_formats))
+    if mesh_formats:
+        files.update(write_mesh(folder, geometry.vertices, geometry.triangles, geometry.colours,
+                                colour_model.to_display, normals=geometry.normals, formats=mesh_formats))
     err = None
     if scene is not None:
         err = colour_error(geometry, colour_model, scene, display_response=display_response, max_distance=max_distance)

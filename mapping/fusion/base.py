@@ -93,9 +93,11 @@ class FusionBackend(Protocol):
         colour vs the sample about to be merged into it), or None."""
         ...
 
-    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray]) -> dict[str, Path]:
+    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray], *,
+               formats: tuple[str, ...] = ("ply",)) -> dict[str, Path]:
         """Write the map's geometry with colours mapped through ``to_display`` ((N, 3) map units ->
-        (N, 3) float display levels 0..255); returns {kind: path} of the written files."""
+        (N, 3) float display levels 0..255), a mesh in each of ``formats`` (:data:`mapping.validation.MESH_FORMATS`)
+        where the backend makes one; returns {kind: path} of the written files."""
         ...
 
     def stats(self) -> dict:

@@ -322,9 +322,11 @@ class SurfelBackend:
         self._tick += 1
         return ColourPairs(pair_map[:npairs].copy(), pair_sample[:npairs].copy())
 
-    def export(self, folder: str | Path, to_display: Callable[[np.ndarray], np.ndarray]) -> dict[str, Path]:
+    def export(self, folder: str | Path, to_display: Callable[[np.ndarray], np.ndarray], *,
+               formats: tuple[str, ...] = ("ply",)) -> dict[str, Path]:
         """Write the stable surfels as ``surfels.ply`` (position, normal, display colour, radius, confidence)
-        and, with ``mesh=True``, a density-trimmed Poisson mesh ``surfels_mesh.ply``."""
+        and, with ``mesh=True``, a density-trimmed Poisson mesh ``surfels_mesh.ply`` (PLY whatever ``formats``
+        says: the surfel backend's files are PLY only)."""
         folder = ensure_dir(folder)
         s = self.surfels(stable_only=True)
         n = s["position"].shape[0]

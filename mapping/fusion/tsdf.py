@@ -644,14 +644,15 @@ class TSDFBackend:
                         normals=mesh.vertex.normals.numpy().copy() if "normals" in mesh.vertex
                         else np.zeros((n, 3), np.float32))
 
-    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray]) -> dict[str, Path]:
-        """Write ``mesh.ply`` and ``mesh.glb`` (display colours) and ``mesh_colours.npz`` (vertices, triangles and
-        map-unit colours, for evaluation)."""
+    def export(self, folder: Path, to_display: Callable[[np.ndarray], np.ndarray], *,
+               formats: tuple[str, ...] = ("ply",)) -> dict[str, Path]:
+        """Write ``mesh.<fmt>`` for each of ``formats`` (display colours; ``npz``: ``mesh_colours.npz``, vertices,
+        triangles and map-unit colours, for evaluation): :func:`mapping.export.write_mesh`."""
         from mapping.export import write_mesh
 
         mesh = self.extract_mesh()
         return write_mesh(Path(folder), mesh.vertices, mesh.triangles, mesh.colours, to_display,
-                          normals=mesh.normals)
+                          normals=mesh.normals, formats=formats)
 
     def stats(self) -> dict:
         hashmap = self.grid.hashmap()

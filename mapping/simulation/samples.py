@@ -1,9 +1,11 @@
 """Small deterministic sample sequences for the demo and tests, generated on first use and cached.
 
 ``sample_sequence(kind)`` renders a fixed-seed sequence once into a cache folder and returns its path;
-later calls return the cached copy. The cache is ``data_samples/.cache/<name>/`` beside a source
-checkout when writable, else ``$XDG_CACHE_HOME/radiomap/samples/<name>/`` (``~/.cache/...``);
-``$RADIOMAP_SAMPLES_DIR`` overrides both. A sample is rebuilt when the recipe, the radiomap version or
+later calls return the cached copy. The cache is in the user's cache folder, never in the checkout:
+``<cache>/samples/<name>/`` where ``<cache>`` is :func:`cache_dir` (``$RADIOMAP_CACHE_DIR``, else
+``$XDG_CACHE_HOME/radiomap``, else ``~/.cache/radiomap``); ``$RADIOMAP_SAMPLES_DIR`` names the samples folder itself.
+The first sample written into a new cache folder says where, in one log line (WARNING, so that it shows without
+``-v``: a cache the user did not ask for is not silent). A sample is rebuilt when the recipe, the radiomap version or
 :data:`SAMPLE_REVISION` that made it differs (``sample.json`` records them). Generation writes into a temporary folder that is
 renamed into place, so concurrent first uses are safe.
 """
@@ -32,16 +34,23 @@ SAMPLES: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+def cache_dir() -> Path:
+    """radiomap's cache folder: ``$RADIOMAP_CACHE_DIR``, else ``$XDG_CACHE_HOME/radiomap`` (the XDG base directory
+    specification), else ``~/.cache/radiomap``."""
+    env = os.environ.get("RADIOMAP_CACHE_DIR")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg and Path(xdg).expanduser().is_absolute() else Path.home() / ".cache"
+    return base / "radiomap"
+
+
 def samples_root() -> Path:
     """Where samples are cached (see the module doc)."""
     env = os.environ.get("RADIOMAP_SAMPLES_DIR")
     if env:
-        return Path(env)
-    repo_samples = Path(__file__).resolve().parents[2] / "data_samples"
-    if repo_samples.is_dir() and os.access(repo_samples, os.W_OK):
-        return repo_samples / ".cache"
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "radiomap" / "samples"
+        return Path(env).expanduser()
+    return cache_dir() / "samples"
 
 
 #: bump when the simulator's output changes for the same recipe, so that cached samples are rebuilt
@@ -73,10 +82,13 @@ def sample_sequence(kind: str = "room", *, root: str | os.PathLike | None = None
     from mapping.simulation import sequences
 
     try:
-        base.mkdir(parents=True, exist_ok=True)
+        if not base.is_dir():
+            base.mkdir(parents=True, exist_ok=True)
+            log.warning("caching the generated sample sequences in %s (RADIOMAP_CACHE_DIR moves the cache; it can be "
+                        "deleted at any time)", base)
         tmp = Path(tempfile.mkdtemp(prefix=f".{kind}.", dir=base))
     except OSError as exc:
-        raise OutputError(f"cannot create the sample cache in {base}: {exc}; set RADIOMAP_SAMPLES_DIR to a "
+        raise OutputError(f"cannot create the sample cache in {base}: {exc}; set RADIOMAP_CACHE_DIR to a "
                           "writable folder") from None
     try:
         simulate = getattr(sequences, f"simulate_{recipe['kind']}")

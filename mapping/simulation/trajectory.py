@@ -68,34 +68,17 @@ def _rot_y(a: float) -> np.ndarray:
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a rotation matrix (Shepperd's method,
-    numerically stable for every rotation)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    """Unit quaternion ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a rotation matrix (scipy's ``Rotation``)."""
+    from mapping.metrics import matrix_to_quaternion
+
+    return matrix_to_quaternion(np.asarray(R, dtype=np.float64).reshape(3, 3))
 
 
 def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
-    """Rotation matrix of a quaternion ``(qx, qy, qz, qw)`` (normalised first)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    """Rotation matrix of a quaternion ``(qx, qy, qz, qw)`` (normalised first; scipy's ``Rotation``)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64).reshape(4)).as_matrix()
 
 
 def pose_to_tum(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

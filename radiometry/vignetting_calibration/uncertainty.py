@@ -21,8 +21,8 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
 - ``response``: the response's error propagated, ``dlnV(x) = d ln f^-1(z_x) - d ln f^-1(z_centre)`` at the mean
   level ``z`` each pixel saw, averaged over the levels a pixel's noise spreads its samples. When the response's
   ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel, as
-  :func:`~radiometry.response_fit.fit_response_debevec` and
-  :func:`~radiometry.response_loglog.fit_response_loglog` record it) that is
+  :func:`~radiometry.response.fit.fit_response_debevec` and
+  :func:`~radiometry.response.loglog.fit_response_loglog` record it) that is
   propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``); else its roughness, the departure of ``ln f^-1`` from a
   local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape

@@ -1,5 +1,5 @@
 """OpenCV's response calibrations (``CalibrateDebevec``, ``CalibrateRobertson``) behind radiomap's interface, for
-comparison (:func:`radiometry.response_fit.fit_response` with ``method="opencv-debevec"`` or ``"robertson"``)."""
+comparison (:func:`radiometry.response.fit.fit_response` with ``method="opencv-debevec"`` or ``"robertson"``)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError
-from radiometry.response import LEVELS, CameraResponse
-from radiometry.response_fit import _LEVELS, DEFAULT_LAMBDA, _as_stack, _check_brightness_order, _finish
+from radiometry.response.model import LEVELS, CameraResponse
+from radiometry.response.debevec import _LEVELS, DEFAULT_LAMBDA, _finish
+from radiometry.response.inputs import _as_stack, _check_brightness_order
 
 
 def _fill_log_table(ln_f: np.ndarray, valid: np.ndarray) -> np.ndarray:

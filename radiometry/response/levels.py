@@ -26,10 +26,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from radiometry.errors import CalibrationError
+
+if TYPE_CHECKING:
+    from radiometry.response.model import CameraResponse
 
 log = logging.getLogger(__name__)
 
@@ -336,4 +340,14 @@ def prepare(stack: np.ndarray, times: np.ndarray, valid: np.ndarray | None, limi
     return per_channel, valid, meta
 
 
-__all__ = ["blockiness", "ChannelLevels", "channel_levels", "detect_levels", "describe", "edge_mask", "prepare"]
+def declared(response: CameraResponse, channels: int) -> list[tuple[int, int]]:
+    """The levels a response declares constrained per channel (``meta["declared_levels"]``, else its observed range,
+    else 5..250)."""
+    given = response.meta.get("declared_levels") or response.meta.get("observed_range")
+    if isinstance(given, list) and len(given) in (1, channels):
+        pairs = [(max(int(lo), 1), min(int(hi), 254)) for lo, hi in given]
+        return pairs * channels if len(pairs) == 1 else pairs
+    return [(5, 250)] * channels
+
+
+__all__ = ["declared", "blockiness", "ChannelLevels", "channel_levels", "detect_levels", "describe", "edge_mask", "prepare"]

@@ -17,7 +17,7 @@ The fit, per channel:
   (``ln E_i`` is the weighted mean of ``g(z_ij) - ln t_j``), leaving a 256 x 256 linear system in ``g``, divided by
   the sum of weights (so ``lam`` keeps its meaning whatever the number of pixels);
 - prior: ``lam * sum_z (rho(z) d_z)^2`` with ``d_z`` the change of the elasticity between the midpoints around
-  observed level ``z`` (:func:`radiometry.response_engel.loglog_curvature_rows`, ``1/z`` weighted) and the extra
+  observed level ``z`` (:func:`radiometry.response.engel.loglog_curvature_rows`, ``1/z`` weighted) and the extra
   weight ``rho(z) = (128 / z)^2``: a knee at a bright level costs little, a periodic wiggle repeated in the dark
   octaves (where an octave spans few levels) costs a lot;
 - knee-preserving smoothness: ``smooth * sum_z w(z) huber(g''(z))`` (Huber threshold 1e-4, by 6 rounds of
@@ -35,7 +35,7 @@ kink 4x, flat-then-steep, EuRoC), varied ratios 0.25 / 0.24 / 0.34 / 0.73 / 0.39
 (with the vignetting measure above); on another scene and noise seed (640x480) the worst curve is 0.89 % (2x) and
 0.74 % (varied), at 320x240 0.78 % and 0.74 %.
 
-Levels without observations and normalisation as :mod:`radiometry.response_engel`: unobserved levels inside the
+Levels without observations and normalisation as :mod:`radiometry.response.engel`: unobserved levels inside the
 observed span are interpolated, outside it extrapolated (``meta["extrapolated_levels"]``), ``f^-1(255) = 1``.
 Monotonicity is a constraint of the last solve, not a repair: where the minimum decreases, neighbouring levels are
 tied and the energy minimised again over the tied values until it does not (``meta["pooled_levels"]``; ties are
@@ -53,10 +53,10 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError
-from radiometry.response import LEVELS, CameraResponse, repair_monotone
-from radiometry.response_engel import (DEFAULT_PIXELS, MIN_STEP, _complete, _observations, equal_ratios,
+from radiometry.response.model import LEVELS, CameraResponse, repair_monotone
+from radiometry.response.engel import (DEFAULT_PIXELS, MIN_STEP, _complete, _observations, equal_ratios,
                                        loglog_curvature_rows)
-from radiometry.response_fit import _as_stack, _check_brightness_order, _check_levels, _check_mask
+from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask
 
 log = logging.getLogger(__name__)
 
@@ -244,13 +244,13 @@ def fit_response_loglog(images: Sequence[np.ndarray], times: Sequence[float], *,
     smoothness (0 = none). ``pixels``: at most this many pixels per
     channel (seeded random subset; None = all). ``mask``: boolean ``(H, W)``, True = usable. ``levels``: the valid
     intensity range (inclusive) for every channel; observations outside it are ignored; ``"auto"`` (default): per
-    channel, the levels between the floor and the ceiling found in the data (:mod:`radiometry.response_levels`: a
+    channel, the levels between the floor and the ceiling found in the data (:mod:`radiometry.response.levels`: a
     channel that saturates at 241 is fitted below it, the levels above are extrapolated and declared so in
     ``meta["declared_levels"]``). ``edges``: drop the pixels near strong edges (JPEG ringing and chroma
-    subsampling; :func:`radiometry.response_levels.edge_mask`): True, False, or ``"auto"`` (default) when the stack
+    subsampling; :func:`radiometry.response.levels.edge_mask`): True, False, or ``"auto"`` (default) when the stack
     looks JPEG-compressed.
     """
-    from radiometry.response_levels import _pile, prepare, stalled_observations
+    from radiometry.response.levels import _pile, prepare, stalled_observations
 
     if pixels is not None and (int(pixels) != pixels or pixels < 2):
         raise ValueError(f"pixels must be a whole number >= 2 (pixels used per channel) or None for all, "

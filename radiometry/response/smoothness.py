@@ -1,9 +1,9 @@
 """Debevec's smoothness weight chosen from the data: cross-validation on held-out pixels.
 
 For each candidate ``lambda`` in :data:`LAMBDA_GRID` and each of ``folds`` random splits of the sampled
-pixels, the response is fitted on the other folds' pixels (:func:`radiometry.response_fit._solve_debevec_channel`)
+pixels, the response is fitted on the other folds' pixels (:func:`radiometry.response.fit._solve_debevec_channel`)
 and scored on the held-out ones: each held-out pixel's irradiance is merged from its own observations (hat
-weights, as :func:`radiometry.response_fit.merge_radiance` does) and every observation is predicted back as
+weights, as :func:`radiometry.response.fit.merge_radiance` does) and every observation is predicted back as
 ``f(E t_j)``; the score is the mean squared prediction error in 8-bit levels over all channels. The lambda with
 the lowest score wins (ties: the larger lambda, the smoother curve).
 
@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from radiometry.response import LEVELS
+from radiometry.response.debevec import HAT_WEIGHTS, _solve_debevec_channel
+from radiometry.response.model import LEVELS
 
 LAMBDA_GRID = (0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 DEFAULT_FOLDS = 3
@@ -27,7 +28,6 @@ _LEVELS_F = np.arange(LEVELS, dtype=np.float64)
 def held_out_error(g: np.ndarray, values: np.ndarray, log_t: np.ndarray, levels: tuple[int, int]) -> tuple[float, int]:
     """Sum of squared level errors and observation count of predicting ``values`` (``(P, S)`` uint8 of held-out
     pixels) through ``g = ln f^-1`` (256,)."""
-    from radiometry.response_fit import HAT_WEIGHTS
 
     lo, hi = levels
     usable = (values >= lo) & (values <= hi)
@@ -45,13 +45,12 @@ def held_out_error(g: np.ndarray, values: np.ndarray, log_t: np.ndarray, levels:
 def cross_validate_lambda(channels: list[np.ndarray], log_t: np.ndarray, levels: tuple[int, int], *,
                           grid: tuple[float, ...] = LAMBDA_GRID, folds: int = DEFAULT_FOLDS,
                           seed: int = 0) -> tuple[float, dict[str, float]]:
-    """Pick lambda for :func:`radiometry.response_fit.fit_response_debevec`.
+    """Pick lambda for :func:`radiometry.response.fit.fit_response_debevec`.
 
     ``channels``: per channel, the ``(P, S)`` uint8 values of the sampled pixels. Returns the chosen lambda and
     the score (mean squared held-out error, levels^2) of every candidate.
     """
     from radiometry.errors import CalibrationError
-    from radiometry.response_fit import _solve_debevec_channel
 
     rng = np.random.default_rng(seed)
     splits = [rng.integers(0, folds, values.shape[1]) for values in channels]

@@ -15,13 +15,13 @@ Methods (one function each, plus the :func:`fit_response` dispatcher):
   Noise biases any such fit towards the radiances that fill many pixels (errors in the regressor);
   averaging several frames per exposure, as radical does, reduces it.
   ``lam="auto"`` chooses the smoothness weight by cross-validation on held-out pixels
-  (:mod:`radiometry.response_lambda`).
-- ``"engel"`` (:func:`radiometry.response_engel.fit_response_engel`): maximum likelihood over all
+  (:mod:`radiometry.response.smoothness`).
+- ``"engel"`` (:func:`radiometry.response.engel.fit_response_engel`): maximum likelihood over all
   (subsampled) pixels without a smoothness prior, alternating closed-form updates of irradiance and response
   as TUM's ``mono_dataset_code`` and radical do. It keeps a knee, but needs exposure ratios that are not all
   equal: with brackets at exactly 2x steps ``f^-1`` is determined only up to a factor periodic in ``ln E``
   (period ``ln 2``) that nothing but noise and quantisation constrain.
-- ``"loglog"`` (:func:`radiometry.response_loglog.fit_response_loglog`): Debevec's data term over all (subsampled)
+- ``"loglog"`` (:func:`radiometry.response.loglog.fit_response_loglog`): Debevec's data term over all (subsampled)
   pixels with a prior on the log-log curvature of ``f^-1`` (zero for every gamma curve), which picks the member of
   the equal-ratio ambiguity closest to real curves and keeps knees. The default (``"auto"``): the most accurate
   over the test set of curves, equal ratios or not (figures in :func:`fit_response_auto`).
@@ -48,107 +48,15 @@ import numpy as np
 
 from radiometry.errors import CalibrationError, DatasetError
 from radiometry.registry import Registry
-from radiometry.response import LEVELS, CameraResponse
+from radiometry.response.debevec import (_LEVELS, DEFAULT_LAMBDA, DEFAULT_SAMPLES, HAT_WEIGHTS, _finish, _solve_debevec_channel,
+                                         select_samples)
+from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask, equal_ratios
+from radiometry.response.levels import declared
+from radiometry.response.model import LEVELS, CameraResponse
 
 log = logging.getLogger(__name__)
 
-DEFAULT_LAMBDA = 10.0
-DEFAULT_SAMPLES = 50
-GAUGE_LEVEL = 128
 TIMES_FILE_NAMES = ("times.txt", "image_list.txt")
-
-_LEVELS = np.arange(LEVELS)
-#: Debevec's hat weight ``w(z) = min(z, 255 - z)``: 0 at the empty (0) and saturated (255) levels.
-HAT_WEIGHTS = np.minimum(_LEVELS, 255 - _LEVELS).astype(np.float64)
-
-
-# --------------------------------------------------------------------------------------------------
-# input validation
-# --------------------------------------------------------------------------------------------------
-def _as_stack(images: Sequence[np.ndarray], times: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Check images and times; return ``(P, H, W, C)`` uint8 and float64 ``(P,)`` times (input order)."""
-    try:
-        images = list(images)
-    except TypeError:
-        raise TypeError(f"images must be a list of arrays, got {type(images).__name__}") from None
-    if len(images) < 2:
-        raise ValueError(f"images must hold at least 2 exposures, got {len(images)}; pass a bracketed stack")
-    arrays = []
-    for k, img in enumerate(images):
-        arr = np.asarray(img)
-        if arr.ndim == 3 and arr.shape[2] == 1:
-            arr = arr[:, :, 0]
-        if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
-            raise ValueError(f"images[{k}] must be (H, W) grayscale or (H, W, 3) RGB, got shape {arr.shape}")
-        if arr.dtype != np.uint8:
-            if np.issubdtype(arr.dtype, np.integer) and arr.size and arr.min() >= 0 and arr.max() <= 255:
-                arr = arr.astype(np.uint8)
-            else:
-                raise TypeError(f"images[{k}] must be uint8 (levels 0..255), got {arr.dtype}; "
-                                "convert 16-bit images with (img >> 8).astype(np.uint8)")
-        arrays.append(arr)
-    shape = arrays[0].shape
-    for k, arr in enumerate(arrays):
-        if arr.shape != shape:
-            raise ValueError(f"images must all have the same shape: images[0] is {shape}, "
-                             f"images[{k}] is {arr.shape}")
-    stack = np.stack(arrays)
-    if stack.ndim == 3:
-        stack = stack[..., None]
-    t = np.asarray(times, dtype=np.float64).ravel() if not isinstance(times, (str, bytes)) else None
-    if t is None:
-        raise TypeError("times must be a sequence of exposure times in seconds")
-    if t.size != len(arrays):
-        raise ValueError(f"times must have one exposure time per image: {len(arrays)} images, {t.size} times")
-    if not np.all(np.isfinite(t)) or np.any(t <= 0):
-        raise ValueError(f"times must be positive finite seconds, got {t.tolist()}")
-    if np.unique(t).size < 2:
-        raise ValueError(f"times must contain at least two different exposure times, got {t.tolist()}; give each "
-                         "image its own exposure time, and capture the bracket at two or more different exposures")
-    return stack, t
-
-
-def _check_brightness_order(stack: np.ndarray, times: np.ndarray) -> None:
-    """Longer exposures must be brighter: reject times that are clearly inverted (e.g. a 1/t column)."""
-    means = stack.reshape(stack.shape[0], -1).mean(axis=1)
-    concordant = discordant = 0
-    for a in range(len(times)):
-        for b in range(a + 1, len(times)):
-            if times[a] == times[b] or abs(means[a] - means[b]) < 1.0:
-                continue
-            if (times[a] < times[b]) == (means[a] < means[b]):
-                concordant += 1
-            else:
-                discordant += 1
-    if discordant > 0 and discordant >= 2 * concordant:
-        raise ValueError(
-            "times are inverted: the images with the longest times are the darkest "
-            f"({discordant} of {concordant + discordant} pairs disagree); pass exposure times in seconds, "
-            "not 1/t (in image_list.txt the second column is seconds, the third 1/t)")
-
-
-def _check_levels(levels) -> tuple[int, int]:
-    """The (low, high) intensity levels a fit uses, checked."""
-    try:
-        lo, hi = (int(v) for v in levels)
-    except (TypeError, ValueError):
-        raise TypeError(f"levels must be a pair (low, high) of intensity levels, got {levels!r}") from None
-    if not (1 <= lo and hi <= 254 and hi - lo >= 16):
-        raise ValueError(f"levels must satisfy 1 <= low, high <= 254 and span at least 16 levels, got {levels!r}")
-    return lo, hi
-
-
-def _check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
-    if mask is None:
-        return None
-    m = np.asarray(mask)
-    if m.shape != shape:
-        raise ValueError(f"mask must have the image shape {shape}, got {m.shape}")
-    if m.dtype != bool:
-        raise TypeError(f"mask must be a boolean array (True = usable pixel), got {m.dtype}")
-    if not m.any():
-        raise ValueError("mask excludes every pixel; True marks the pixels to use")
-    return m
 
 
 def blue_fill_mask(images: Sequence[np.ndarray], *, tolerance: int = 8, dilate: int = 2) -> np.ndarray:
@@ -180,171 +88,9 @@ def blue_fill_mask(images: Sequence[np.ndarray], *, tolerance: int = 8, dilate: 
 # --------------------------------------------------------------------------------------------------
 # sampling
 # --------------------------------------------------------------------------------------------------
-def select_samples(values: np.ndarray, times: np.ndarray, *, samples: int = DEFAULT_SAMPLES,
-                   valid: np.ndarray | None = None, levels: tuple[int, int] = (1, 254),
-                   seed: int = 0) -> np.ndarray:
-    """Pixel indices stratified over intensity, as radical samples (one channel).
-
-    ``values`` is ``(P, N)`` uint8 (P exposures, N pixels); ``valid`` an optional ``(N,)`` boolean mask.
-    From the top of ``levels`` (valid range, inclusive) down, pixels of each level in the longest
-    exposure are taken in random (spatially spread) order until the level has ``samples`` valid
-    observations, counted over all exposures of the pixels taken so far (radical's rule). Levels still
-    short of observations are then filled the same way from the next longest exposure (among the pixels
-    not taken yet), and so on: this reaches the pixels saturated in the longest exposure and the levels
-    that only the shorter ones show.
-    """
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1 observation per level, got {samples}")
-    values = np.asarray(values)
-    n_img, n_pix = values.shape
-    rng = np.random.default_rng(seed)
-    lo, hi = levels
-    usable = (values >= lo) & (values <= hi)
-    free = np.ones(n_pix, bool) if valid is None else np.asarray(valid, bool).copy()
-    hist = np.zeros(LEVELS, dtype=np.int64)
-    chosen: list[np.ndarray] = []
-    for j in np.argsort(-np.asarray(times), kind="stable"):
-        if np.all(hist[lo:hi + 1] >= samples):
-            break
-        short = np.zeros(LEVELS, bool)
-        short[lo:hi + 1] = hist[lo:hi + 1] < samples
-        pool = np.flatnonzero(free & short[values[j]])  # pixels of the levels still short, not taken yet
-        if pool.size == 0:
-            continue
-        pool = pool[rng.permutation(pool.size)]
-        pool_levels = values[j, pool]
-        by_level = np.argsort(pool_levels, kind="stable")
-        bounds = np.searchsorted(pool_levels[by_level], np.arange(LEVELS + 1))
-        for z in range(hi, lo - 1, -1):
-            need = samples - hist[z]
-            if need <= 0:
-                continue
-            # every candidate adds at least its own observation of z: `need` of them always suffice
-            cand = pool[by_level[bounds[z]:min(bounds[z + 1], bounds[z] + need)]]
-            if cand.size == 0:
-                continue
-            gain = (values[:, cand] == z).sum(axis=0)
-            picked = cand[:int(np.searchsorted(np.cumsum(gain), need)) + 1]
-            chosen.append(picked)
-            free[picked] = False
-            hist += np.bincount(values[:, picked][usable[:, picked]], minlength=LEVELS)
-    if not chosen:
-        return np.empty(0, dtype=np.intp)
-    return np.sort(np.concatenate(chosen))
-
-
 # --------------------------------------------------------------------------------------------------
 # Debevec & Malik, sparse
 # --------------------------------------------------------------------------------------------------
-def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
-                           levels: tuple[int, int] = (1, 254), *, stderr: bool = False,
-                           stalled: np.ndarray | None = None) -> dict[str, Any]:
-    """Solve one channel. ``values`` is ``(P, S)`` uint8 of the sampled pixels.
-
-    Returns ``g`` (256,), ``ln_e`` (S,) and the observations used (image, pixel, level index arrays);
-    ``stderr=True`` adds ``log_stderr`` (:func:`_log_stderr`).
-    The unknowns are ordered ``ln E`` first, then ``g`` (without the gauge level), so that factorising the
-    sparse normal equations in natural order eliminates the diagonal ``ln E`` block first: the only fill-in
-    is the 255 x 255 block of ``g`` and the cost grows linearly with the number of samples.
-    """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
-    n_img, n_pix = values.shape
-    inside = (values >= levels[0]) & (values <= levels[1])
-    if stalled is not None:  # saturated pixels below the level cut (radiometry.response_levels)
-        inside &= ~stalled
-    w_obs = np.where(inside, HAT_WEIGHTS[values], 0.0)
-    seen = (w_obs > 0).any(axis=0)
-    if not seen.all():  # pixels left with no usable observation carry no information (and no row for their ln E)
-        values, w_obs = values[:, seen], w_obs[:, seen]
-        n_pix = values.shape[1]
-    img_idx, pix_idx = np.nonzero(w_obs > 0)
-    z = values[img_idx, pix_idx].astype(np.intp)
-    w = w_obs[img_idx, pix_idx]
-    n_obs = z.size
-    if n_obs == 0:
-        raise CalibrationError("no usable observations (every sampled pixel is outside the valid levels); "
-                               "check the exposures, the mask and the levels")
-    per_pixel = np.bincount(pix_idx, minlength=n_pix)
-    multi = per_pixel[pix_idx] >= 2
-    if not multi.any() or np.unique(log_t[img_idx[multi]]).size < 2:
-        raise CalibrationError("no pixel is unsaturated in two different exposures, so the response is not "
-                               "observable; add exposures that overlap (e.g. one stop apart)")
-
-    gcol = n_pix + np.where(_LEVELS < GAUGE_LEVEL, _LEVELS, _LEVELS - 1)
-    gcol[GAUGE_LEVEL] = -1
-    n_cols = n_pix + LEVELS - 1
-    # data rows w (g(z) - ln E_i) = w ln t_j (the weights are applied in the normal equations)
-    keep = z != GAUGE_LEVEL
-    r = np.arange(n_obs)
-    data = sp.csr_matrix((np.concatenate([-np.ones(n_obs), np.ones(int(keep.sum()))]),
-                          (np.concatenate([r, r[keep]]), np.concatenate([pix_idx, gcol[z[keep]]]))),
-                         shape=(n_obs, n_cols))
-    # smoothness rows: lam' w(k) (g(k-1) - 2 g(k) + g(k+1)) = 0, k = 1..254, lam' = lam sqrt(obs per level)
-    k = np.arange(1, LEVELS - 1)
-    sw = lam * math.sqrt(n_obs / (LEVELS - 2)) * HAT_WEIGHTS[k]
-    rows, cols, vals = [], [], []
-    for offset, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
-        lev = k + offset
-        m = lev != GAUGE_LEVEL
-        rows.append(np.arange(k.size)[m])
-        cols.append(gcol[lev[m]])
-        vals.append(coef * sw[m])
-    smooth = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(k.size, n_cols))
-    dw = sp.diags(w * w) @ data
-    ata = ((data.T @ dw) + (smooth.T @ smooth)).tocsc()
-    atb = dw.T @ log_t[img_idx]
-    try:
-        lu = splu(ata, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        x = lu.solve(atb)
-    except RuntimeError as exc:  # "Factor is exactly singular"
-        raise CalibrationError(f"the least-squares system is singular ({exc}); add overlapping exposures "
-                               "or more samples") from None
-    if not np.all(np.isfinite(x)):
-        raise CalibrationError("the least-squares solve gave non-finite values; add overlapping exposures "
-                               "or more samples")
-    g = np.insert(x[n_pix:], GAUGE_LEVEL, 0.0)
-    out = {"g": g, "ln_e": x[:n_pix], "img": img_idx, "pix": pix_idx, "z": z}
-    if stderr:
-        out["log_stderr"] = _log_stderr(lu, n_pix, g[z] - x[pix_idx] - log_t[img_idx], w, pix_idx, z, n_obs - n_cols)
-    return out
-
-
-def _log_stderr(lu, n_pix: int, residual: np.ndarray, w: np.ndarray, pix: np.ndarray, z: np.ndarray,
-                dof: int) -> np.ndarray:
-    """Standard error of ``g(z) - g(255)`` (= of ``ln f^-1(z)`` normalised to 1 at 255) per level, (256,).
-
-    The sandwich covariance of the solve, ``M^-1 A^T W^2 diag(s^2) W^2 A M^-1`` with ``M`` the factorised normal
-    equations (``lu``; the smoothness rows are a fixed part of the estimator, not random) and ``s^2`` the data
-    rows' residual variance at each level (levels differ: quantisation in ``ln`` grows towards the dark end),
-    inflated by ``observations / dof``; the normalisation at level 255 is propagated with its covariance. It
-    measures the noise of the sampled pixels, not the prior's bias (a rounded knee) nor the factor periodic in
-    ``ln E`` that equal exposure ratios leave undetermined.
-    """
-    import scipy.sparse as sp
-
-    n_g = LEVELS - 1
-    unit = np.zeros((n_pix + n_g, n_g))
-    unit[n_pix + np.arange(n_g), np.arange(n_g)] = 1.0
-    inv = np.asarray(lu.solve(unit)).T  # rows of M^-1 for the g unknowns (M symmetric), (255, n_cols)
-    g_of_level = np.insert(inv[:, n_pix:], GAUGE_LEVEL, 0.0, axis=1)  # d g / d (A^T b) at each level's column
-    per_pixel = inv[:, :n_pix]
-    count = np.maximum(np.bincount(z, minlength=LEVELS), 1)
-    var_level = np.bincount(z, weights=residual ** 2, minlength=LEVELS) / count * (residual.size / max(dof, 1))
-    c = w ** 4 * var_level[z]  # a data row's weight w^2, squared, times its noise variance
-    # sum over rows of c (G_z - G_pix)(G_z - G_pix)^T, grouped by level, by pixel and by (level, pixel)
-    by_level = (g_of_level * np.bincount(z, weights=c, minlength=LEVELS)) @ g_of_level.T
-    by_pixel = (per_pixel * np.bincount(pix, weights=c, minlength=n_pix)) @ per_pixel.T
-    pairs = sp.csr_matrix((c, (z, pix)), shape=(LEVELS, n_pix))
-    cross = g_of_level @ np.asarray(pairs @ per_pixel.T)
-    cov = by_level + by_pixel - cross - cross.T
-    cov = np.insert(np.insert(cov, GAUGE_LEVEL, 0.0, axis=0), GAUGE_LEVEL, 0.0, axis=1)  # g(128) = 0 exactly
-    var = np.diag(cov) + cov[-1, -1] - 2.0 * cov[:, -1]
-    return np.sqrt(np.maximum(var, 0.0))
-
-
 def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *, lam: float | str = DEFAULT_LAMBDA,
                          samples: int = DEFAULT_SAMPLES, mask: np.ndarray | None = None,
                          levels: tuple[int, int] | str = "auto", edges: bool | str = "auto",
@@ -352,20 +98,20 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     """Debevec & Malik on a sparse least-squares solve (see the module docstring).
 
     ``lam``: smoothness weight per level of data (> 0), or ``"auto"``: chosen by cross-validation on held-out
-    pixels among :data:`radiometry.response_lambda.LAMBDA_GRID` (``meta["lambda_scores"]`` records every
+    pixels among :data:`radiometry.response.smoothness.LAMBDA_GRID` (``meta["lambda_scores"]`` records every
     candidate's held-out error). ``samples``: target number of observations per
     intensity level. ``mask``: boolean ``(H, W)``, True = usable pixel (see :func:`blue_fill_mask`).
     ``levels``: the valid intensity range (inclusive, like radical's ``--valid-min/--valid-max``):
     observations outside it are ignored, e.g. a black-level floor or a clip below 255; the response is
     still estimated (extrapolated) there; ``"auto"`` (default): per channel from the data, with the saturated
     observations below the cut left out too, and ``edges`` drops the pixels near strong edges
-    (:mod:`radiometry.response_levels`, as :func:`radiometry.response_loglog.fit_response_loglog`). ``seed``:
+    (:mod:`radiometry.response.levels`, as :func:`radiometry.response.loglog.fit_response_loglog`). ``seed``:
     sampling order. The result is repaired to strictly increasing only if the solve is not (``meta["repaired"]``,
     ``meta["repaired_levels"]``). ``meta``
     also records the sampled pixels and observations per channel, the levels never observed, those outside the
     observed span (``extrapolated_levels``: their values come from the smoothness term alone), ``inverse_stderr``
     (per level and channel, the relative standard error of ``f^-1`` from the fit's covariance, see
-    :func:`_log_stderr`: noise only, not the prior's bias) and ``fit_rms_levels`` (observed level minus
+    :func:`~radiometry.response.debevec._log_stderr`: noise only, not the prior's bias) and ``fit_rms_levels`` (observed level minus
     ``f(E_i t_j)`` over the samples, 8-bit levels).
     """
     auto = isinstance(lam, str) and lam == "auto"
@@ -374,7 +120,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                          f"got {lam!r}")
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive whole number of observations per level, got {samples}")
-    from radiometry.response_levels import _pile, prepare, stalled_observations
+    from radiometry.response.levels import _pile, prepare, stalled_observations
 
     if not isinstance(levels, str):
         levels = _check_levels(levels)
@@ -400,7 +146,7 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         stalls.append(stalled_observations(values[:, idx], t, _pile(level_meta, c)) if levels == "auto" else None)
     scores = None
     if auto:
-        from radiometry.response_lambda import cross_validate_lambda
+        from radiometry.response.smoothness import cross_validate_lambda
 
         lam, scores = cross_validate_lambda(sampled, log_t, (max(lv[0] for lv in channel_levels),
                                                              min(lv[1] for lv in channel_levels)), seed=seed)
@@ -449,31 +195,16 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
     return response
 
 
-def _finish(g: np.ndarray, meta: dict[str, Any]) -> CameraResponse:
-    """Build the model from ``g = ln f^-1``; repair monotonicity only if needed and record it."""
-    g = np.asarray(g, dtype=np.float64)
-    bad = [np.flatnonzero(np.diff(g[:, c]) <= 0).tolist() for c in range(g.shape[1])]
-    repaired = any(bad)
-    meta = dict(meta, repaired=repaired)
-    if repaired:
-        meta["repaired_levels"] = [[int(i) + 1 for i in b] for b in bad]
-        log.warning("the fitted response is not strictly increasing at %d level(s); repaired (running maximum)",
-                    sum(len(b) for b in bad))
-    return CameraResponse.from_log_table(g, repair=repaired, **meta)
-
-
 # --------------------------------------------------------------------------------------------------
 # dispatcher
 # --------------------------------------------------------------------------------------------------
 def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kwargs: Any) -> CameraResponse:
-    """The log-log fit (:func:`radiometry.response_loglog.fit_response_loglog`), the most accurate over the test set
+    """The log-log fit (:func:`radiometry.response.loglog.fit_response_loglog`), the most accurate over the test set
     of curves (``scripts/bench_calibration.py``, 640x480, max ``|f^-1 - truth|`` over levels 5..250, worst channel:
     at most 0.82 % of the range with exactly 2x brackets and 0.73 % with varied ratios, against Debevec's 1.59 % /
     1.67 % and Engel's 6.15 % / 0.82 %); Debevec & Malik when Debevec's own options are given (``samples``, or
     ``lam="auto"``: its cross-validation). A numeric ``lam`` is refused: it means the smoothness for Debevec
     (default 10) and the prior's weight for loglog (0.1), so name the method. ``meta["chosen_by"]`` says why."""
-    from radiometry.response_engel import equal_ratios
-
     kwargs = {k: v for k, v in kwargs.items() if not (k in ("lam", "samples") and v is None)}
     ratio = equal_ratios(np.asarray(times, dtype=np.float64))
     if "samples" in kwargs or kwargs.get("lam") == "auto":
@@ -495,10 +226,10 @@ def fit_response_auto(images: Sequence[np.ndarray], times: Sequence[float], **kw
 FITTERS = Registry("method", {
     "auto": fit_response_auto,
     "debevec": fit_response_debevec,
-    "engel": "radiometry.response_engel:fit_response_engel",
-    "loglog": "radiometry.response_loglog:fit_response_loglog",
-    "opencv-debevec": "radiometry.response_opencv:fit_response_opencv_debevec",
-    "robertson": "radiometry.response_opencv:fit_response_robertson",
+    "engel": "radiometry.response.engel:fit_response_engel",
+    "loglog": "radiometry.response.loglog:fit_response_loglog",
+    "opencv-debevec": "radiometry.response.opencv:fit_response_opencv_debevec",
+    "robertson": "radiometry.response.opencv:fit_response_robertson",
 })
 #: the method names, in the order the CLI lists them
 METHODS = FITTERS.names()
@@ -516,8 +247,6 @@ def fit_response(images: Sequence[np.ndarray], times: Sequence[float], *, method
 # --------------------------------------------------------------------------------------------------
 def _declared_weights(response: CameraResponse, channels: int) -> np.ndarray:
     """Hat weight per level and channel ``(256, C)``, 0 outside the response's declared levels (else 1..254)."""
-    from radiometry.response_quality import declared
-
     out = np.zeros((LEVELS, channels))
     for c, (lo, hi) in enumerate(declared(response, channels) if response.meta.get("declared_levels")
                                  else [(1, 254)] * channels):

@@ -15,7 +15,7 @@ A user with a real camera has no true curve to compare with. Two figures need no
   scene-dependent errors (a region that does not follow the model) make the halves disagree more.
 
 Both are computed over the levels the fit declares constrained and without the observations it found saturated
-(:mod:`radiometry.response_levels`). :func:`verdict` turns them into a sentence with the thresholds that
+(:mod:`radiometry.response.levels`). :func:`verdict` turns them into a sentence with the thresholds that
 separated good from broken fits in ``scripts/bench_calibration.py --quality`` (docs/calibration_pipelines.md).
 """
 
@@ -28,14 +28,15 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import RadiomapError
-from radiometry.response import LEVELS, CameraResponse
+from radiometry.response.levels import declared
+from radiometry.response.model import LEVELS, CameraResponse
 
 #: held-out RMS over the images' own noise (x 1.2 for the merge's) up to which a response is trusted, and beyond which
 #: it is called broken. Measured: good fits 0.92-1.52 (clean, JPEG q92, noise after the response), a camera moved
 #: 1-2 px 8.4, the wrong curve 18.6; the real stacks memorial (film, reciprocity failure) 2.9 and taipei 2.1
 HOLDOUT_GOOD = 2.0
 HOLDOUT_BROKEN = 4.0
-#: on JPEG stacks (radiometry.response_levels.blockiness) both thresholds are this many times larger: the Laplacian
+#: on JPEG stacks (radiometry.response.levels.blockiness) both thresholds are this many times larger: the Laplacian
 #: misses JPEG's block noise (flat inside a block), which the prediction sees (EuRoC curve through JPEG q75/q92:
 #: 6.7-8.3x with a response within 0.5-2.4 %)
 JPEG_FACTOR = 2.5
@@ -53,19 +54,9 @@ BLOCK = 32
 _HAT = np.maximum(np.minimum(np.arange(LEVELS, dtype=np.float64), 255.0 - np.arange(LEVELS)), 1.0)
 
 
-def declared(response: CameraResponse, channels: int) -> list[tuple[int, int]]:
-    """The levels a response declares constrained per channel (``meta["declared_levels"]``, else its observed range,
-    else 5..250)."""
-    given = response.meta.get("declared_levels") or response.meta.get("observed_range")
-    if isinstance(given, list) and len(given) in (1, channels):
-        pairs = [(max(int(lo), 1), min(int(hi), 254)) for lo, hi in given]
-        return pairs * channels if len(pairs) == 1 else pairs
-    return [(5, 250)] * channels
-
-
 def _usable(stack: np.ndarray, times: np.ndarray, levels: list[tuple[int, int]]) -> np.ndarray:
     """``(P, N, C)`` boolean: observations within the declared levels and not stalled (saturated)."""
-    from radiometry.response_levels import stalled_observations
+    from radiometry.response.levels import stalled_observations
 
     n_img, n_pix, n_ch = stack.shape
     out = np.zeros(stack.shape, bool)
@@ -130,9 +121,9 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
     """Each exposure predicted from the others (``refit``: a function ``(images, times) -> response`` that fits
     without it; None: ``response`` for every exposure). Returns ``{"rms": overall, "per_exposure": [...]}``,
     levels."""
-    from radiometry.response_fit import _as_stack
+    from radiometry.response.inputs import _as_stack
 
-    from radiometry.response_levels import BLOCKY, blockiness, edge_mask
+    from radiometry.response.levels import BLOCKY, blockiness, edge_mask
 
     stack, t = _as_stack(images, times)
     n_img, h, w, n_ch = stack.shape
@@ -230,7 +221,7 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     """The quality record of ``response`` on the stack: held-out prediction (refitting without each exposure with
     ``method`` when given, else the response as it is), split-half agreement (when ``method`` is given) and the
     verdict. Saved in the response's meta as ``quality``."""
-    from radiometry.response_fit import fit_response
+    from radiometry.response.fit import fit_response
 
     first = np.asarray(images[0])
     n_ch = 3 if first.ndim == 3 and first.shape[2] == 3 else 1

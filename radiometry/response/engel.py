@@ -26,7 +26,7 @@ changes little (0.67 / 0.75 / 0.68 / 0.82 / 0.69 % against 0.68 / 0.78 / 0.69 / 
 2x brackets no weight helps (worst curve 6.2 % at 0, 4.8 % at 100; from 1000 on the prior rounds the knees, 3.6 %
 and more): Engel's energy itself prefers a member of the 2x ambiguity
 family 6-7 % off (its noise model, relative to ``U^2``, differs from phase to phase of ``ln E``), and a prior
-that overrides that also overrides the data at a knee. :mod:`radiometry.response_loglog` is the fit for those.
+that overrides that also overrides the data at a knee. :mod:`radiometry.response.loglog` is the fit for those.
 
 The exposure design matters more than for Debevec. If the exposure times are all one ratio apart (a bracket
 at exactly 2x steps), the data constrain ``f^-1`` only up to a factor that is periodic in ``ln E`` with the
@@ -68,8 +68,8 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError
-from radiometry.response import LEVELS, CameraResponse, repair_monotone
-from radiometry.response_fit import _as_stack, _check_brightness_order, _check_levels, _check_mask
+from radiometry.response.model import LEVELS, CameraResponse, repair_monotone
+from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask, equal_ratios
 
 log = logging.getLogger(__name__)
 
@@ -103,27 +103,11 @@ def isotonic_increasing(values: np.ndarray, weights: np.ndarray) -> tuple[np.nda
     return out, pooled
 
 
-def equal_ratios(times: np.ndarray, *, tolerance: float = 0.02) -> float | None:
-    """The common ratio of consecutive distinct exposure times if they are all equal within ``tolerance``
-    (relative), else None."""
-    distinct = np.unique(np.asarray(times, dtype=np.float64))
-    if distinct.size < 2:
-        return None
-    with np.errstate(invalid="ignore", divide="ignore"):  # bad times (<= 0, NaN): the fitter refuses them by name
-        ratios = distinct[1:] / distinct[:-1]
-        if distinct.size == 2:
-            return float(ratios[0])
-        spread = np.abs(np.log(ratios / ratios.mean()))
-    if np.all(spread <= tolerance):
-        return float(ratios.mean())
-    return None
-
-
 def _observations(values: np.ndarray, t: np.ndarray, levels: tuple[int, int], pixels: int | None,
                   valid: np.ndarray | None, rng: np.random.Generator,
                   stalled: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Flatten the usable observations of one channel: (pixel index, exposure index, level) arrays. ``stalled``:
-    ``(P, N)`` boolean, observations to leave out (saturated pixels, :mod:`radiometry.response_levels`)."""
+    ``(P, N)`` boolean, observations to leave out (saturated pixels, :mod:`radiometry.response.levels`)."""
     lo, hi = levels
     usable = (values >= lo) & (values <= hi)
     if stalled is not None:

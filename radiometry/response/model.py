@@ -9,7 +9,7 @@ observable from images; a per-channel scale is a white-balance gain and is absor
 interpolation between levels for floats); ``forward(E)`` maps irradiance back to intensity by
 interpolating the table, so ``forward(inverse(I)) == I`` for every level.
 
-Fitting lives in :mod:`radiometry.response_fit`; foreign formats in :mod:`radiometry.formats`.
+Fitting lives in :mod:`radiometry.response.fit`; foreign formats in :mod:`radiometry.formats`.
 """
 
 from __future__ import annotations
