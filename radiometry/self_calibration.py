@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationError
+from radiometry.self_calibration_lsq import exposures_and_radiance as _exposures_and_radiance
 from radiometry.vignetting import LUTVignetting, half_diagonal
 from radiometry.vignetting_calibration.accumulate import REGIONS
 
@@ -216,38 +217,6 @@ def _grid_penalty(nodes: tuple[int, int], tilt_weight=(TILT_WEIGHT, TILT_WEIGHT)
 # --------------------------------------------------------------------------------------------------
 # the solver
 # --------------------------------------------------------------------------------------------------
-def _exposures_and_radiance(y: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,
-                            n_frames: int, fixed: np.ndarray | None = None, kappa_fixed: np.ndarray | None = None
-                            ) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least squares of ``y = kappa_frame + l_point`` with ``kappa`` held at ``kappa_fixed`` on the
-    ``fixed`` frames (default: ``kappa_0 = 0``), exactly (Schur complement)."""
-    if fixed is None:
-        fixed = np.arange(n_frames) == 0
-    known = np.zeros(n_frames) if kappa_fixed is None else np.where(fixed, np.nan_to_num(kappa_fixed), 0.0)
-    y = y - known[frame]
-    from scipy import sparse
-
-    b = sparse.coo_matrix((w, (point, frame)), shape=(n_points, n_frames)).tocsr()
-    dp = np.asarray(b.sum(axis=1)).ravel()
-    df = np.asarray(b.sum(axis=0)).ravel()
-    sy_p = np.bincount(point, w * y, minlength=n_points)
-    sy_f = np.bincount(frame, w * y, minlength=n_frames)
-    inv_dp = np.where(dp > 0, 1.0 / np.maximum(dp, 1e-300), 0.0)
-    bs = sparse.diags(np.sqrt(inv_dp)) @ b
-    schur = np.diag(df) - (bs.T @ bs).toarray()
-    rhs = sy_f - b.T @ (inv_dp * sy_p)
-    seen = (df > 0) & ~fixed      # the fixed frames keep their known kappa
-    kappa = np.zeros(n_frames)
-    sub = np.ix_(seen, seen)
-    ridge = 1e-9 * max(float(np.max(df)), 1.0)
-    kappa[seen] = np.linalg.solve(schur[sub] + ridge * np.eye(int(seen.sum())), rhs[seen])
-    kappa[~fixed & (df == 0)] = np.nan
-    kappa[fixed] = known[fixed]
-    kf = np.nan_to_num(kappa) - known
-    lp = inv_dp * np.bincount(point, w * (y - kf[frame]), minlength=n_points)
-    return kappa, lp
-
-
 def _huber_weights(res: np.ndarray, huber: float) -> tuple[np.ndarray, float]:
     scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-4)
     a = np.abs(res) / (huber * scale)

@@ -66,7 +66,7 @@ class TiltVisibility:
 def _absorb(field: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,
             n_frames: int, fixed: np.ndarray) -> np.ndarray:
     """``field`` less its best weighted fit by radiances and exposures (the ``fixed`` frames' held)."""
-    from radiometry.self_calibration import _exposures_and_radiance
+    from radiometry.self_calibration_lsq import exposures_and_radiance as _exposures_and_radiance
 
     kappa, lp = _exposures_and_radiance(field, w, point, frame, n_points, n_frames, fixed, np.zeros(n_frames))
     return field - np.nan_to_num(kappa)[frame] - lp[point]

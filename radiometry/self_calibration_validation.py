@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from radiometry.self_calibration import Observations, SelfCalibration, _exposures_and_radiance
+from radiometry.self_calibration import Observations, SelfCalibration
+from radiometry.self_calibration_lsq import exposures_and_radiance as _exposures_and_radiance
 
 #: the default split: every 5th frame withheld
 DEFAULT_HOLDOUT = "every:5"
