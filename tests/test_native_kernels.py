@@ -316,6 +316,13 @@ def test_pyrdown(shape, diff):
 
 
 @needs_c
+def test_pyrdown_twins_agree_on_a_small_image():
+    """The fast tier's check of the two depth-pyramid kernels (the C one and its Numba twin in
+    mapping/_pyramid_kernels.py); test_pyrdown runs every shape and threshold."""
+    test_pyrdown((37, 51), 0.14)
+
+
+@needs_c
 @pytest.mark.parametrize("gamma", [1.0, 2.2, 3.0])
 def test_display_lookups(gamma):
     from mapping.colour import FastForward

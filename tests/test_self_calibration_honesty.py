@@ -409,3 +409,21 @@ def test_compare_ec_methods_take_given_exposures(room, tmp_path):
     np.testing.assert_allclose(got["k"], k[:6] / k[0], rtol=1e-5)
     res = CliRunner().invoke(cli, [*base[:3], str(tmp_path / "cmp2"), *base[4:], "--methods", "response"])
     assert res.exit_code == 2 and "applies to the +ec methods only" in res.output
+
+
+def test_given_exposures_are_looked_up_relative_to_the_first_frame():
+    from types import SimpleNamespace
+
+    from mapping.exposure_compensation.given import GivenExposures
+    from radiometry.response import CameraResponse
+
+    est = GivenExposures(CameraResponse.gamma(2.2), known={5: [2.0, 2.0, 4.0], 6: 3.0}, source="k.txt")
+    first = est.estimate(SimpleNamespace(index=5, timestamp=0.0))
+    second = est(SimpleNamespace(index=6, timestamp=0.1))
+    assert first.source == "reference" and np.allclose(first.k, 1.0)
+    np.testing.assert_allclose(second, [1.5, 1.5, 0.75])
+    assert est.records[-1].source == "given" and est.settings() == {"given": "k.txt", "frames": 2}
+    with pytest.raises(KeyError, match="frame 7 has no given exposure"):
+        est.estimate(SimpleNamespace(index=7, timestamp=0.2))
+    with pytest.raises(ValueError, match="finite and > 0"):
+        GivenExposures(CameraResponse.gamma(2.2), known={1: [1.0, -1.0, 1.0]})
