@@ -29,10 +29,15 @@ The solver (:func:`self_calibrate`) works per channel, in log space, by iterativ
 ``V``'s terms are evaluated on observations binned by image position (:data:`POSITION_BINS` across).
 
 A camera that only pans moves points by a common image shift, and then a tilt of ``log V`` is indistinguishable
-from a drift of the exposures; parallax and rotation break the tie, weakly. The grid carries no tilt (penalised),
-so a tilt can only come from the polynomial's centre, which has a weak prior at the principal point (``centre``;
+from a drift of the exposures; parallax and rotation break the tie, more or less. How much, per axis, is measured
+before the solve (:func:`radiometry.self_calibration_checks.tilt_visibility`) and sets one of three regimes: where
+the data pin the tilt well the grid's tilt is free; in between, the grid carries no tilt (penalised) and a tilt
+can only come from the polynomial's centre, which has a weak prior at the principal point (``centre``;
 ``centre_sigma`` in half-diagonals, default 1: measured on the simulated room, a strong prior (0.05) pinned a
-centre that is truly 8 px off and left a 4 % exposure drift in that channel; the joint step finds it).
+centre that is truly 8 px off and left a 4 % exposure drift in that channel; the joint step finds it); where the
+tilt is open, the centre is held at the principal point (the plausible member) and the stated standard error
+carries the spread of real lenses' centres and shading along that axis. Known exposures (``exposures``) are held
+at their values, which pins the tilt they would trade against.
 
 Why not ``scipy.optimize.least_squares(loss="huber")`` on the whole sparse Jacobian: its unknowns are every
 point's radiance (tens of thousands) and each trust-region step runs LSMR over all observations; the exact
