@@ -56,3 +56,17 @@ def run_paused(script: str, argv: list, sig: int, *, env: dict | None = None):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+@pytest.fixture(scope="session")
+def selfcal_room(tmp_path_factory):
+    """A small simulated room that constrains self-calibration (160x120, 30 frames, the 'asymmetric' camera, seed 1),
+    made once per test session for the self-calibration tests."""
+    from mapping.simulation.sequences import simulate_room
+    from mapping.simulation.trajectory import HandheldMotion
+    from radiometry.simulation.camera import CameraSpec
+
+    out = tmp_path_factory.mktemp("selfcal") / "room"
+    simulate_room(out, camera=CameraSpec.preset("asymmetric", width=160, height=120), seed=1, n_frames=30,
+                  width=160, height=120, motion=HandheldMotion(speed=3.0), progress=False)
+    return out

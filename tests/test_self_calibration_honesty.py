@@ -264,15 +264,8 @@ def test_an_exposure_file_of_another_sequence_is_refused(tmp_path):
 # the command
 # --------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    from mapping.simulation.sequences import simulate_room
-    from mapping.simulation.trajectory import HandheldMotion
-    from radiometry.simulation.camera import CameraSpec
-
-    out = tmp_path_factory.mktemp("selfcal") / "room"
-    simulate_room(out, camera=CameraSpec.preset("asymmetric", width=160, height=120), seed=1, n_frames=30,
-                  width=160, height=120, motion=HandheldMotion(speed=3.0), progress=False)
-    return out
+def room(selfcal_room):
+    return selfcal_room
 
 
 @pytest.mark.slow
