@@ -2,6 +2,7 @@
  * arguments, same results; tests/test_native_kernels.py compares them). Why C: Numba's runtime costs ~111 MB of
  * memory in every process that calls a kernel (issue 17); see mapping/_ckernels.c. */
 #include "_buffers.h"
+#include "_ckernels_simd.h"
 
 #if defined(__GNUC__) || defined(__clang__)
 #define RM_UNLIKELY(x) __builtin_expect((x), 0)
@@ -107,6 +108,47 @@ static PyObject *lookup_shared(PyObject *self, PyObject *args)
     return lookup(args, 0);
 }
 
+/* correct_simd(img, qplan, plan, out, channels): the uint8 correction of the first (pixels // 64) * 64 pixels with
+ * AVX-512 register look-ups (_ckernels_simd.h); returns the number of pixels done (0 where the CPU lacks the
+ * instructions: the caller does the rest with lookup_rgb / lookup_shared) */
+static PyObject *correct_simd(PyObject *self, PyObject *args)
+{
+    PyObject *oi, *oq, *op, *oo;
+    Py_ssize_t channels;
+    Py_buffer v[4] = {{0}};
+    if (!PyArg_ParseTuple(args, "OOOOn", &oi, &oq, &op, &oo, &channels))
+        return NULL;
+    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', 2, 3, 0, "qplan")
+        || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
+        goto fail;
+    Py_ssize_t n = v[0].shape[0];
+    if ((channels != 1 && channels != 3) || n % channels) {
+        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of 1 or 3 channels (%zd)", n, channels);
+        goto fail;
+    }
+    Py_ssize_t blocks = v[1].shape[0];
+    if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, 64, "qplan")
+        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_PLAN_BYTES, "plan") || rm_dim(&v[3], 0, n, "out")) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
+        goto fail;
+    }
+    Py_ssize_t done = 0;
+#if RM_HAVE_SIMD
+    if (rm_simd_supported()) {
+        Py_BEGIN_ALLOW_THREADS
+        rm_correct_simd(v[0].buf, v[1].buf, v[2].buf, v[3].buf, blocks, (int)channels);
+        Py_END_ALLOW_THREADS
+        done = blocks * 64;
+    }
+#endif
+    rm_release(v, 4);
+    return PyLong_FromSsize_t(done);
+fail:
+    rm_release(v, 4);
+    return NULL;
+}
+
 /* out[p, c] = lut[c, img[p, c]] * gain[p, 0 or c] (float32) */
 static PyObject *irradiance(PyObject *self, PyObject *args)
 {
@@ -143,6 +185,7 @@ fail:
 static PyMethodDef methods[] = {
     {"lookup_rgb", lookup_rgb, METH_VARARGS, "uint8 correction, a gain index per value (three channels)."},
     {"lookup_shared", lookup_shared, METH_VARARGS, "uint8 correction, one gain index per pixel."},
+    {"correct_simd", correct_simd, METH_VARARGS, "uint8 correction with AVX-512 register look-ups (64-pixel blocks)."},
     {"irradiance", irradiance, METH_VARARGS, "Irradiance of a uint8 image: lut[c, I] * gain."},
     RM_THREAD_METHODS,
     {NULL, NULL, 0, NULL}};
@@ -153,9 +196,11 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels",
 
 PyMODINIT_FUNC PyInit__ckernels(void)
 {
+    rm_simd_init();
     PyObject *m = PyModule_Create(&module);
     if (m != NULL && (PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0
-                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0)) {
+                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0
+                      || PyModule_AddIntConstant(m, "simd", rm_simd_supported()) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

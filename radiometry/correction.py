@@ -33,6 +33,7 @@ entries).
 from __future__ import annotations
 
 import logging
+import os
 from collections import OrderedDict
 from typing import Iterable
 
@@ -57,8 +58,10 @@ def _kernels():
     if _KERNELS is None:
         from radiometry._native import compiled
 
+        global _SIMD
         c = compiled("radiometry._ckernels")
         _KERNELS = (c.lookup_rgb, c.lookup_shared, c.irradiance) if c is not None else _numba_kernels()
+        _SIMD = c.correct_simd if c is not None and getattr(c, "simd", 0) else None
     return _KERNELS
 
 
@@ -99,6 +102,62 @@ def _numba_kernels():
 
 
 _KERNELS = None
+_SIMD = None
+
+#: lanes of a 512-bit register in the order vpunpck[lh]bw put the bytes of a 64-byte plane into two words vectors
+_UNPACK_ORDER = np.array([16 * lane + half + x for half in (0, 8) for lane in range(4) for x in range(8)])
+_SIMD_OFF = ("0", "off", "no", "false", "scalar")
+
+
+def simd_available() -> bool:
+    """Whether :meth:`Corrector.correct` can run its uint8 AVX-512 kernel here: the C extension is in use and the
+    CPU has AVX-512 (F, BW, VL, VBMI) and GFNI. ``RADIOMAP_SIMD=0`` turns it off (the scalar kernels, same output)."""
+    return _simd_kernel() is not None and _simd_allowed()
+
+
+def _simd_allowed() -> bool:
+    return os.environ.get("RADIOMAP_SIMD", "").strip().lower() not in _SIMD_OFF
+
+
+def _simd_kernel():
+    """``radiometry._ckernels.correct_simd`` when the C kernels are in use and this CPU runs it, else None."""
+    _kernels()
+    return _SIMD
+
+
+def _build_simd_plan(q: np.ndarray, k: np.ndarray, table: np.ndarray, sizes: list[int], channels: int):
+    """The AVX-512 kernel's data (radiometry/_ckernels_simd.h): ``qplan`` (blocks of 64 pixels, C, 64) uint16, the
+    gain indices in unpack order, and ``plan`` (C, 1280) uint8: per channel the low and high bytes of ``k`` relative
+    to the channel's part of ``table``, then the part's 255 thresholds ``t[m]`` (the first index whose output is
+    >= m; 0xFFFF for never) as the words of an 8-level binary search built least-significant bit first. None when
+    the kernel does not apply: 32-bit q, a part longer than 65535 entries, or a part not non-decreasing."""
+    if q.dtype != np.uint16:
+        return None
+    plan = np.zeros((channels, 1280), dtype=np.uint8)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    qmax = int(q.max()) if q.size else 0
+    for c in range(channels):
+        part = table[starts[c]:starts[c + 1]].astype(np.int64)
+        rel = k[c].astype(np.int64) - starts[c]
+        if part.size > 65535 or np.any(np.diff(part) < 0) or rel.min() < 0 or qmax + rel.max() >= part.size:
+            return None
+        plan[c, :256], plan[c, 256:512] = rel & 255, rel >> 8
+        t = np.searchsorted(part, np.arange(1, 256), side="left")
+        t = np.where(t >= part.size, 0xFFFF, t).astype(np.uint16)  # t[m - 1] for m = 1..255
+        words = np.zeros(384, dtype=np.uint16)  # levels 0..5 at 32 * d, 6 at 192, 7 at 256
+        for d in range(8):
+            base = 32 * d if d < 7 else 256
+            for p in range(1 << d):  # p: the bits found so far, bit e = step e's answer = bit 7 - e of the count
+                prefix = sum(((p >> e) & 1) << (7 - e) for e in range(d))
+                words[base + p] = t[prefix + (1 << (7 - d)) - 1]
+        plan[c, 512:] = words.view(np.uint8)
+    pixels = q.shape[0]
+    blocks = pixels // 64
+    qv = np.broadcast_to(q[:blocks * 64], (blocks * 64, channels)) if q.shape[1] == 1 else q[:blocks * 64]
+    qplan = np.ascontiguousarray(qv.reshape(blocks, 64, channels).transpose(0, 2, 1)[:, :, _UNPACK_ORDER])
+    for arr in (qplan, plan):
+        arr.setflags(write=False)
+    return qplan, plan
 
 
 # --------------------------------------------------------------------------------------------------
@@ -145,10 +204,12 @@ class Corrector:
     vignetting : a :class:`VignettingModel`, or ``None`` for no vignetting (``V = 1``). A 1-channel
         model (DSO) serves all channels of a colour image.
     gain_levels : number of quantised gains of the uint8 fast path (2..65535).
+    simd : the uint8 fast path's AVX-512 kernel (:func:`simd_available`): ``None`` (default) uses it where the CPU
+        has it unless ``RADIOMAP_SIMD=0``; ``False`` never. Same output either way (bit-identical).
     """
 
     def __init__(self, response: CameraResponse, vignetting: VignettingModel | None = None, *,
-                 gain_levels: int = 2048, cache_size: int = 4) -> None:
+                 gain_levels: int = 2048, cache_size: int = 4, simd: bool | None = None) -> None:
         if not isinstance(response, CameraResponse):
             raise TypeError(f"response must be a CameraResponse, got {type(response).__name__}")
         if vignetting is not None and not isinstance(vignetting, VignettingModel):
@@ -162,7 +223,9 @@ class Corrector:
         self.gain_levels = int(gain_levels)
         self._cache_size = int(cache_size)
         self._gains: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
-        self._tables: OrderedDict[tuple[int, int, int, float], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._tables: OrderedDict[tuple[int, int, int, float], tuple] = OrderedDict()
+        self._plans: OrderedDict[tuple[int, int, int, float], tuple[np.ndarray, np.ndarray] | None] = OrderedDict()
+        self.simd = simd
 
     def __repr__(self) -> str:
         return f"Corrector({self.response!r}, {self.vignetting!r})"
@@ -204,6 +267,10 @@ class Corrector:
         ``q`` is the quantised log gain, uint16 (uint32 past 65536 steps) ``(H * W, Cv)``; ``k`` (uint32
         ``(C, 256)``) holds each level's quantised log exposure plus its channel's place in ``table``, or
         the start of a run of zeros for levels too dark to reach level 0.5 at the largest gain."""
+        return self._table_parts(height, width, channels, scale)[:3]
+
+    def _table_parts(self, height: int, width: int, channels: int, scale: float) -> tuple:
+        """``(q, k, table, sizes)``: :meth:`_fast_tables` and the size of each channel's part of ``table``."""
         key = (int(height), int(width), int(channels), float(scale))
         hit = self._tables.get(key)
         if hit is not None:
@@ -241,7 +308,17 @@ class Corrector:
         q = np.ascontiguousarray(q.reshape(-1, q.shape[2]).astype(np.uint16 if n_q <= 65536 else np.uint32))
         for arr in (q, k, table):
             arr.setflags(write=False)
-        return self._remember(self._tables, key, (q, k, table))
+        return self._remember(self._tables, key, (q, k, table, [part.size for part in parts]))
+
+    def _simd_plan(self, height: int, width: int, channels: int, scale: float):
+        """``(qplan, plan)`` of the AVX-512 kernel (radiometry/_ckernels_simd.h), cached, or None where it does not
+        apply (a channel's part of the table longer than 65535 or not non-decreasing, 32-bit gain indices)."""
+        key = (int(height), int(width), int(channels), float(scale))
+        if key in self._plans:
+            self._plans.move_to_end(key)
+            return self._plans[key]
+        q, k, table, sizes = self._table_parts(height, width, channels, scale)
+        return self._remember(self._plans, key, _build_simd_plan(q, k, table, sizes, channels))
 
     # ---------------------------------------------------------------- public API
     def irradiance(self, image: np.ndarray) -> np.ndarray:
@@ -275,11 +352,19 @@ class Corrector:
             q, k, table = self._fast_tables(h, w, ch, scale)
             src = np.ascontiguousarray(arr).reshape(-1)
             out = np.empty_like(src)
-            lookup_rgb, lookup_shared, _ = _kernels()
-            if q.shape[1] == ch == 3:
-                lookup_rgb(src, q.reshape(-1), k, table, out)
-            else:
-                lookup_shared(src, q.reshape(-1), k, table, out, ch)
+            done = 0  # pixels corrected by the AVX-512 kernel; the scalar kernels do the rest
+            simd = _simd_kernel() if self.simd is not False else None
+            if simd is not None and (self.simd or _simd_allowed()):
+                plan = self._simd_plan(h, w, ch, scale)
+                if plan is not None:
+                    done = simd(src, plan[0], plan[1], out, ch)
+            if done < h * w:
+                rest, qs = slice(done * ch, None), slice(done * q.shape[1], None)
+                lookup_rgb, lookup_shared, _ = _kernels()
+                if q.shape[1] == ch == 3:
+                    lookup_rgb(src[rest], q.reshape(-1)[qs], k, table, out[rest])
+                else:
+                    lookup_shared(src[rest], q.reshape(-1)[qs], k, table, out[rest], ch)
             out = out.reshape(h, w, ch)
         return out[:, :, 0] if flat else out
 
@@ -386,4 +471,4 @@ def corrected_relative_stderr(vignetting: VignettingModel, height: int, width: i
     return np.hypot(se, q).astype(np.float32)
 
 
-__all__ = ["Corrector", "correct_reference_numpy", "corrected_relative_stderr"]
+__all__ = ["Corrector", "correct_reference_numpy", "corrected_relative_stderr", "simd_available"]
