@@ -108,15 +108,16 @@ static PyObject *lookup_shared(PyObject *self, PyObject *args)
     return lookup(args, 0);
 }
 
-/* correct_simd(img, qplan, plan, out, channels): the uint8 correction of the first (pixels // 64) * 64 pixels with
+/* correct_simd(img, qplan, plan, out, channels, clamp): the uint8 correction of the first (pixels // 64) * 64 pixels with
  * AVX-512 register look-ups (_ckernels_simd.h); returns the number of pixels done (0 where the CPU lacks the
  * instructions: the caller does the rest with lookup_rgb / lookup_shared) */
 static PyObject *correct_simd(PyObject *self, PyObject *args)
 {
     PyObject *oi, *oq, *op, *oo;
     Py_ssize_t channels;
+    int clamp;
     Py_buffer v[4] = {{0}};
-    if (!PyArg_ParseTuple(args, "OOOOn", &oi, &oq, &op, &oo, &channels))
+    if (!PyArg_ParseTuple(args, "OOOOnp", &oi, &oq, &op, &oo, &channels, &clamp))
         return NULL;
     if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', 2, 3, 0, "qplan")
         || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
@@ -137,7 +138,7 @@ static PyObject *correct_simd(PyObject *self, PyObject *args)
 #if RM_HAVE_SIMD
     if (rm_simd_supported()) {
         Py_BEGIN_ALLOW_THREADS
-        rm_correct_simd(v[0].buf, v[1].buf, v[2].buf, v[3].buf, blocks, (int)channels);
+        rm_correct_simd(v[0].buf, v[1].buf, v[2].buf, v[3].buf, blocks, (int)channels, clamp);
         Py_END_ALLOW_THREADS
         done = blocks * 64;
     }

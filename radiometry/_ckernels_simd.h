@@ -22,7 +22,7 @@
 #ifndef RADIOMAP_CKERNELS_SIMD_H
 #define RADIOMAP_CKERNELS_SIMD_H
 
-#define RM_PLAN_BYTES 1280
+#define RM_PLAN_BYTES 1792
 
 #if (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
 #define RM_HAVE_SIMD 1
@@ -46,14 +46,16 @@ static int rm_simd_supported(void)
 #endif
 /* one channel's tables, held in registers across a run of blocks */
 typedef struct {
-    __m512i k[8], t0, t[5], t6[2], t7[4];
+    __m512i k[8], t0, t[5], t6[2], t7[4], k2[8];
 } rm_tables;
 
-RM_TARGET static inline void rm_load(rm_tables *tb, const uint8_t *plan)
+RM_TARGET static inline void rm_load(rm_tables *tb, const uint8_t *plan, int clamp)
 {
     const __m512i *p = (const __m512i *)plan;
-    for (int i = 0; i < 8; i++)
+    for (int i = 0; i < 8; i++) {
         tb->k[i] = _mm512_loadu_si512(p + i);
+        tb->k2[i] = clamp ? _mm512_loadu_si512(p + 20 + i) : _mm512_setzero_si512();
+    }
     tb->t0 = _mm512_set1_epi16((short)((const uint16_t *)(plan + 512))[0]);
     for (int i = 0; i < 5; i++)
         tb->t[i] = _mm512_loadu_si512(p + 9 + i);
@@ -91,16 +93,33 @@ RM_TARGET static inline void rm_searchn(__m512i j[RM_WAY], const rm_tables *tb)
         j[i] = idx[i];
 }
 
-/* j = q + k[x] for 64 values of one channel, in two words vectors (unpack order) */
-RM_TARGET static inline void rm_index(__m512i x, const uint16_t *q, const rm_tables *tb, __m512i *j)
+/* a 256-entry table of 16-bit values (low bytes in t[0..3], high bytes in t[4..7]) at the 64 bytes x, as the
+ * bytes' two halves interleaved (vpunpck[lh]bw order) */
+RM_TARGET static inline void rm_lookup16(__m512i x, __mmask64 top, const __m512i *t, __m512i *lo, __m512i *hi)
+{
+    __m512i l = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[0], x, t[1]), _mm512_permutex2var_epi8(t[2], x, t[3]));
+    __m512i h = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[4], x, t[5]), _mm512_permutex2var_epi8(t[6], x, t[7]));
+    *lo = _mm512_unpacklo_epi8(l, h);
+    *hi = _mm512_unpackhi_epi8(l, h);
+}
+
+/* j for 64 values of one channel, in two words vectors (unpack order): q + k1[x], or with ``clamp``
+ * min((q + k1[x]) -sat k2[x], 65534) with unsigned saturation (the plan's second form, see the header) */
+RM_TARGET static inline __attribute__((always_inline)) void rm_index(__m512i x, const uint16_t *q, const rm_tables *tb,
+                                                                    __m512i *j, const int clamp)
 {
     __mmask64 top = _mm512_movepi8_mask(x);
-    __m512i kl = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(tb->k[0], x, tb->k[1]),
-                                        _mm512_permutex2var_epi8(tb->k[2], x, tb->k[3]));
-    __m512i kh = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(tb->k[4], x, tb->k[5]),
-                                        _mm512_permutex2var_epi8(tb->k[6], x, tb->k[7]));
-    j[0] = _mm512_add_epi16(_mm512_unpacklo_epi8(kl, kh), _mm512_loadu_si512(q));
-    j[1] = _mm512_add_epi16(_mm512_unpackhi_epi8(kl, kh), _mm512_loadu_si512(q + 32));
+    __m512i a, b;
+    rm_lookup16(x, top, tb->k, &a, &b);
+    if (!clamp) {
+        j[0] = _mm512_add_epi16(a, _mm512_loadu_si512(q));
+        j[1] = _mm512_add_epi16(b, _mm512_loadu_si512(q + 32));
+        return;
+    }
+    __m512i c, d, cap = _mm512_set1_epi16((short)65534);
+    rm_lookup16(x, top, tb->k2, &c, &d);
+    j[0] = _mm512_min_epu16(_mm512_subs_epu16(_mm512_adds_epu16(a, _mm512_loadu_si512(q)), c), cap);
+    j[1] = _mm512_min_epu16(_mm512_subs_epu16(_mm512_adds_epu16(b, _mm512_loadu_si512(q + 32)), d), cap);
 }
 
 /* the count (two words vectors, bits reversed) -> 64 corrected levels */
@@ -112,22 +131,31 @@ RM_TARGET static inline __m512i rm_level(const __m512i *idx)
 
 /* ``blocks`` planes of 64 values of one channel: x -> y; the q of block b at q + b * qstride. RM_WAY / 2 planes
  * at a time; past the last plane, the last run repeats its first plane (written first, then rewritten last). */
-RM_TARGET static void rm_channel(const uint8_t *x, const uint16_t *q, Py_ssize_t qstride, const uint8_t *plan,
-                                 uint8_t *y, Py_ssize_t blocks)
-{
-    rm_tables tb;
-    rm_load(&tb, plan);
-    for (Py_ssize_t b = 0; b < blocks; b += RM_WAY / 2) {
-        Py_ssize_t bs[RM_WAY / 2];
-        __m512i j[RM_WAY];
-        for (int i = 0; i < RM_WAY / 2; i++) {
-            bs[i] = b + i < blocks ? b + i : b;
-            rm_index(_mm512_loadu_si512(x + 64 * bs[i]), q + qstride * bs[i], &tb, j + 2 * i);
-        }
-        rm_searchn(j, &tb);
-        for (int i = RM_WAY / 2 - 1; i >= 0; i--)
-            _mm512_storeu_si512(y + 64 * bs[i], rm_level(j + 2 * i));
+#define RM_CHANNEL(NAME, CLAMP)                                                                                    \
+    RM_TARGET static void NAME(const uint8_t *x, const uint16_t *q, Py_ssize_t qstride, const uint8_t *plan,        \
+                               uint8_t *y, Py_ssize_t blocks)                                                       \
+    {                                                                                                              \
+        rm_tables tb;                                                                                              \
+        rm_load(&tb, plan, CLAMP);                                                                                 \
+        for (Py_ssize_t b = 0; b < blocks; b += RM_WAY / 2) {                                                      \
+            Py_ssize_t bs[RM_WAY / 2];                                                                             \
+            __m512i j[RM_WAY];                                                                                     \
+            for (int i = 0; i < RM_WAY / 2; i++) {                                                                 \
+                bs[i] = b + i < blocks ? b + i : b;                                                                \
+                rm_index(_mm512_loadu_si512(x + 64 * bs[i]), q + qstride * bs[i], &tb, j + 2 * i, CLAMP);          \
+            }                                                                                                      \
+            rm_searchn(j, &tb);                                                                                    \
+            for (int i = RM_WAY / 2 - 1; i >= 0; i--)                                                              \
+                _mm512_storeu_si512(y + 64 * bs[i], rm_level(j + 2 * i));                                          \
+        }                                                                                                          \
     }
+RM_CHANNEL(rm_channel_add, 0)
+RM_CHANNEL(rm_channel_clamp, 1)
+
+static void rm_channel(const uint8_t *x, const uint16_t *q, Py_ssize_t qstride, const uint8_t *plan, uint8_t *y,
+                       Py_ssize_t blocks, int clamp)
+{
+    (clamp ? rm_channel_clamp : rm_channel_add)(x, q, qstride, plan, y, blocks);
 }
 
 /* byte indices that split 192 interleaved RGB bytes into planes and back (built once) */
@@ -158,10 +186,10 @@ static void rm_simd_init(void)
  * 64) uint16, plan (channels, RM_PLAN_BYTES). Three channels go through planes a run of blocks at a time, so
  * that each channel's 20 table registers stay loaded across the run. */
 RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan, const uint8_t *plan, uint8_t *out,
-                                      Py_ssize_t blocks, int channels)
+                                      Py_ssize_t blocks, int channels, int clamp)
 {
     if (channels == 1) {
-        rm_channel(img, qplan, 64, plan, out, blocks);
+        rm_channel(img, qplan, 64, plan, out, blocks, clamp);
         return;
     }
     uint8_t xs[3][RM_RUN * 64], ys[3][RM_RUN * 64];
@@ -182,7 +210,7 @@ RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan,
             }
         }
         for (int c = 0; c < 3; c++)
-            rm_channel(xs[c], qplan + (3 * b0 + c) * 64, 192, plan + RM_PLAN_BYTES * c, ys[c], run);
+            rm_channel(xs[c], qplan + (3 * b0 + c) * 64, 192, plan + RM_PLAN_BYTES * c, ys[c], run, clamp);
         for (Py_ssize_t b = 0; b < run; b++) {
             __m512i p0 = _mm512_loadu_si512(ys[0] + 64 * b), p1 = _mm512_loadu_si512(ys[1] + 64 * b);
             __m512i p2 = _mm512_loadu_si512(ys[2] + 64 * b);

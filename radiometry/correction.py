@@ -126,39 +126,56 @@ def _simd_kernel():
 
 
 def _build_simd_plan(q: np.ndarray, k: np.ndarray, table: np.ndarray, sizes: list[int], channels: int):
-    """The AVX-512 kernel's data (radiometry/_ckernels_simd.h): ``qplan`` (blocks of 64 pixels, C, 64) uint16, the
-    gain indices in unpack order, and ``plan`` (C, 1280) uint8: per channel the low and high bytes of ``k`` relative
-    to the channel's part of ``table``, then the part's 255 thresholds ``t[m]`` (the first index whose output is
-    >= m; 0xFFFF for never) as the words of an 8-level binary search built least-significant bit first. None when
-    the kernel does not apply: 32-bit q, a part longer than 65535 entries, or a part not non-decreasing."""
+    """The AVX-512 kernel's data (radiometry/_ckernels_simd.h), ``(qplan, plan, clamp)``, or None where it does not
+    apply (32-bit q; an output not non-decreasing along its part of ``table``; thresholds spanning more than
+    65534 steps).
+
+    ``qplan`` (blocks of 64 pixels, C, 64) uint16 holds the gain indices in unpack order. Per channel, with ``j`` the
+    index into the channel's part of ``table``, the output is the number of thresholds ``t[m] <= j`` (``t[m]``: the
+    first j whose output is >= m, m = 1..255). The kernel computes ``j`` in 16 bits: ``q + k1[I]`` when every j is
+    below 65535 (``clamp`` False), else ``clamp(j - L, 0, 65534)`` as ``min((q + k1[I]) -sat k2[I], 65534)`` with
+    ``L = t[1] - 1``, ``k1 = max(k - L, 0)``, ``k2 = max(L - k, 0)`` and the thresholds moved by ``-L`` (thresholds no
+    j reaches become 0xFFFF: never counted). ``plan`` (C, 1792) uint8: k1's low and high bytes, the thresholds as the
+    words of an 8-step binary search built least-significant bit first (levels 0..5 at 32 words each, 6: 64, 7: 128),
+    then k2's low and high bytes."""
     if q.dtype != np.uint16:
         return None
-    plan = np.zeros((channels, 1280), dtype=np.uint8)
+    plan = np.zeros((channels, 1792), dtype=np.uint8)
     starts = np.concatenate([[0], np.cumsum(sizes)])
     qmax = int(q.max()) if q.size else 0
+    rels, thresholds = [], []
     for c in range(channels):
         part = table[starts[c]:starts[c + 1]].astype(np.int64)
         rel = k[c].astype(np.int64) - starts[c]
-        if part.size > 65535 or np.any(np.diff(part) < 0) or rel.min() < 0 or qmax + rel.max() >= part.size:
+        if np.any(np.diff(part) < 0) or rel.min() < 0 or qmax + rel.max() >= part.size:
             return None
-        plan[c, :256], plan[c, 256:512] = rel & 255, rel >> 8
-        t = np.searchsorted(part, np.arange(1, 256), side="left")
-        t = np.where(t >= part.size, 0xFFFF, t).astype(np.uint16)  # t[m - 1] for m = 1..255
+        rels.append(rel)
+        thresholds.append(np.searchsorted(part, np.arange(1, 256), side="left"))  # t[m] at m - 1; part.size: never
+    clamp = max(qmax + int(rel.max()) for rel in rels) > 65534
+    for c in range(channels):
+        rel, t = rels[c], thresholds[c].astype(np.int64)
+        jmax = qmax + int(rel.max())
+        shift = max(int(t[0]) - 1, 0) if clamp else 0
+        t = np.where(t > jmax, 0xFFFF, t - shift)  # beyond every j: never
+        if np.any((t > 65534) & (t != 0xFFFF)):
+            return None
+        k1, k2 = np.clip(rel - shift, 0, 65534), np.clip(shift - rel, 0, 65535)
+        plan[c, :256], plan[c, 256:512] = k1 & 255, k1 >> 8
+        plan[c, 1280:1536], plan[c, 1536:] = k2 & 255, k2 >> 8
         words = np.zeros(384, dtype=np.uint16)  # levels 0..5 at 32 * d, 6 at 192, 7 at 256
         for d in range(8):
             base = 32 * d if d < 7 else 256
             for p in range(1 << d):  # p: the bits found so far, bit e = step e's answer = bit 7 - e of the count
                 prefix = sum(((p >> e) & 1) << (7 - e) for e in range(d))
                 words[base + p] = t[prefix + (1 << (7 - d)) - 1]
-        plan[c, 512:] = words.view(np.uint8)
+        plan[c, 512:1280] = words.view(np.uint8)
     pixels = q.shape[0]
     blocks = pixels // 64
     qv = np.broadcast_to(q[:blocks * 64], (blocks * 64, channels)) if q.shape[1] == 1 else q[:blocks * 64]
     qplan = np.ascontiguousarray(qv.reshape(blocks, 64, channels).transpose(0, 2, 1)[:, :, _UNPACK_ORDER])
     for arr in (qplan, plan):
         arr.setflags(write=False)
-    return qplan, plan
-
+    return qplan, plan, clamp
 
 # --------------------------------------------------------------------------------------------------
 # input normalisation
@@ -224,7 +241,7 @@ class Corrector:
         self._cache_size = int(cache_size)
         self._gains: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self._tables: OrderedDict[tuple[int, int, int, float], tuple] = OrderedDict()
-        self._plans: OrderedDict[tuple[int, int, int, float], tuple[np.ndarray, np.ndarray] | None] = OrderedDict()
+        self._plans: OrderedDict[tuple[int, int, int, float], tuple | None] = OrderedDict()
         self.simd = simd
 
     def __repr__(self) -> str:
@@ -311,8 +328,8 @@ class Corrector:
         return self._remember(self._tables, key, (q, k, table, [part.size for part in parts]))
 
     def _simd_plan(self, height: int, width: int, channels: int, scale: float):
-        """``(qplan, plan)`` of the AVX-512 kernel (radiometry/_ckernels_simd.h), cached, or None where it does not
-        apply (a channel's part of the table longer than 65535 or not non-decreasing, 32-bit gain indices)."""
+        """``(qplan, plan, clamp)`` of the AVX-512 kernel (:func:`_build_simd_plan`), cached, or None where it does not
+        apply."""
         key = (int(height), int(width), int(channels), float(scale))
         if key in self._plans:
             self._plans.move_to_end(key)
@@ -357,7 +374,7 @@ class Corrector:
             if simd is not None and (self.simd or _simd_allowed()):
                 plan = self._simd_plan(h, w, ch, scale)
                 if plan is not None:
-                    done = simd(src, plan[0], plan[1], out, ch)
+                    done = simd(src, plan[0], plan[1], out, ch, plan[2])
             if done < h * w:
                 rest, qs = slice(done * ch, None), slice(done * q.shape[1], None)
                 lookup_rgb, lookup_shared, _ = _kernels()
