@@ -1,0 +1,235 @@
+"""The uint8 correction's AVX-512 kernel (radiometry/_ckernels_simd.h): byte for byte the scalar path's output.
+
+Every check compares three ways of correcting the same image: the default path (the AVX-512 kernel on whole
+64-pixel blocks where the CPU has AVX-512 VBMI and GFNI, the scalar kernel on the rest), ``Corrector(simd=False)``
+(the scalar kernel alone) and NumPy indexing of the fast path's tables, ``table[q + k[c, I]]`` (no kernel). Tests
+that need the kernel to run skip on CPUs without it; the fallback tests run everywhere.
+``scripts/stress_correction_simd.py`` runs hundreds of random cases; a smaller loop of it runs here.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from radiometry import correction
+from radiometry.correction import Corrector, simd_available
+from radiometry.response import CameraResponse
+from radiometry.vignetting import LUTVignetting
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "stress_correction_simd.py"
+needs_simd = pytest.mark.skipif(not simd_available(), reason="this CPU (or build) has no AVX-512 VBMI/GFNI kernel")
+
+
+def _stress():
+    spec = importlib.util.spec_from_file_location("radiomap_script_stress_correction_simd", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def radial(h: int, w: int, vmin: float, channels: int = 3, centre=(0.5, 0.5)) -> LUTVignetting:
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((yy - centre[0] * h) ** 2 + (xx - centre[1] * w) ** 2) / ((h / 2) ** 2 + (w / 2) ** 2)
+    planes = [1 - (1 - vmin) * np.clip(r2 * (1 + 0.1 * c), 0, 1) for c in range(channels)]
+    return LUTVignetting(np.stack(planes, axis=2).astype(np.float32))
+
+
+def s_curve(channels: int = 3) -> CameraResponse:
+    x = np.linspace(0, 1, 256)
+    cols = [x ** g * (1 + 0.2 * np.sin(np.pi * x)) for g in (2.0, 2.2, 1.8)[:channels]]
+    return CameraResponse.from_table(np.stack(cols, axis=1) + 1e-4 * x[:, None])
+
+
+def three_ways(response, vignetting, img, scale=1.0, **kwargs):
+    fast = Corrector(response, vignetting, **kwargs)
+    scalar = Corrector(response, vignetting, simd=False, **kwargs)
+    a, b = fast.correct(img, scale=scale), scalar.correct(img, scale=scale)
+    c = _stress().table_lookup(fast, img, scale)
+    assert a.dtype == np.uint8 and a.shape == img.shape
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, c)
+    return fast, a
+
+
+def ran_kernel(corrector, img, scale) -> bool:
+    arr = img if img.ndim == 3 else img[:, :, None]
+    h, w, ch = arr.shape
+    return simd_available() and h * w >= 64 and corrector._simd_plan(h, w, ch, scale) is not None
+
+
+@needs_simd
+@pytest.mark.parametrize("h, w", [(1, 64), (1, 65), (2, 33), (8, 8), (7, 13), (3, 100), (17, 129), (31, 97),
+                                  (64, 64), (121, 161), (480, 640)])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_kernel_matches_scalar_path_at_varied_sizes(h, w, channels):
+    img = np.random.default_rng(h * w + channels).integers(0, 256, (h, w, channels), dtype=np.uint8)
+    fast, _ = three_ways(s_curve(channels), radial(h, w, 0.3, channels), img, 0.8)
+    assert ran_kernel(fast, img, 0.8)  # every size here has at least one whole block of 64 pixels
+
+
+def test_images_smaller_than_a_block_take_the_scalar_path():
+    for h, w in [(1, 1), (1, 63), (7, 9)]:
+        img = np.random.default_rng(h * w).integers(0, 256, (h, w, 3), dtype=np.uint8)
+        fast, _ = three_ways(s_curve(), radial(h, w, 0.4), img, 0.9)
+        assert not ran_kernel(fast, img, 0.9)
+
+
+@needs_simd
+@pytest.mark.parametrize("scale", [0.005, 0.3, 1.0, 4.0, 50.0])
+@pytest.mark.parametrize("vmin", [0.02, 0.2, 0.8, 0.99])
+def test_every_level_at_extreme_gains(scale, vmin):
+    h, w = 64, 256  # each row holds the 256 levels, shifted per row and channel: every level at every gain
+    levels = (np.arange(w)[None, :, None] + 37 * np.arange(h)[:, None, None] + 85 * np.arange(3)) % 256
+    img = levels.astype(np.uint8)
+    fast, out = three_ways(CameraResponse.gamma(2.2), radial(h, w, vmin), img, scale)
+    assert np.unique(out).size > 10  # the comparison above is not all on one clipped level
+    if scale == 0.005:
+        assert np.median(out) < 30
+    if scale == 50.0:
+        assert np.mean(out == 255) > 0.5
+    # the kernel ran except where the thresholds span more than 16 bits (everything darkened, mild vignetting)
+    assert ran_kernel(fast, img, scale) or (scale < 1 and vmin > 0.5)
+
+
+@needs_simd
+@pytest.mark.parametrize("vignetting", ["none", "one-channel", "three-channel"])
+@pytest.mark.parametrize("shape", [(48, 80), (48, 80, 1), (48, 80, 3)])
+def test_grayscale_shared_gain_and_flat_field(vignetting, shape):
+    h, w = shape[:2]
+    channels = shape[2] if len(shape) == 3 else 1
+    if vignetting == "three-channel" and channels == 1:
+        pytest.skip("a 3-channel model does not apply to a grayscale image")
+    model = {"none": None, "one-channel": radial(h, w, 0.3, 1), "three-channel": radial(h, w, 0.3, 3)}[vignetting]
+    img = np.random.default_rng(1).integers(0, 256, shape, dtype=np.uint8)
+    fast, _ = three_ways(s_curve(1 if channels == 1 else 3), model, img, 0.7)
+    assert ran_kernel(fast, img, 0.7)
+
+
+@needs_simd
+def test_both_forms_of_the_kernel_run():
+    """The direct form (every index below 65535) and the clamped one (mild vignetting: longer tables)."""
+    h, w = 48, 64
+    img = np.random.default_rng(2).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    forms = set()
+    for response, vmin in [(s_curve(), 0.3), (CameraResponse.gamma(2.2), 0.8), (CameraResponse.gamma(1.0), 0.95)]:
+        fast, _ = three_ways(response, radial(h, w, vmin), img, 1.0)
+        forms.add(fast._simd_plan(h, w, 3, 1.0)[2])
+    assert forms == {False, True}
+
+
+@needs_simd
+@pytest.mark.parametrize("layout", ["strided", "fortran", "transposed", "negative-step"])
+def test_non_contiguous_images(layout):
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 256, (96, 130, 3), dtype=np.uint8)
+    img = {"strided": base[::2, ::2], "fortran": np.asfortranarray(base[:48, :65]),
+           "transposed": base[:65, :48].transpose(1, 0, 2), "negative-step": base[:48, ::-2]}[layout]
+    assert not img.flags.c_contiguous
+    h, w = img.shape[:2]
+    three_ways(s_curve(), radial(h, w, 0.3), img, 0.8)
+
+
+def test_gain_levels_past_16_bits_fall_back_to_the_scalar_kernel():
+    h, w = 48, 64
+    img = np.random.default_rng(4).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    fast, _ = three_ways(s_curve(), radial(h, w, 0.3), img, 0.8, gain_levels=65535)
+    assert fast._simd_plan(h, w, 3, 0.8) is None  # q is uint32: no plan, the scalar kernel did it all
+
+
+@pytest.mark.parametrize("how", ["env", "argument", "no-kernel", "kernel-declines"])
+def test_dispatch_falls_back_to_the_scalar_path(monkeypatch, how):
+    h, w = 48, 64
+    img = np.random.default_rng(5).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    expected = Corrector(s_curve(), radial(h, w, 0.3), simd=False).correct(img, scale=0.8)
+    calls = []
+    correction._kernels()
+    kernel = correction._SIMD
+
+    def spy(*args):
+        calls.append(args[4])
+        return kernel(*args) if kernel is not None else 0
+
+    monkeypatch.setattr(correction, "_SIMD", spy)
+    kwargs = {}
+    if how == "env":
+        monkeypatch.setenv("RADIOMAP_SIMD", "0")
+        assert not simd_available()
+    elif how == "argument":
+        kwargs["simd"] = False
+    elif how == "no-kernel":  # a CPU without AVX-512 VBMI/GFNI, or the Numba kernels
+        monkeypatch.setattr(correction, "_SIMD", None)
+        assert not simd_available()
+    else:  # the C kernel's own CPU check said no: it corrected 0 pixels
+        monkeypatch.setattr(correction, "_SIMD", lambda *args: calls.append(args[4]) or 0)
+    out = Corrector(s_curve(), radial(h, w, 0.3), **kwargs).correct(img, scale=0.8)
+    np.testing.assert_array_equal(out, expected)
+    assert calls == ([3] if how == "kernel-declines" else [])
+
+
+@needs_simd
+def test_simd_true_overrides_the_environment(monkeypatch):
+    monkeypatch.setenv("RADIOMAP_SIMD", "0")
+    h, w = 48, 64
+    img = np.random.default_rng(6).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    calls = []
+    kernel = correction._SIMD
+    monkeypatch.setattr(correction, "_SIMD", lambda *args: calls.append(1) or kernel(*args))
+    out = Corrector(s_curve(), radial(h, w, 0.3), simd=True).correct(img, scale=0.8)
+    np.testing.assert_array_equal(out, Corrector(s_curve(), radial(h, w, 0.3), simd=False).correct(img, scale=0.8))
+    assert calls == [1]
+
+
+@needs_simd
+def test_kernel_on_synthetic_tables_every_index():
+    """Every index j of a channel's table, through the kernel alone: random non-decreasing outputs with long flat
+    runs, outputs that start above 0 and never reach 255, thresholds at index 0 and past the last index."""
+    from radiometry.correction import _build_simd_plan
+
+    rng = np.random.default_rng(7)
+    for size, lo, hi in [(65535, 0, 255), (20000, 17, 200), (300, 0, 255), (65535, 3, 3), (40000, 0, 254)]:
+        part = np.sort(rng.integers(lo, hi + 1, size)).astype(np.uint8)
+        part[:size // 7] = lo  # a long flat run at the start
+        n = ((size + 63) // 64) * 64  # one value per index j (q = j, k = 0), padded to whole blocks
+        q = np.minimum(np.arange(n), size - 1).astype(np.uint16)[:, None]
+        k = np.zeros((1, 256), dtype=np.uint32)
+        plan = _build_simd_plan(q, k, part, [size], 1)
+        assert plan is not None and not plan[2]
+        img = np.zeros(n, dtype=np.uint8)
+        out = np.empty(n, dtype=np.uint8)
+        assert correction._SIMD(img, plan[0], plan[1], out, 1, plan[2]) == n
+        np.testing.assert_array_equal(out, part[q[:, 0]])
+
+
+def test_kernel_arguments_are_checked():
+    from radiometry._native import compiled
+
+    c = compiled("radiometry._ckernels")
+    if c is None or not hasattr(c, "correct_simd"):
+        pytest.skip("the C kernels are not in use")
+    img, out = np.zeros(192, np.uint8), np.zeros(192, np.uint8)
+    qplan, plan = np.zeros((1, 3, 64), np.uint16), np.zeros((3, 1792), np.uint8)
+    with pytest.raises(ValueError, match="qplan"):
+        c.correct_simd(img, np.zeros((2, 3, 64), np.uint16), plan, out, 3, False)  # more blocks than pixels
+    with pytest.raises(ValueError, match="plan"):
+        c.correct_simd(img, qplan, np.zeros((3, 1280), np.uint8), out, 3, False)
+    with pytest.raises(ValueError, match="img"):
+        c.correct_simd(img[:191], qplan, plan, out, 3, False)
+    with pytest.raises(ValueError, match="out"):
+        c.correct_simd(img, qplan, plan, np.zeros(191, np.uint8), 3, False)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stress_loop(seed):
+    """A short run of scripts/stress_correction_simd.py (the script runs hundreds)."""
+    module = _stress()
+    rng = np.random.default_rng(100 + seed)
+    ran = 0
+    for _ in range(40):
+        ok, simd, detail = module.check(module.random_case(rng))
+        assert ok, detail
+        ran += simd
+    assert ran > 10 or not simd_available()
