@@ -108,9 +108,9 @@ static PyObject *lookup_shared(PyObject *self, PyObject *args)
     return lookup(args, 0);
 }
 
-/* correct_simd(img, qplan, plan, out, channels, clamp): the uint8 correction of the first (pixels // 64) * 64 pixels with
- * AVX-512 register look-ups (_ckernels_simd.h); returns the number of pixels done (0 where the CPU lacks the
- * instructions: the caller does the rest with lookup_rgb / lookup_shared) */
+/* correct_simd(img, qplan, plan, out, channels, clamp): the uint8 correction of the first (pixels // 64) * 64
+ * pixels with AVX-512 register look-ups (_ckernels_simd.h); returns the number of pixels done (0 where the CPU
+ * lacks the instructions: the caller does the rest with lookup_rgb / lookup_shared) */
 static PyObject *correct_simd(PyObject *self, PyObject *args)
 {
     PyObject *oi, *oq, *op, *oo;
@@ -129,7 +129,8 @@ static PyObject *correct_simd(PyObject *self, PyObject *args)
     }
     Py_ssize_t blocks = v[1].shape[0];
     if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, 64, "qplan")
-        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_PLAN_BYTES, "plan") || rm_dim(&v[3], 0, n, "out")) {
+        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_PLAN_BYTES, "plan")
+        || rm_dim(&v[3], 0, n, "out")) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
         goto fail;

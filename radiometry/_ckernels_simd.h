@@ -24,7 +24,8 @@
 
 #define RM_PLAN_BYTES 1792
 
-#if (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
+/* RM_NO_SIMD (-DRM_NO_SIMD) builds without the kernel: what compilers other than GCC / Clang and other CPUs get */
+#if !defined(RM_NO_SIMD) && (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
 #define RM_HAVE_SIMD 1
 #include <immintrin.h>
 
@@ -75,7 +76,7 @@ RM_TARGET static inline void rm_searchn(__m512i j[RM_WAY], const rm_tables *tb)
         idx[i] = _mm512_maskz_mov_epi16(m[i], _mm512_set1_epi16(1));
     }
 #define RM_STEP(D, THR)                                                                                            \
-    for (int i = 0; i < RM_WAY; i++) {                                                                                  \
+    for (int i = 0; i < RM_WAY; i++) {                                                                             \
         m[i] = _mm512_cmpge_epu16_mask(j[i], (THR));                                                               \
         idx[i] = _mm512_mask_add_epi16(idx[i], m[i], idx[i], _mm512_set1_epi16(1 << (D)));                         \
     }
@@ -97,8 +98,10 @@ RM_TARGET static inline void rm_searchn(__m512i j[RM_WAY], const rm_tables *tb)
  * bytes' two halves interleaved (vpunpck[lh]bw order) */
 RM_TARGET static inline void rm_lookup16(__m512i x, __mmask64 top, const __m512i *t, __m512i *lo, __m512i *hi)
 {
-    __m512i l = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[0], x, t[1]), _mm512_permutex2var_epi8(t[2], x, t[3]));
-    __m512i h = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[4], x, t[5]), _mm512_permutex2var_epi8(t[6], x, t[7]));
+    __m512i l = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[0], x, t[1]),
+                                       _mm512_permutex2var_epi8(t[2], x, t[3]));
+    __m512i h = _mm512_mask_blend_epi8(top, _mm512_permutex2var_epi8(t[4], x, t[5]),
+                                       _mm512_permutex2var_epi8(t[6], x, t[7]));
     *lo = _mm512_unpacklo_epi8(l, h);
     *hi = _mm512_unpackhi_epi8(l, h);
 }
@@ -216,7 +219,8 @@ RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan,
             __m512i p2 = _mm512_loadu_si512(ys[2] + 64 * b);
             for (int c = 0; c < 3; c++) {
                 __m512i y = _mm512_permutex2var_epi8(p0, ji[c], p1);
-                _mm512_storeu_si512(out + 192 * (b0 + b) + 64 * c, _mm512_mask_permutexvar_epi8(y, rm_join_mask[c], ji[c], p2));
+                y = _mm512_mask_permutexvar_epi8(y, rm_join_mask[c], ji[c], p2);
+                _mm512_storeu_si512(out + 192 * (b0 + b) + 64 * c, y);
             }
         }
     }

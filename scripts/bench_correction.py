@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     sc = res["cache", "scalar"]
     print(f"  Corrector(simd=False): {gather} gather      : {fmt(sc)}  ({fast[0] / sc[0]:.2f} / "
           f"{fast[1] / sc[1]:.2f} x faster with the default path)")
-    identical = np.array_equal(corrector.correct(frames[1], scale=args.scale), scalar.correct(frames[1], scale=args.scale))
+    identical = np.array_equal(corrector.correct(frames[1], scale=args.scale),
+                               scalar.correct(frames[1], scale=args.scale))
     print(f"  default and scalar outputs identical     : {identical}")
     print(f"  NumPy reference, same formula            : {fmt(peer)}")
     print(f"  ratio                                    : {fast[0] / peer[0]:9.1f} {fast[1] / peer[1]:9.1f} x")

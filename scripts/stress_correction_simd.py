@@ -10,11 +10,12 @@ a binary search of per-channel thresholds) where the CPU has AVX-512 VBMI and GF
 - NumPy indexing of the same tables, ``table[q + k[c, I]]``, written here (independent of both kernels).
 
 Cases are drawn per run: responses (gamma 0.3-3.5, S-curves, random increasing tables with near-flat runs, 1 or 3
-channels), vignetting (none, or a radial LUT at the image's size falling to 0.02-1 with a random centre, 1 or 3 channels, sometimes
-noisy), sizes from 1x1 to 640x480 (mostly not multiples of 64 pixels), 1 or 3 image channels ((H, W), (H, W, 1),
-(H, W, 3)), scales 0.005-50 (all dark to all saturated), gain levels 2-65535 (65535 makes a table past the AVX
-kernel's 16-bit range: the scalar path then runs alone, which is checked too), images random, constant, a ramp of
-all 256 levels, or mostly 0 and 255, given contiguous, strided or Fortran-ordered.
+channels), vignetting (none, or a radial LUT at the image's size falling to 0.02-1 with a random centre, 1 or 3
+channels, sometimes noisy), sizes from 1x1 to 640x480 (mostly not multiples of 64 pixels), 1 or 3 image channels
+((H, W), (H, W, 1), (H, W, 3)), scales 0.005-50 (all dark to all saturated), gain levels 2-65535 (65535 makes 32-bit
+gain indices, past the AVX kernel: the scalar path then runs alone, which is checked too), images random,
+constant, a ramp of all 256 levels, or mostly 0 and 255, given contiguous, strided or Fortran-ordered. Tables whose
+thresholds span more than 16 bits (everything darkened under mild vignetting) also run the scalar path alone.
 
 Prints a line per failing case and a summary (how many cases ran the AVX-512 kernel); exits 1 on any failure.
 Usage::

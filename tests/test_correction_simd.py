@@ -10,6 +10,11 @@ that need the kernel to run skip on CPUs without it; the fallback tests run ever
 from __future__ import annotations
 
 import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
 from pathlib import Path
 
 import numpy as np
@@ -233,3 +238,35 @@ def test_stress_loop(seed):
         assert ok, detail
         ran += simd
     assert ran > 10 or not simd_available()
+
+
+@pytest.mark.slow
+def test_a_build_without_the_kernel_corrects_with_the_scalar_path(tmp_path):
+    """``-DRM_NO_SIMD``: what a compiler other than GCC / Clang or a CPU other than x86 builds. The module says
+    ``simd = 0``, ``correct_simd`` corrects no pixel, and its scalar kernels give the same bytes."""
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(cc) is None or sys.platform == "win32":
+        pytest.skip(f"no C compiler ({cc})")
+    repo = SCRIPT.parents[1]
+    env = dict(os.environ, CFLAGS="-DRM_NO_SIMD")
+    proc = subprocess.run([sys.executable, "setup.py", "build_ext", "--build-lib", str(tmp_path / "lib"),
+                           "--build-temp", str(tmp_path / "tmp")], cwd=repo, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    built = next((tmp_path / "lib" / "radiometry").glob("_ckernels*"))
+    script = ("import sys, importlib.util, numpy as np; "
+              "spec = importlib.util.spec_from_file_location('radiometry._ckernels', sys.argv[1]); "
+              "c = importlib.util.module_from_spec(spec); spec.loader.exec_module(c); "
+              "from radiometry.correction import Corrector; from radiometry.response import CameraResponse; "
+              "from radiometry.vignetting import LUTVignetting; "
+              "v = LUTVignetting(np.linspace(0.3, 1, 48 * 64).reshape(48, 64).astype(np.float32)); "
+              "cor = Corrector(CameraResponse.gamma(2.2), v); img = np.arange(48 * 64 * 3).astype(np.uint8); "
+              "q, k, t = cor._fast_tables(48, 64, 3, 0.8); qp, plan, clamp = cor._simd_plan(48, 64, 3, 0.8); "
+              "out = np.empty_like(img); done = c.correct_simd(img, qp, plan, out, 3, clamp); "
+              "ref = np.empty_like(img); c.lookup_shared(img, q.reshape(-1), k, t, ref, 3); "
+              "want = cor.correct(img.reshape(48, 64, 3), scale=0.8).reshape(-1); "
+              "print(c.simd, done, ref.tobytes() == want.tobytes())")
+    run = subprocess.run([sys.executable, "-c", script, str(built)], cwd=repo, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["0", "0", "True"]
