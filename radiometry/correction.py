@@ -28,6 +28,15 @@ table holds the exact 256 outputs per channel. The table is small (about 55 kB p
 0.5 MB for a table per quantised gain), so its look-ups hit the CPU cache: that, not memory traffic,
 bounds the speed (``scripts/bench_correction.py``). Tables and gain maps are cached per size (a few
 entries).
+
+Where the CPU has AVX-512 (F, BW, VL, VBMI) and GFNI and the C kernels are in use, whole blocks of 64 pixels go
+through ``radiometry/_ckernels_simd.h`` instead: ``k`` by in-register byte permutes, and the table replaced by the
+count of each channel's output thresholds below the index (``table`` is non-decreasing along a channel's part), an
+8-step binary search in registers; the result is bit-identical (:func:`_build_simd_plan`; tests compare both).
+It needs a per-(size, scale) plan (the gain indices reordered, 2 bytes a value, and 1.8 kB of tables per channel)
+and applies when the gain indices are 16-bit and a channel's thresholds span at most 65534 steps; elsewhere, and
+for the last pixels short of a block, the scalar kernel runs. ``Corrector(simd=False)`` or ``RADIOMAP_SIMD=0``
+keep the scalar kernel (the Numba kernels, ``RADIOMAP_KERNELS=numba``, have no AVX-512 twin).
 """
 
 from __future__ import annotations
@@ -156,9 +165,10 @@ def _build_simd_plan(q: np.ndarray, k: np.ndarray, table: np.ndarray, sizes: lis
         rel, t = rels[c], thresholds[c].astype(np.int64)
         jmax = qmax + int(rel.max())
         shift = max(int(t[0]) - 1, 0) if clamp else 0
-        t = np.where(t > jmax, 0xFFFF, t - shift)  # beyond every j: never
-        if np.any((t > 65534) & (t != 0xFFFF)):
+        never = t > jmax  # beyond every j: never counted
+        if np.any((t - shift > 65534) & ~never):  # a threshold the 16-bit index cannot reach (0xFFFF: never)
             return None
+        t = np.where(never, 0xFFFF, t - shift)
         k1, k2 = np.clip(rel - shift, 0, 65534), np.clip(shift - rel, 0, 65535)
         plan[c, :256], plan[c, 256:512] = k1 & 255, k1 >> 8
         plan[c, 1280:1536], plan[c, 1536:] = k2 & 255, k2 >> 8

@@ -270,3 +270,33 @@ def test_a_build_without_the_kernel_corrects_with_the_scalar_path(tmp_path):
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.split() == ["0", "0", "True"]
+
+
+@needs_simd
+@pytest.mark.parametrize("gap, applies", [(65533, True), (65534, False)])
+def test_clamped_form_at_the_edge_of_16_bits(gap, applies):
+    """A table longer than 65535 entries (the clamped form, indices moved to start 1 below the first threshold): a
+    second threshold ``gap`` steps above the first. 65533 lands on 65534, the largest index; 65534 would land on
+    65535, the never-reached marker, so no plan (the scalar path runs).
+    Found by scripts/stress_correction_simd.py (seed 0, case 341) before the check was exact."""
+    from radiometry.correction import _build_simd_plan
+
+    size, first = 70000, 1000
+    part = np.zeros(size, dtype=np.uint8)
+    part[first:] = 1
+    part[first + gap:] = 2
+    levels = np.repeat(np.arange(14), 5000)  # j = q + k[I] = q + 5000 I covers 0..69999
+    q = (np.arange(levels.size) % 5000).astype(np.uint16)[:, None]
+    k = np.zeros((1, 256), dtype=np.uint32)
+    k[0, :14] = 5000 * np.arange(14)
+    plan = _build_simd_plan(q, k, part, [size], 1)
+    if not applies:
+        assert plan is None
+        return
+    assert plan is not None and plan[2]  # the clamped form
+    img = levels.astype(np.uint8)
+    out = np.empty_like(img)
+    done = correction._SIMD(img, plan[0], plan[1], out, 1, plan[2])
+    assert done == img.size // 64 * 64
+    np.testing.assert_array_equal(out[:done], part[q[:done, 0].astype(np.int64) + k[0, levels[:done]]])
+    assert {1, 2} <= set(np.unique(out[:done]))  # both thresholds crossed
