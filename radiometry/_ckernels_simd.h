@@ -31,13 +31,24 @@
 
 #define RM_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512vbmi,gfni")))
 
-/* whether this CPU runs the kernel below */
+/* whether this CPU (and the OS, which must save the 512-bit registers) runs the kernel below: CPUID leaf 7 for
+ * AVX-512 F, BW, VL, VBMI and GFNI, XGETBV for the saved state (read directly rather than with
+ * __builtin_cpu_supports, whose feature names older compilers do not know) */
+#include <cpuid.h>
 static int rm_simd_supported(void)
 {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw")
-           && __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512vbmi")
-           && __builtin_cpu_supports("gfni");
+    unsigned int a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) /* OSXSAVE */
+        return 0;
+    unsigned int lo, hi;
+    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    if ((lo & 0xe6) != 0xe6) /* XMM, YMM, opmask, ZMM 0-15 and 16-31 state */
+        return 0;
+    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d))
+        return 0;
+    const unsigned int ebx = (1u << 16) | (1u << 30) | (1u << 31); /* AVX512F, AVX512BW, AVX512VL */
+    const unsigned int ecx = (1u << 1) | (1u << 8);                 /* AVX512_VBMI, GFNI */
+    return (b & ebx) == ebx && (c & ecx) == ecx;
 }
 
 /* searches side by side (RM_WAY / 2 planes of 64 values): one step's permute-compare-add chain takes ~11 cycles
