@@ -75,8 +75,8 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                 output=None, refresh_coverage: float = 0.5, max_consecutive_failures: int = 30,
                 progress: bool = True, histogram_label: str | None = None,
                 write_mesh: bool = True, holdout_every: int | None = None, colour_map: str | None = None,
-                colour_map_options: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply",)
-                ) -> RunResult:
+                colour_map_options: Mapping[str, Any] | None = None, mesh_formats: Sequence[str] = ("ply",),
+                prefetch: int = 1) -> RunResult:
     """Track (or take ground-truth poses), correct, fuse and measure colour disagreement over a sequence.
 
     dataset:       an :class:`~mapping.datasets.base.RGBDDataset` (frame range and stride applied).
@@ -107,6 +107,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                    in ``output``, the outcome in ``RunResult.colour_map``, its line in ``summary.txt``), before the
                    folder is marked complete.
     colour_map_options: keywords of :func:`~mapping.colour_map.colour_map_for_run` (``formats``, ``iterations``, ...).
+    prefetch:      frames read ahead by a background thread while the loop works on the current one
+                   (:class:`mapping.prefetch.FramePrefetcher`; the same frames, in order, the same errors); 0 reads
+                   each frame when its turn comes.
     """
     from mapping.pose_files import PoseTable
 
@@ -120,6 +123,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     if not 0 <= refresh_coverage <= 1:
         raise ValueError(f"refresh_coverage must be in [0, 1], got {refresh_coverage}")
     holdout_every = 0 if holdout_every is None else check_holdout_every(holdout_every, len(dataset))
+    from mapping.prefetch import FramePrefetcher, check_ahead
+
+    check_ahead(prefetch)
     if colour_map is not None:   # a wrong name fails before the run, not after it
         from mapping.colour_map import OPTIMISERS
         from radiometry.registry import validate_name
@@ -129,6 +135,8 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     loop = _Loop(dataset, colour_model, backend, tracker, poses, initial_pose, refresh_coverage,
                  max_consecutive_failures, histogram_label or colour_model.name, holdout_every)
     bar = _progress_bar(len(dataset), progress, dataset.name)
+    frames = FramePrefetcher(dataset, prefetch)   # starts reading frame 0 in its thread (prefetch > 0)
+    loop.read = frames.get
     status = "failed"
     lost: TrackingError | None = None
     try:
@@ -152,6 +160,7 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         loop.drop_unfinished()
         raise
     finally:
+        frames.close()   # stops and joins the reading thread: nothing is read after the loop ends
         bar.close()
         run = loop.result(status)
         if lost is not None:
@@ -192,7 +201,8 @@ class _Loop:
     """The per-frame steps of :func:`reconstruct` and the state they share."""
 
     def __init__(self, dataset, colour_model: ColourModel, backend: FusionBackend, tracker, poses, initial_pose,
-                 refresh_coverage, max_failures, label, holdout_every: int = 0) -> None:
+                 refresh_coverage, max_failures, label, holdout_every: int = 0, read=None) -> None:
+        self.read = read or dataset.__getitem__   # frame i (mapping.prefetch.FramePrefetcher.get: read ahead)
         self.dataset, self.colour_model, self.backend, self.tracker = dataset, colour_model, backend, tracker
         self.poses, self.initial_pose = poses, initial_pose
         self.refresh_coverage, self.max_failures = refresh_coverage, max_failures
@@ -222,7 +232,7 @@ class _Loop:
     # ---------------------------------------------------------------- one frame
     def step(self, i: int) -> None:
         with self.timed("load"):
-            frame = self.dataset[i]
+            frame = self.read(i)
         record = FrameRecord(frame.index, float(frame.timestamp), False)
         self.records.append(record)
         self._count_far_depth(frame.depth)

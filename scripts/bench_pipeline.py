@@ -22,6 +22,9 @@ alternating order, ``--repeats`` times; the table reports medians.
 - radiomap-o3dcast: radiomap casting the map with Open3D's ``VoxelBlockGrid.ray_cast`` and its separate colour
             kernel (``ray_caster="open3d"``, the path before issue 33; not run unless listed): the own cast's
             saving and its results (histogram, ATE: the same bits expected) in the same run.
+- radiomap-serial: radiomap reading each frame when its turn comes (``reconstruct(prefetch=0)``; not run unless
+            listed): the default reads the next frame in a background thread (:mod:`mapping.prefetch`) while the
+            current one is tracked, fused and cast; this measures what that overlap saves, in the same run.
 - radiomap-numba: radiomap with its Numba kernels (``RADIOMAP_KERNELS=numba``; not run unless listed): what
             the compiled kernels save in memory and time, in the same run.
 
@@ -39,7 +42,7 @@ and end: the machine's load is printed beside every figure.
 
 The time ratio is the median over back-to-back pairs (the machine's load drifts between runs). ``--scaling``
 adds the time per frame over the ``--window`` frames before each listed frame number (every method times each
-frame: from the start of one frame, its loading included, to the start of the next).
+frame: from the end of one frame to the end of the next, its loading included).
 
 The figures are in docs/benchmarks.md.
 """
@@ -57,9 +60,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
-METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
+METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast",
+           "radiomap-serial")
 PEERS = ("open3d", "open3d-colour")
-OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast")
+OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast", "radiomap-serial")
 
 
 def parse_frames(text: str) -> slice:
@@ -133,21 +137,27 @@ def worker_open3d(args) -> dict:
             "blocks": int(model.get_hashmap().size()), "frame_ms": (1000 * np.diff(marks)).tolist()}
 
 
-class _TimedFrames:
-    """A dataset that notes when each frame is asked for (the pipeline asks once per frame, in order)."""
+class _FrameMarks:
+    """Notes when each frame is done, from the pipeline's DEBUG line "frame K of N: ..." (the frames are read ahead
+    in another thread, so the time a frame is asked for is not when the loop starts it)."""
 
-    def __init__(self, dataset) -> None:
-        self.dataset, self.marks = dataset, []
+    def __init__(self) -> None:
+        import logging
 
-    def __len__(self) -> int:
-        return len(self.dataset)
+        self.marks = [time.perf_counter()]
+        self.handler = logging.Handler(logging.DEBUG)
+        self.handler.emit = self._emit
+        self.logger = logging.getLogger("mapping.pipeline")
+        self.logger.addHandler(self.handler)
+        self.logger.setLevel(logging.DEBUG)
+        self.logger.propagate = False
 
-    def __getitem__(self, i):
-        self.marks.append(time.perf_counter())
-        return self.dataset[i]
+    def _emit(self, record) -> None:
+        if record.msg.startswith("frame %d of %d"):
+            self.marks.append(time.perf_counter())
 
-    def __getattr__(self, name):
-        return getattr(self.dataset, name)
+    def close(self) -> None:
+        self.logger.removeHandler(self.handler)
 
 
 def worker_radiomap(args) -> dict:
@@ -180,11 +190,12 @@ def worker_radiomap(args) -> dict:
                            colour_storage="float32" if args.worker == "radiomap-float32" else "uint16",
                            ray_caster="open3d" if args.worker == "radiomap-o3dcast" else "radiomap")
     tracker = make_tracker(depth_max=args.depth_max, depth_diff=args.depth_diff, motion_model=args.motion_model)
-    timed = _TimedFrames(ds)
+    timed = _FrameMarks()
     cpu0 = time.process_time()
-    run = reconstruct(timed, colour_model=colour, backend=backend, tracker=tracker, progress=False)
+    run = reconstruct(ds, colour_model=colour, backend=backend, tracker=tracker, progress=False,
+                      prefetch=0 if args.worker == "radiomap-serial" else 1)
     cpu = time.process_time() - cpu0
-    timed.marks.append(time.perf_counter())
+    timed.close()
     stages = {k: 1000.0 * v / run.frames for k, v in run.stage_seconds.items()}
     from radiometry._native import compiled
 
