@@ -67,29 +67,90 @@ def test_jpeg_and_noise_after_the_response_stay_within_one_percent_on_gamma(pipe
 
 
 @pytest.mark.slow
-def test_the_euroc_curve_through_jpeg_with_white_balance(radiance):
-    """Measured: 0.92 / 0.48 / 2.19 %: blue misses the 1 % target at its top declared level (234, the ceiling at 243
-    less the margin): a documented failure, bounded here; the declared levels stay below every true ceiling."""
+@pytest.mark.parametrize("design", ["2x", "varied"])
+def test_the_euroc_curve_through_jpeg_with_white_balance(design, radiance):
+    """Measured: 0.50 / 0.42 / 0.60 % (2x), 0.48 / 0.48 / 0.91 % (varied). Before the outliers were left out blue
+    was 2.19 / 2.35 % at its top declared level (234): a few saturated pixels that JPEG reads below the ceiling
+    (about 100 of 111,000 observations, each an exposure the curve would put at or above 242); the declared levels
+    stay below every true ceiling."""
     if "euroc" not in curves():
         pytest.skip("../shared/data (EuRoC pcalib) is absent")
-    table, _, _, response = _fit("euroc", "wb-jpeg92", "2x", radiance)
+    table, _, _, response = _fit("euroc", "wb-jpeg92", design, radiance)
     gains = PIPELINES["wb-jpeg92"]["gains"]
     declared = response.meta["declared_levels"]
     assert all(hi <= ceiling_level(table, gains[c]) for c, (_, hi) in enumerate(declared)), declared
+    assert response.meta["outliers_dropped"][2][0] > 0 and not response.meta["deblur"]  # JPEG: no Gaussian model
     err = max_error_scale_free(response.inverse_table, table, declared)
-    assert np.all(err[:2] <= 1.0) and err[2] <= 3.0, err
+    assert np.all(err <= 1.0), err
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("curve, pipeline, bound", [("flat-then-steep", "wb-jpeg92", 3.0), ("kink-4x", "jpeg75", 4.0),
-                                                    ("s-curve", "jpeg75", 4.5)])
+@pytest.mark.parametrize("curve, pipeline, bound", [("flat-then-steep", "wb-jpeg92", 2.6), ("kink-4x", "jpeg75", 1.7),
+                                                    ("s-curve", "jpeg75", 1.4)])
 def test_where_it_fails_knees_under_jpeg_stay_bounded(curve, pipeline, bound, radiance):
-    """Documented failures: a knee (slope x50 at level 200, or x4 at 180) blurred by JPEG's level noise, and the
-    s-curve's blue shoulder under JPEG q75: 1.5-3.9 % at single levels (docs/calibration_pipelines.md). Bounded so
-    that they cannot grow silently."""
+    """Documented failures: a knee (slope x50 at level 200, or x4 at 180) blurred by JPEG's level noise: measured
+    flat-then-steep 2.21 / 1.69 / 2.25 % at level 200, kink 1.30 / 0.84 / 1.38 % at 180; the s-curve under q75
+    1.08 / 0.53 / 0.61 % (3.86 % in blue before the outliers were left out). Bounded so that they cannot grow
+    silently (docs/calibration_pipelines.md)."""
     table, _, _, response = _fit(curve, pipeline, "2x", radiance)
     err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
     assert np.all(err <= bound), err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("curve, bound", [("kink-4x", 1.05), ("flat-then-steep", 1.4)])
+def test_knees_under_noise_after_the_response_are_unblurred(curve, bound, radiance):
+    """Noise after the response (1.5 levels, Gaussian): the fit's bias measured on stacks simulated from it and
+    taken off (radiometry/response/deblur.py). Measured kink 0.74 / 0.98 / 0.67 % (before 1.27 / 1.45 / 1.39),
+    flat-then-steep 1.22 / 0.80 / 0.90 % (before 1.74 / 1.35 / 1.30); the noise it measured is recorded."""
+    table, _, _, response = _fit(curve, "post-noise", "2x", radiance)
+    assert response.meta["deblur"] and all(1.0 < v < 4.0 for v in response.meta["level_noise"])
+    err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
+    assert np.all(err <= bound), err
+
+
+def test_outliers_are_the_saturated_readings_and_the_wild_ones():
+    """A unit check of the leave-one-out rule on a made-up channel (linear curve, three exposures 2x apart): a pixel
+    whose third exposure the curve puts above the ceiling but which reads below it (JPEG's rounding of a saturated
+    block), and one observation 30 levels off, are the outliers; noise of 1 level is not."""
+    from radiometry.response.deblur import leave_one_out_levels, outliers
+
+    rng = np.random.default_rng(0)
+    table = np.linspace(0.0, 1.0, 256)
+    n_pix = 400
+    e = rng.uniform(0.05, 0.2, n_pix)  # at most level 204 in the longest exposure
+    e[7] = 0.29  # pixel 7 would reach level 296 in the longest: saturated, but read at 230
+    log_t = np.log([1.0, 2.0, 4.0])
+    pix = np.repeat(np.arange(n_pix), 3)
+    img = np.tile(np.arange(3), n_pix)
+    z = np.clip(np.rint(255 * e[pix] * np.exp(log_t[img]) + rng.normal(0, 1, pix.size)), 0, 255).astype(np.intp)
+    z[3 * 7 + 2] = 230
+    z[3 * 11 + 1] += 30
+    drop = outliers(table, pix, img, z, n_pix, log_t, ceiling=240.0)
+    pred = leave_one_out_levels(table, pix, img, z, n_pix, log_t)
+    assert drop[3 * 7 + 2] and pred[3 * 7 + 2] > 240 and drop[3 * 11 + 1]
+    assert drop.sum() <= 0.02 * drop.size + 3  # noise of 1 level is data, not outliers
+
+
+def test_the_level_noise_is_measured_from_the_residuals():
+    """The deblur's noise estimate on a made-up channel with Gaussian noise of 2 levels after a linear curve (three
+    exposures 2x apart): within 20 % of 2 at levels 60-100 (measured 2.05-2.34) (the pixel's own weight in its irradiance and the
+    rounding taken out). A known limit, measured: it overstates the noise where the pixel's irradiance estimate is
+    itself noisy, by 35-50 % at levels 120-200 here (three exposures; 10-12 in a real bracket)."""
+    from radiometry.response.deblur import level_noise, pixel_log_irradiance
+
+    rng = np.random.default_rng(1)
+    table = np.linspace(1e-4, 1.0, 256)
+    n_pix = 3000
+    e = rng.uniform(0.05, 0.2, n_pix)
+    log_t = np.log([1.0, 2.0, 4.0])
+    pix = np.repeat(np.arange(n_pix), 3)
+    img = np.tile(np.arange(3), n_pix)
+    z = np.clip(np.rint(255 * e[pix] * np.exp(log_t[img]) + rng.normal(0, 2.0, pix.size)), 1, 254).astype(np.intp)
+    ln_e = pixel_log_irradiance(np.log(table), pix, img, z, n_pix, log_t)
+    sigma = level_noise(table, ln_e, pix, img, z, log_t, (20, 230))
+    assert np.all(np.abs(sigma[60:100] - 2.0) < 0.4), sigma[60:100:10]
+    assert np.all((sigma[100:200] > 1.8) & (sigma[100:200] < 3.2)), sigma[100:200:20]
 
 
 @pytest.mark.slow
