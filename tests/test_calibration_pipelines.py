@@ -98,16 +98,19 @@ def test_where_it_fails_knees_under_jpeg_stay_bounded(curve, pipeline, bound, ra
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("curve, bound", [("kink-4x", 1.05), ("flat-then-steep", 1.4)])
-def test_knees_under_noise_after_the_response_are_unblurred(curve, bound, radiance):
-    """Noise after the response (1.5 levels, Gaussian), ``deblur=True`` (opt-in): the fit's bias measured on stacks
-    simulated from it and taken off (radiometry/response/deblur.py). Measured kink 0.74 / 0.98 / 0.67 % (without it
-    1.13 / 1.33 / 1.47), flat-then-steep 1.22 / 0.80 / 0.90 % (without 1.88 / 1.51 / 1.47); the noise it measured
-    is recorded."""
-    table, _, _, response = _fit(curve, "post-noise", "2x", radiance, deblur=True)
+@pytest.mark.parametrize("curve, bound", [("kink-4x", 1.3), ("flat-then-steep", 1.65)])
+def test_knees_under_noise_after_the_response_with_the_opt_in_deblur(curve, bound, radiance):
+    """Noise after the response (1.5 levels, Gaussian) with ``deblur=True`` (opt-in): the fit's bias measured on
+    stacks simulated from it and taken off (radiometry/response/deblur.py). Measured: the worst channel at the knee
+    kink 1.45 -> 1.22 % (0.87 / 1.22 / 0.77), flat-then-steep 1.74 -> 1.54 % (0.94 / 1.54 / 0.58): better, still
+    above 1 %, and not the default (it costs other rows: docs/calibration_pipelines.md). The noise it measured
+    (1.5 levels added to the sensor's own) is recorded."""
+    table, images, times, plain = _fit(curve, "post-noise", "2x", radiance)
+    response = fit_response(images, times, deblur=True)
     assert response.meta["deblur"] and all(1.0 < v < 4.0 for v in response.meta["level_noise"])
+    before = max_error_scale_free(plain.inverse_table, table, plain.meta["declared_levels"])
     err = max_error_scale_free(response.inverse_table, table, response.meta["declared_levels"])
-    assert np.all(err <= bound), err
+    assert err.max() < before.max() and np.all(err <= bound), (before, err)
 
 
 def test_outliers_are_the_saturated_readings_and_the_wild_ones():
