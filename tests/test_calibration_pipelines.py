@@ -377,3 +377,9 @@ def test_a_static_and_a_hand_held_jpeg_sweep_are_measured_and_said_to_be_jpeg(eu
         facts: dict = {}
         lines = _truth_free_lines(acc, response, "lut", {}, facts, True)
         assert any("JPEG-compressed" in line for line in lines) and facts["quality"] == "doubtful", lines
+
+
+def test_a_wrong_deblur_value_is_refused_naming_it():
+    images = [np.full((8, 8, 3), v, np.uint8) for v in (60, 120)]
+    with pytest.raises(ValueError, match=r"deblur must be True, False or 'auto'"):
+        fit_response(images, [1.0, 2.0], deblur="yes")
