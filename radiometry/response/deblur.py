@@ -1,4 +1,6 @@
-"""Undo the blur that level noise puts on a fitted response: a parametric-bootstrap bias correction.
+"""What level noise (JPEG, an ISP) does to a fitted response: the observations to leave out (:func:`outliers`, used
+by the default fit on JPEG stacks) and a parametric-bootstrap correction of the blur (:func:`correct`, opt-in:
+``fit_response(..., deblur=True)``).
 
 A JPEG file or an ISP adds noise to the level after the response: ``z = f(E t) + n``. The fit then maps each level
 to the mean exposure of the pixels that read it, ``E[ln(E t) | z]``, which is ``g = ln f^-1`` blurred by the noise
@@ -17,8 +19,11 @@ The correction measures that bias on the fit itself. Per channel:
    it, and (rounds > 1) simulated again from the moved curve until the fit of its simulation matches the fit of the
    data: ``g_(k+1) = g_k + (g_0 - fit(sim(g_k)))``.
 
-With little level noise (a clean camera) the bias is small and so is the correction; the simulation's own noise
-then costs about sqrt 2 of the fit's noise, which :data:`MIN_NOISE` avoids: below it the fit is left as it is.
+Known limits, measured (docs/calibration_pipelines.md): the simulation's own noise adds to the fit's (about sqrt 2);
+the noise estimate overstates the noise where a pixel's irradiance is itself noisy; two rounds do not converge at a
+sharp knee and more rounds diverge; JPEG's error is neither Gaussian nor independent per pixel. It halves the knee
+error under Gaussian noise after the response on some stacks and doubles the error of a nearly linear curve on
+others, hence not the default.
 """
 
 from __future__ import annotations
@@ -27,8 +32,6 @@ import numpy as np
 
 #: levels over which the noise estimate is smoothed (a running mean of the variance)
 NOISE_WINDOW = 9
-#: no correction when the level noise (RMS over the levels, levels) is below this: a clean camera
-MIN_NOISE = 0.0
 #: simulation rounds (each one fit of a simulated stack)
 ROUNDS = 2
 _LEVELS_F = np.arange(256, dtype=np.float64)
