@@ -264,14 +264,14 @@ def _keep(pix: np.ndarray, img: np.ndarray, z: np.ndarray, keep: np.ndarray) -> 
 
 
 def _ceiling(level_meta: dict, channel: int) -> tuple[float, float]:
-    """Where channel ``channel`` saturates (its exact pile, else the saturated readings' median, else 255) and the
-    saturated readings' noise."""
+    """Where channel ``channel`` saturates in a simulation (its exact pile, else the detected ceiling, else 255) and
+    the saturated readings' spread there (0: they read the ceiling; their spread across pixels under JPEG is not
+    measured, one of the reasons the simulation does not fit JPEG)."""
     found = level_meta.get("level_detection")
     if not found:
         return 255.0, 0.0
     entry = found[channel]
-    level = entry.get("pile") or entry.get("saturated_level") or entry.get("saturates_at") or 255
-    return float(level), float(entry.get("saturated_noise") or 0.0)
+    return float(entry.get("pile") or entry.get("saturates_at") or 255), 0.0
 
 
 def _deblur(sol: dict, pix, img, z, n_pix: int, t: np.ndarray, log_t: np.ndarray, levels: tuple[int, int],
