@@ -185,8 +185,9 @@ def ambiguity_rows() -> list[dict]:
     return rows
 
 
-def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, quality: bool = True) -> list[dict]:
-    """The ``--pipelines`` table (see the module docstring)."""
+def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, quality: bool = True,
+                  deblur: bool = False) -> list[dict]:
+    """The ``--pipelines`` table (see the module docstring); ``deblur``: the fit with ``deblur=True`` (opt-in)."""
     from camera_pipelines import PIPELINES, ceiling_level, max_error_scale_free, render
     from response_curves import curves, scene
 
@@ -204,7 +205,7 @@ def pipeline_rows(size: tuple[int, int], designs: list[str], seed: int = 0, qual
                 times = design_times(design)
                 images = render(table, radiance, times, seed=seed + 2, **options)
                 start = time.perf_counter()
-                response = fit_response(images, times)
+                response = fit_response(images, times, **({"deblur": True} if deblur else {}))
                 seconds = time.perf_counter() - start
                 declared = response.meta["declared_levels"]
                 err = max_error_scale_free(response.inverse_table, table, declared)
@@ -269,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end-to-end", action="store_true",
                         help="instead: response and vignetting LUT end to end per curve x vignette x method "
                              "(scripts/bench_vignetting.py; its options follow)")
+    parser.add_argument("--deblur", action="store_true",
+                        help="with --pipelines: the fit with deblur=True (the level-noise correction, opt-in)")
     parser.add_argument("--pipelines", action="store_true",
                         help="instead: the default fit through real camera pipelines (white balance after the clip, "
                              "JPEG, noise after the response; tests/camera_pipelines.py)")
@@ -300,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet.setLevel(logging.ERROR)
     if args.pipelines:
         try:
-            rows = pipeline_rows((width, height), args.design, seed=args.seed)
+            rows = pipeline_rows((width, height), args.design, seed=args.seed, deblur=args.deblur)
         finally:
             quiet.setLevel(level)
         print(f"the default response fit through camera pipelines vs truth ({width}x{height}, 12 exposures, "

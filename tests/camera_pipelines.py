@@ -100,15 +100,36 @@ def max_error_scale_free(fitted: np.ndarray, truth: np.ndarray, levels: list[tup
     return np.array(out)
 
 
+def paper_light(height: int, width: int, rng: np.random.Generator, *, gradient: float, texture: float) -> np.ndarray:
+    """One frame's light on the sheet, ``(H, W)`` around 1, as a camera moved by hand over paper sees it: a linear
+    falloff across the image of up to ``+-gradient`` at the edges in a random direction (the sheet's tilt and the
+    room's lights change from frame to frame) and the paper's fibre texture, ``texture`` RMS at 2-3 px scale,
+    which moves with the sheet and so differs at a pixel from frame to frame."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    angle = rng.uniform(0, 2 * np.pi)
+    ramp = ((xx / (width - 1) - 0.5) * np.cos(angle) + (yy / (height - 1) - 0.5) * np.sin(angle)) * 2
+    light = 1.0 + gradient * rng.uniform(-1, 1) * ramp
+    if texture > 0:
+        import cv2
+
+        fibres = cv2.GaussianBlur(rng.standard_normal((height, width)), (0, 0), 1.2)
+        light = light * (1.0 + texture * fibres / max(float(fibres.std()), 1e-12))
+    return light
+
+
 def sweep(table: np.ndarray, vignette: np.ndarray, *, frames: int = 64, top_level: float = 225.0, seed: int = 0,
-          exposure_jitter: float = 0.0, **pipeline) -> list[np.ndarray]:
+          exposure_jitter: float = 0.0, gradient: float = 0.0, texture: float = 0.0,
+          **pipeline) -> list[np.ndarray]:
     """A white-sheet sweep (the sheet placements and desk of ``tests/vignetting_sweeps.py``) through the pipeline
     above: per frame ``radiance * V * exposure``, the exposure multiplied by ``2^u``, ``u`` uniform in
     ``+-exposure_jitter`` stops (auto exposure left on). The base exposure puts the sheet's brightest channel at
-    ``top_level`` where ``V = 1`` before white balance."""
+    ``top_level`` where ``V = 1`` before white balance. ``gradient``, ``texture``: the light on the sheet varies as
+    in a hand-held sweep (:func:`paper_light`); 0 (the default) is a static field: every frame shows the same image
+    of the sheet wherever it lies, so JPEG's rounding of it is the same in every frame and does not average out."""
     from vignetting_sweeps import SHEET, _desk, sheet_masks
 
     rng = np.random.default_rng(seed + 1000)
+    light_rng = np.random.default_rng(seed + 2000)
     height, width = vignette.shape[:2]
     tables = np.asarray(table, dtype=np.float64).reshape(256, -1)
     exposure = float(np.interp(top_level, LEVELS.astype(np.float64), tables[:, 0])) / float(SHEET.max())
@@ -116,6 +137,8 @@ def sweep(table: np.ndarray, vignette: np.ndarray, *, frames: int = 64, top_leve
     out = []
     for mask in sheet_masks(height, width, frames, seed=seed):
         radiance = np.where(mask[:, :, None], SHEET[None, None, :], desk[:, :, None] * SHEET[None, None, :]) * vignette
+        if gradient > 0 or texture > 0:
+            radiance = radiance * paper_light(height, width, light_rng, gradient=gradient, texture=texture)[:, :, None]
         t = exposure * 2.0 ** rng.uniform(-exposure_jitter, exposure_jitter)
         out.append(expose(radiance, t, table, rng=rng, **pipeline))
     return out

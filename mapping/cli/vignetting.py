@@ -192,6 +192,17 @@ def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: 
                      f"odd frames, halved): {text}: {grade}"
                      + ("" if grade == "good" else f" (trusted up to {SPLIT_GOOD_LEVELS:g}); record a longer sweep "
                                                    "that covers every part of the image several times"))
+    from radiometry.response.levels import BLOCKY
+
+    blocky = getattr(acc, "blockiness", None)
+    facts["blockiness"] = None if blocky is None else round(float(blocky), 3)
+    if blocky is not None and blocky > BLOCKY:
+        facts["quality"] = "doubtful"
+        lines.append(f"note: the frames are JPEG-compressed (blockiness {blocky:.2f}): JPEG rounds a sheet that looks "
+                     f"the same in every frame the same way every time, an error the split-half figure does not see "
+                     f"(0.4-1.9 levels on simulated JPEG sweeps with the true response, "
+                     f"docs/calibration_pipelines.md); record PNG or raw frames for a LUT within "
+                     f"{SPLIT_GOOD_LEVELS:g} levels")
     spread = frame_scale_spread(acc)
     facts["frame_scale_spread"] = round(spread, 4)
     if spread > SCALE_SPREAD:

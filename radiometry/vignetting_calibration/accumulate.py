@@ -219,6 +219,9 @@ class VignettingAccumulation:
     odd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     #: the sheet's raw levels per channel, ``(C, 256)``, None when not collected
     level_hist: np.ndarray | None = None
+    #: how blocky the frames are (:func:`radiometry.response.levels.blockiness` of the first few used frames; above
+    #: ``BLOCKY`` they are JPEG-compressed), None when not measured
+    blockiness: float | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---------------------------------------------------------------- basic properties

@@ -3,6 +3,7 @@ counted by reason and a one-line error with the fix when the frames are no white
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 from typing import Any
@@ -12,11 +13,15 @@ import numpy as np
 from radiometry.errors import CalibrationError, ImageError
 from radiometry.quorum import rule_text, too_little
 from radiometry.response import CameraResponse
+from radiometry.response.levels import blockiness
 from radiometry.vignetting_calibration.accumulate import VignettingAccumulation, VignettingAccumulator
 from radiometry.vignetting_calibration.sheet import detect_sheet
 from radiometry.vignetting_calibration.sources import open_frames
 
 log = logging.getLogger(__name__)
+
+#: frames whose blockiness is measured (JPEG or not: the split-half figure misses JPEG's rounding of a static sheet)
+BLOCKY_FRAMES = 8
 
 #: the fix that ends every "these frames are no sweep" message
 SWEEP_FIX = ("point the camera at an evenly lit white sheet that fills a good part of the view, on a darker "
@@ -53,6 +58,7 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     first_size = ""
     seed: tuple[int, int] | None = None
     n_seen = 0
+    blocky: list[float] = []
     total = frames.length if max_frames is None or frames.length is None else min(frames.length, max_frames)
     bar = progress_bar(frames, total=total, desc="vignetting frames", enabled=progress, leave=False)
     try:
@@ -81,6 +87,8 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
                 log.debug("frame %d skipped: %s", n_seen - 1, det.status)
                 continue
             acc.add(frame, _away_from_ceiling(frame, det.mask, saturation), index=n_seen - 1, sheet=det.mask)
+            if len(blocky) < BLOCKY_FRAMES:
+                blocky.append(blockiness(frame[None] if frame.ndim == 3 else frame[None, :, :, None]))
             seed = det.centre
             if stop_when_covered and acc.covered(min_samples):  # type: ignore[arg-type]
                 log.info("every pixel has %d samples after %d frames; stopping", min_samples, n_seen)
@@ -102,6 +110,7 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
         log.warning("%d of %d frames were skipped as saturated; lowering the exposure would use them",
                     skipped["saturated"], n_seen)
     result = acc.result(skipped=dict(skipped), source=frames.name)
+    result = dataclasses.replace(result, blockiness=float(np.median(blocky)) if blocky else None, _cache={})
     clipped = result.clipped_channels()
     if clipped:
         names = ("R", "G", "B") if result.channels == 3 else ("grey",)
