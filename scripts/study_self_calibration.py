@@ -12,6 +12,9 @@ what the run told its user (ambiguity line, validation, warnings).
 
     python scripts/study_self_calibration.py --size 640 --frames 80
 
+``--exact`` gives every sighting the exact value ``k V L`` of the truth (no noise, no clip): what is left is the
+error the motion's geometry and V's model leave (docs/self_calibration.md).
+
 ``--real`` runs ``radiomap self-calibrate`` itself on the shared real recordings instead (the Kinect kitchen with
 its poses, the two RealSense recordings tracked by radiomap; gamma 2.2 assumed: no response was calibrated for
 these cameras) and prints what it told its user: validation, ambiguity, plausibility, V's corner/centre.
@@ -32,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
-def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0) -> dict:
+def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0, exact: bool = False) -> dict:
     from selfcal_camera import selfcal_sequence
 
     from mapping.self_calibration import _solve_and_check, collect_observations
@@ -45,6 +48,14 @@ def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0) ->
     seq = [ds[i] for i in range(len(ds))]
     response = CameraResponse.from_table(truth.table)
     obs, _ = collect_observations(seq, [f.pose for f in seq], response, progress=False)
+    if exact:       # the same sightings, values exactly k V L (no noise, no clip): what the geometry allows
+        import dataclasses
+
+        xi = np.clip(np.round(obs.x).astype(np.int64), 0, truth.vignetting.shape[1] - 1)
+        yi = np.clip(np.round(obs.y).astype(np.int64), 0, truth.vignetting.shape[0] - 1)
+        radiance = np.random.default_rng(seed).uniform(0.1, 0.5, (obs.n_points, 3))
+        obs = dataclasses.replace(obs, irradiance=truth.exposures[obs.frame] * truth.vignetting[yi, xi]
+                                  * radiance[obs.point])
     K = seq[0].K
     held = holdout_frames(len(seq), "every:5")
     result, checks = _solve_and_check(obs, held, response, truth.exposures if known else None, "every:5",
@@ -61,7 +72,8 @@ def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0) ->
                                                           int(np.clip(round(cx), 0, w - 1)), c]
         err = np.abs(np.log(v[:, :, c]) - np.log(tv))
         covered.append(float(np.mean(err <= 2 * se[:, :, c])))
-    return {"motion": motion, "exposures_given": known, "frames": frames, "size": f"{size}x{size * 3 // 4}",
+    return {"motion": motion, "exposures_given": known, "exact_values": exact, "frames": frames,
+            "size": f"{size}x{size * 3 // 4}",
             "v_error_levels": [round(float(x), 2) for x in levels],
             "exposure_error_median_pct": [round(float(x), 2) for x in k_err],
             "within_2_stderr_pct": [round(100 * x, 1) for x in covered],
@@ -124,6 +136,9 @@ def main() -> int:
     ap.add_argument("--size", type=int, default=640, help="image width (height 3/4 of it)")
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--motions", default="scan,pan")
+    ap.add_argument("--exact", action="store_true",
+                    help="replace every sighting's value by k V L from the truth (no noise, no clip): the error the "
+                         "motion's geometry and the model leave")
     ap.add_argument("--json", type=Path, help="also write the rows here")
     ap.add_argument("--real", action="store_true", help="the shared real recordings (see the module doc)")
     args = ap.parse_args()
@@ -136,7 +151,7 @@ def main() -> int:
     rows = []
     for motion in args.motions.split(","):
         for known in (False, True):
-            row = study(motion, frames=args.frames, size=args.size, known=known)
+            row = study(motion, frames=args.frames, size=args.size, known=known, exact=args.exact)
             rows.append(row)
             print(json.dumps(row), flush=True)
     if args.json:
