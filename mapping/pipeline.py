@@ -107,7 +107,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
                    in ``output``, the outcome in ``RunResult.colour_map``, its line in ``summary.txt``), before the
                    folder is marked complete.
     colour_map_options: keywords of :func:`~mapping.colour_map.colour_map_for_run` (``formats``, ``iterations``, ...).
-    prefetch:      frames read ahead by a background thread while the loop works on the current one
+    prefetch:      frames read ahead by a background thread while the loop works on the current one, for datasets
+                   that declare ``thread_safe_reads`` (:class:`mapping.datasets.base.RGBDDataset`; others are read
+                   one at a time)
                    (:class:`mapping.prefetch.FramePrefetcher`; the same frames, in order, the same errors); 0 reads
                    each frame when its turn comes.
     """
@@ -135,7 +137,9 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
     loop = _Loop(dataset, colour_model, backend, tracker, poses, initial_pose, refresh_coverage,
                  max_consecutive_failures, histogram_label or colour_model.name, holdout_every)
     bar = _progress_bar(len(dataset), progress, dataset.name)
-    frames = FramePrefetcher(dataset, prefetch)   # starts reading frame 0 in its thread (prefetch > 0)
+    # read ahead only where the dataset says its reads are safe in another thread (mapping.datasets.base)
+    ahead = prefetch if getattr(dataset, "thread_safe_reads", False) is True else 0
+    frames = FramePrefetcher(dataset, ahead)   # starts reading frame 0 in its thread (ahead > 0)
     loop.read = frames.get
     status = "failed"
     lost: TrackingError | None = None
@@ -160,13 +164,16 @@ def reconstruct(dataset: RGBDDataset, *, colour_model: ColourModel | None = None
         loop.drop_unfinished()
         raise
     finally:
-        frames.close()   # stops and joins the reading thread: nothing is read after the loop ends
-        bar.close()
-        run = loop.result(status)
-        if lost is not None:
-            run.partial_reason = str(lost)
-        if status not in ("complete", "partial") and output is not None:
-            write_partial(run, backend, output)
+        frames.stop()    # nothing is read after the loop ends (the thread is joined below, after the partial results)
+        try:
+            bar.close()
+            run = loop.result(status)
+            if lost is not None:
+                run.partial_reason = str(lost)
+            if status not in ("complete", "partial") and output is not None:
+                write_partial(run, backend, output)
+        finally:
+            frames.close()   # joins the reading thread (it finishes at most the frame it is reading)
     try:   # the rest of the run: until write_results completes the folder, a failure leaves it unfinished
         run.map_stats = backend_stats(backend)
         run.ate = _ate(run, dataset, poses)

@@ -63,6 +63,8 @@ class FramePrefetcher:
         """Frame ``i``, which must be the next one (0, 1, 2, ...); raises what reading it raised."""
         if i != self._next:
             raise ValueError(f"frames are read ahead in order: asked for frame {i}, the next one is {self._next}")
+        if i >= self._n:
+            raise IndexError(f"frame {i} is out of range for {self._n} frames")
         if self._thread is None:
             if self._stop:
                 raise RuntimeError("the frame prefetcher is closed")
@@ -82,12 +84,16 @@ class FramePrefetcher:
         assert position == i
         return frame
 
-    def close(self) -> None:
-        """Stop reading ahead and wait for the thread (it finishes at most the frame it is reading). Idempotent."""
+    def stop(self) -> None:
+        """Stop reading ahead without waiting for the thread (:meth:`close` waits). Idempotent."""
         with self._cond:
             self._stop = True
             self._ready.clear()
             self._cond.notify_all()
+
+    def close(self) -> None:
+        """Stop reading ahead and wait for the thread (it finishes at most the frame it is reading). Idempotent."""
+        self.stop()
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join()

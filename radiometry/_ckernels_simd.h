@@ -24,8 +24,16 @@
 
 #define RM_PLAN_BYTES 1792
 
-/* RM_NO_SIMD (-DRM_NO_SIMD) builds without the kernel: what compilers other than GCC / Clang and other CPUs get */
-#if !defined(RM_NO_SIMD) && (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
+/* RM_NO_SIMD (-DRM_NO_SIMD) builds without the kernel: what compilers other than GCC >= 8 / Clang >= 6 (the first
+ * with GFNI's intrinsics and target name) and other CPUs get; an older compiler must not fail the whole extension */
+#if defined(__clang__)
+#define RM_COMPILER_OK (__clang_major__ >= 6)
+#elif defined(__GNUC__)
+#define RM_COMPILER_OK (__GNUC__ >= 8)
+#else
+#define RM_COMPILER_OK 0
+#endif
+#if !defined(RM_NO_SIMD) && RM_COMPILER_OK && (defined(__x86_64__) || defined(__i386__))
 #define RM_HAVE_SIMD 1
 #include <immintrin.h>
 
@@ -35,7 +43,7 @@
  * AVX-512 F, BW, VL, VBMI and GFNI, XGETBV for the saved state (read directly rather than with
  * __builtin_cpu_supports, whose feature names older compilers do not know) */
 #include <cpuid.h>
-static int rm_simd_supported(void)
+static int rm_simd_detect(void)
 {
     unsigned int a, b, c, d;
     if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) /* OSXSAVE */
@@ -49,6 +57,15 @@ static int rm_simd_supported(void)
     const unsigned int ebx = (1u << 16) | (1u << 30) | (1u << 31); /* AVX512F, AVX512BW, AVX512VL */
     const unsigned int ecx = (1u << 1) | (1u << 8);                 /* AVX512_VBMI, GFNI */
     return (b & ebx) == ebx && (c & ecx) == ecx;
+}
+
+/* detected once (CPUID traps to the hypervisor on virtual machines); a race writes the same value */
+static int rm_simd_supported(void)
+{
+    static int cached = -1;
+    if (cached < 0)
+        cached = rm_simd_detect();
+    return cached;
 }
 
 /* searches side by side (RM_WAY / 2 planes of 64 values): one step's permute-compare-add chain takes ~11 cycles

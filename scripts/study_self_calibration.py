@@ -51,11 +51,13 @@ def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0, ex
     if exact:       # the same sightings, values exactly k V L (no noise, no clip): what the geometry allows
         import dataclasses
 
-        xi = np.clip(np.round(obs.x).astype(np.int64), 0, truth.vignetting.shape[1] - 1)
-        yi = np.clip(np.round(obs.y).astype(np.int64), 0, truth.vignetting.shape[0] - 1)
+        from scipy.ndimage import map_coordinates
+
+        at = np.stack([np.asarray(obs.y, np.float64), np.asarray(obs.x, np.float64)])   # bilinear, sub-pixel
+        v = np.stack([map_coordinates(truth.vignetting[:, :, c], at, order=1, mode="nearest") for c in range(3)],
+                     axis=1)
         radiance = np.random.default_rng(seed).uniform(0.1, 0.5, (obs.n_points, 3))
-        obs = dataclasses.replace(obs, irradiance=truth.exposures[obs.frame] * truth.vignetting[yi, xi]
-                                  * radiance[obs.point])
+        obs = dataclasses.replace(obs, irradiance=truth.exposures[obs.frame] * v * radiance[obs.point])
     K = seq[0].K
     held = holdout_frames(len(seq), "every:5")
     result, checks = _solve_and_check(obs, held, response, truth.exposures if known else None, "every:5",

@@ -156,6 +156,49 @@ def test_a_corrupt_file_fails_the_run_with_the_serial_paths_message(tmp_path):
     assert str(bad) in messages[0] and "\n" not in messages[0] and "frame 3" in messages[0]
 
 
+def test_asking_past_the_end_fails_instead_of_waiting():
+    for ahead in (0, 1):
+        ds = _tiny(3)
+        with FramePrefetcher(ds, ahead) as frames:
+            for i in range(3):
+                frames.get(i)
+            with pytest.raises(IndexError, match="frame 3 is out of range for 3 frames"):
+                frames.get(3)
+
+
+class _Undeclared:
+    """A dataset that does not declare ``thread_safe_reads`` (it decodes into one reused buffer, as a video reader
+    may): it must be read in the caller's thread, one frame at a time, and give the serial path's results."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.name, self.K = inner, inner.name, inner.K
+        self.width, self.height = inner.width, inner.height
+        self.buffer = np.zeros_like(inner[0].rgb)
+        self.threads: set[str] = set()
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __getitem__(self, index):
+        self.threads.add(threading.current_thread().name)
+        frame = self.inner[index]
+        self.buffer[...] = frame.rgb
+        return RGBDFrame(frame.index, frame.timestamp, self.buffer, frame.depth, frame.K, frame.pose)
+
+    def ground_truth(self):
+        return self.inner.ground_truth()
+
+
+def test_a_dataset_that_does_not_declare_thread_safe_reads_is_read_in_the_callers_thread():
+    box = box_room_sequence(n_frames=6, width=W, height=H)[0]
+    assert box.thread_safe_reads is True      # radiomap's own datasets declare it
+    ds = _Undeclared(box)
+    backends = [make_backend("tsdf", voxel_size=0.04, depth_max=5.0) for _ in range(2)]
+    runs = [reconstruct(d, backend=b, poses="gt", progress=False, prefetch=1) for b, d in zip(backends, (box, ds))]
+    assert ds.threads == {threading.current_thread().name}
+    _same_run(*runs, backends)
+
+
 def test_tracking_lost_for_good_stops_the_reading_thread():
     box = box_room_sequence(n_frames=12, width=W, height=H)[0]
     frames = [box.frames[0]] + [RGBDFrame(f.index, f.timestamp, f.rgb, np.zeros_like(f.depth), f.K, f.pose)

@@ -245,6 +245,10 @@ class FileSequence:
     original frame whatever the stride.
     """
 
+    #: ``ds[i]`` may run in another thread than the caller's, ahead of the frame in use: every read builds new
+    #: arrays and touches no shared state but ``_grey``, set in ``__init__`` (:mod:`mapping.prefetch`)
+    thread_safe_reads = True
+
     format_name = "files"
 
     def __init__(self, root: Path, files: list[FrameFiles], K: np.ndarray, *, depth_scale: float,

@@ -37,7 +37,13 @@ class RGBDFrame:
 
 @runtime_checkable
 class RGBDDataset(Protocol):
-    """What the pipeline needs from a sequence (frame range and stride already applied)."""
+    """What the pipeline needs from a sequence (frame range and stride already applied).
+
+    Optional: a class attribute ``thread_safe_reads = True`` declares that ``ds[i]`` may run in a background
+    thread while the caller still uses the frame before it (each read returns new arrays, no state is shared with
+    the caller's thread): :func:`mapping.pipeline.reconstruct` then reads frames ahead (:mod:`mapping.prefetch`).
+    radiomap's own datasets declare it; a dataset without it is read in the caller's thread, one frame at a time.
+    """
 
     name: str
     K: np.ndarray

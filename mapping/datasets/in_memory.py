@@ -19,6 +19,9 @@ from radiometry.errors import DatasetError
 class ArrayDataset:
     """A dataset over frames held in memory (implements ``RGBDDataset``)."""
 
+    #: ``ds[i]`` only returns a stored frame: safe from another thread (:mod:`mapping.prefetch`)
+    thread_safe_reads = True
+
     def __init__(self, frames: Sequence[RGBDFrame], *, name: str = "arrays") -> None:
         frames = list(frames)
         if not frames:
