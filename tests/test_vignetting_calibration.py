@@ -436,6 +436,12 @@ def test_accumulation_round_trip(tmp_path):
     for name in ("count", "sum", "sumsq", "cell_sums", "cell_counts"):
         np.testing.assert_array_equal(getattr(back, name), getattr(acc, name))
     assert back.block == acc.block and back.frames_used == 5
+    assert acc.blockiness is not None and back.blockiness == acc.blockiness     # a fit of the file still says JPEG
+    import dataclasses
+
+    bad = dataclasses.replace(acc, blockiness=-1.0).save(tmp_path / "bad.npz")
+    with pytest.raises(CalibrationFileError, match="blockiness -1.0 is not a positive number; re-collect it"):
+        VignettingAccumulation.load(bad)
     np.testing.assert_array_equal(back.indices(), np.arange(5))
     np.testing.assert_allclose(back.frame_scales(), acc.frame_scales())
     np.testing.assert_array_equal(back.response.inverse_table, CameraResponse.gamma().inverse_table)

@@ -376,8 +376,10 @@ class VignettingAccumulation:
             arrays.update(odd_count=self.odd[0], odd_sum=self.odd[1], odd_sumsq=self.odd[2])
         if self.level_hist is not None:
             arrays["level_hist"] = np.asarray(self.level_hist, dtype=np.int64)
-        return save_model_file(path, ACCUMULATION_KIND, arrays,
-                               {"block": self.block, "skipped": self.skipped, "source": self.source})
+        meta = {"block": self.block, "skipped": self.skipped, "source": self.source}
+        if self.blockiness is not None:     # kept, so that a fit of the saved accumulation still says "JPEG"
+            meta["blockiness"] = float(self.blockiness)
+        return save_model_file(path, ACCUMULATION_KIND, arrays, meta)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "VignettingAccumulation":
@@ -393,7 +395,8 @@ class VignettingAccumulation:
                       odd=((arrays["odd_count"].astype(np.int32), arrays["odd_sum"].astype(np.float64),
                             arrays["odd_sumsq"].astype(np.float64))
                            if all(k in arrays for k in ("odd_count", "odd_sum", "odd_sumsq")) else None),
-                      level_hist=None if "level_hist" not in arrays else arrays["level_hist"].astype(np.int64))
+                      level_hist=None if "level_hist" not in arrays else arrays["level_hist"].astype(np.int64),
+                      blockiness=None if meta.get("blockiness") is None else float(meta["blockiness"]))
         except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:
@@ -416,6 +419,8 @@ class VignettingAccumulation:
         if acc.odd is not None and (any(np.shape(a) != acc.count.shape for a in acc.odd)
                                     or np.any(acc.odd[0] < 0) or np.any(acc.odd[0] > acc.count)):
             raise CalibrationFileError(f"{path}: the odd frames' arrays do not match the counts; re-collect it")
+        if acc.blockiness is not None and not (np.isfinite(acc.blockiness) and acc.blockiness > 0):
+            raise CalibrationFileError(f"{path}: blockiness {acc.blockiness} is not a positive number; re-collect it")
         if acc.level_hist is not None and (np.shape(acc.level_hist) != (ch, 256) or np.any(acc.level_hist < 0)):
             raise CalibrationFileError(f"{path}: the level histogram is not (channels, 256); re-collect it")
         return acc
