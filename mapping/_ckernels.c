@@ -320,6 +320,47 @@ fail:
     return NULL;
 }
 
+/* The pixels a block covers at 1/down resolution and its camera depth range (Open3D 0.20's pass 0 of its ray
+ * cast): the block's 8 corners projected, clamped to the image; returns whether the footprint is not empty.
+ * Shared by range_fragments and raycast_depth (same float operations, -ffp-contract=off: the same bits). */
+static inline int block_footprint(const int32_t *block, Py_ssize_t res, f32 voxel_size, const f32 *R, const f32 *t,
+                                  f32 fx, f32 fy, f32 cx, f32 cy, f32 down, int64_t w_down, int64_t h_down,
+                                  f32 depth_min, f32 depth_max, int64_t box[4], f32 z[2])
+{
+    int64_t u_min = w_down - 1, v_min = h_down - 1, u_max = 0, v_max = 0;
+    f32 z_min = depth_max, z_max = depth_min;
+    for (int i = 0; i < 8; i++) {
+        f32 xw = (f32)(((int64_t)block[0] + (i & 1)) * res) * voxel_size;
+        f32 yw = (f32)(((int64_t)block[1] + ((i >> 1) & 1)) * res) * voxel_size;
+        f32 zw = (f32)(((int64_t)block[2] + ((i >> 2) & 1)) * res) * voxel_size;
+        f32 zc = R[6] * xw + R[7] * yw + R[8] * zw + t[2];
+        if (zc <= 0)
+            continue;
+        f32 xc = R[0] * xw + R[1] * yw + R[2] * zw + t[0];
+        f32 yc = R[3] * xw + R[4] * yw + R[5] * zw + t[1];
+        f32 inv_z = 1.0f / zc;
+        f32 u = (xc * fx * inv_z + cx) / down;
+        f32 vv = (yc * fy * inv_z + cy) / down;
+        /* min(max(floor, -1.0), w_down) in float64, then int */
+        f64 fu_lo = fmin(fmax((f64)floorf(u), -1.0), (f64)w_down), fu_hi = fmin(fmax((f64)ceilf(u), -1.0), (f64)w_down);
+        f64 fv_lo = fmin(fmax((f64)floorf(vv), -1.0), (f64)h_down), fv_hi = fmin(fmax((f64)ceilf(vv), -1.0), (f64)h_down);
+        int64_t u_lo = (int64_t)fu_lo, u_hi = (int64_t)fu_hi, v_lo = (int64_t)fv_lo, v_hi = (int64_t)fv_hi;
+        if (u_lo < u_min) u_min = u_lo;
+        if (u_hi > u_max) u_max = u_hi;
+        if (v_lo < v_min) v_min = v_lo;
+        if (v_hi > v_max) v_max = v_hi;
+        if (zc < z_min) z_min = zc;
+        if (zc > z_max) z_max = zc;
+    }
+    box[0] = u_min < 0 ? 0 : u_min;
+    box[1] = v_min < 0 ? 0 : v_min;
+    box[2] = u_max > w_down - 1 ? w_down - 1 : u_max;
+    box[3] = v_max > h_down - 1 ? h_down - 1 : v_max;
+    z[0] = z_min;
+    z[1] = z_max;
+    return box[1] < box[3] && box[0] < box[2] && z_min < z_max;
+}
+
 /* ------------------------------------------------------------------------------------------- range_fragments */
 static PyObject *range_fragments(PyObject *self, PyObject *args)
 {
@@ -345,38 +386,12 @@ static PyObject *range_fragments(PyObject *self, PyObject *args)
     int64_t total = 0;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t k = 0; k < nb; k++) {
-        int64_t u_min = w_down - 1, v_min = h_down - 1, u_max = 0, v_max = 0;
-        f32 z_min = depth_max, z_max = depth_min;
-        for (int i = 0; i < 8; i++) {
-            f32 xw = (f32)(((int64_t)blocks[3 * k] + (i & 1)) * res) * voxel_size;
-            f32 yw = (f32)(((int64_t)blocks[3 * k + 1] + ((i >> 1) & 1)) * res) * voxel_size;
-            f32 zw = (f32)(((int64_t)blocks[3 * k + 2] + ((i >> 2) & 1)) * res) * voxel_size;
-            f32 zc = R[6] * xw + R[7] * yw + R[8] * zw + t[2];
-            if (zc <= 0)
-                continue;
-            f32 xc = R[0] * xw + R[1] * yw + R[2] * zw + t[0];
-            f32 yc = R[3] * xw + R[4] * yw + R[5] * zw + t[1];
-            f32 inv_z = 1.0f / zc;
-            f32 u = (xc * fx * inv_z + cx) / down;
-            f32 vv = (yc * fy * inv_z + cy) / down;
-            /* min(max(floor, -1.0), w_down) in float64, then int */
-            f64 fu_lo = fmin(fmax((f64)floorf(u), -1.0), (f64)w_down), fu_hi = fmin(fmax((f64)ceilf(u), -1.0), (f64)w_down);
-            f64 fv_lo = fmin(fmax((f64)floorf(vv), -1.0), (f64)h_down), fv_hi = fmin(fmax((f64)ceilf(vv), -1.0), (f64)h_down);
-            int64_t u_lo = (int64_t)fu_lo, u_hi = (int64_t)fu_hi, v_lo = (int64_t)fv_lo, v_hi = (int64_t)fv_hi;
-            if (u_lo < u_min) u_min = u_lo;
-            if (u_hi > u_max) u_max = u_hi;
-            if (v_lo < v_min) v_min = v_lo;
-            if (v_hi > v_max) v_max = v_hi;
-            if (zc < z_min) z_min = zc;
-            if (zc > z_max) z_max = zc;
-        }
-        if (u_min < 0) u_min = 0;
-        if (v_min < 0) v_min = 0;
-        if (u_max > w_down - 1) u_max = w_down - 1;
-        if (v_max > h_down - 1) v_max = h_down - 1;
+        int64_t box[4];
+        f32 z[2];
         int64_t n = 0;
-        if (v_min < v_max && u_min < u_max && z_min < z_max)
-            n = ((v_max - v_min + 16) / 16) * ((u_max - u_min + 16) / 16);
+        if (block_footprint(blocks + 3 * k, res, voxel_size, R, t, fx, fy, cx, cy, down, w_down, h_down, depth_min,
+                            depth_max, box, z))
+            n = ((box[3] - box[1] + 16) / 16) * ((box[2] - box[0] + 16) / 16);
         out[k] = n;
         total += n;
     }
@@ -981,41 +996,16 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
         range[2 * i + 1] = depth_min;
     }
     for (Py_ssize_t k = 0; k < nb; k++) { /* Open3D's pass 0 (as range_fragments), then its fragments' min/max */
-        int64_t u_min = w_down - 1, v_min = h_down - 1, u_max = 0, v_max = 0;
-        f32 z_min = depth_max, z_max = depth_min;
-        for (int i = 0; i < 8; i++) {
-            f32 xw = (f32)(((int64_t)blocks[3 * k] + (i & 1)) * res) * voxel_size;
-            f32 yw = (f32)(((int64_t)blocks[3 * k + 1] + ((i >> 1) & 1)) * res) * voxel_size;
-            f32 zw = (f32)(((int64_t)blocks[3 * k + 2] + ((i >> 2) & 1)) * res) * voxel_size;
-            f32 zc = R[6] * xw + R[7] * yw + R[8] * zw + tv[2];
-            if (zc <= 0)
-                continue;
-            f32 xc = R[0] * xw + R[1] * yw + R[2] * zw + tv[0];
-            f32 yc = R[3] * xw + R[4] * yw + R[5] * zw + tv[1];
-            f32 inv_z = 1.0f / zc;
-            f32 u = (xc * fx * inv_z + cx) / down;
-            f32 vv = (yc * fy * inv_z + cy) / down;
-            f64 fu_lo = fmin(fmax((f64)floorf(u), -1.0), (f64)w_down), fu_hi = fmin(fmax((f64)ceilf(u), -1.0), (f64)w_down);
-            f64 fv_lo = fmin(fmax((f64)floorf(vv), -1.0), (f64)h_down), fv_hi = fmin(fmax((f64)ceilf(vv), -1.0), (f64)h_down);
-            int64_t u_lo = (int64_t)fu_lo, u_hi = (int64_t)fu_hi, v_lo = (int64_t)fv_lo, v_hi = (int64_t)fv_hi;
-            if (u_lo < u_min) u_min = u_lo;
-            if (u_hi > u_max) u_max = u_hi;
-            if (v_lo < v_min) v_min = v_lo;
-            if (v_hi > v_max) v_max = v_hi;
-            if (zc < z_min) z_min = zc;
-            if (zc > z_max) z_max = zc;
-        }
-        if (u_min < 0) u_min = 0;
-        if (v_min < 0) v_min = 0;
-        if (u_max > w_down - 1) u_max = w_down - 1;
-        if (v_max > h_down - 1) v_max = h_down - 1;
-        if (!(v_min < v_max && u_min < u_max && z_min < z_max))
+        int64_t box[4];
+        f32 z[2];
+        if (!block_footprint(blocks + 3 * k, res, voxel_size, R, tv, fx, fy, cx, cy, down, w_down, h_down, depth_min,
+                             depth_max, box, z))
             continue;
-        for (int64_t vt = v_min; vt <= v_max; vt++)
-            for (int64_t ut = u_min; ut <= u_max; ut++) {
+        for (int64_t vt = box[1]; vt <= box[3]; vt++)
+            for (int64_t ut = box[0]; ut <= box[2]; ut++) {
                 f32 *r = range + 2 * (vt * w_down + ut);
-                if (z_min < r[0]) r[0] = z_min;
-                if (z_max > r[1]) r[1] = z_max;
+                if (z[0] < r[0]) r[0] = z[0];
+                if (z[1] > r[1]) r[1] = z[1];
             }
     }
     /* The march: each thread takes 8 rows at a time and keeps RC_LANES rays in flight, one step of each in turn,
