@@ -31,9 +31,11 @@ class BuildExt(build_ext):
 
 setup(
     ext_modules=[
-        Extension("mapping._ckernels", ["mapping/_ckernels.c"], depends=["radiometry/_buffers.h"], optional=True),
+        Extension("mapping._ckernels", ["mapping/_ckernels.c"],
+                  depends=["radiometry/_buffers.h", "radiometry/_simd_cpu.h", "mapping/_ckernels_raycast_simd.h"],
+                  optional=True),
         Extension("radiometry._ckernels", ["radiometry/_ckernels.c"],
-                  depends=["radiometry/_buffers.h", "radiometry/_ckernels_simd.h"],
+                  depends=["radiometry/_buffers.h", "radiometry/_simd_cpu.h", "radiometry/_ckernels_simd.h"],
                   optional=True),
     ],
     cmdclass={"build_ext": BuildExt},

@@ -901,7 +901,21 @@ fail:
  * The table must hold every block of the grid that a ray below ``t_max`` can reach (the caller builds it over
  * the view frustum); a block outside it is taken as absent. ``steps`` (int64[9]) holds on entry, in [3:9], the
  * bounding box of the map's blocks (lo, hi) and receives in [0:3] the march steps taken, the rays marched and the
- * look-ups of a block inside that box but outside the table (then the cast may not be Open3D's: cast again). */
+ * look-ups of a block inside that box but outside the table (then the cast may not be Open3D's: cast again).
+ * The optional last argument ``simd`` (default True) lets the march use AVX-512 where the CPU has it (the same
+ * bits; False forces the scalar march); returns whether it did. */
+
+/* What the march of one band reads and writes. */
+typedef struct {
+    const f32 *range, *Rc, *o, *tsdf;
+    f32 *out;
+    Py_ssize_t cols, n_voxels;
+    int64_t w_down, res, res2, res3, kb[6]; /* kb: the bounding box of the map's blocks (lo, hi) */
+    f32 fx, fy, cx, cy, block_size, voxel_size, sdf_trunc, weight_threshold;
+    const Attr *weight;
+    const BlockTable *table;
+} RcCtx;
+
 #define RC_LANES 8
 typedef struct {
     Py_ssize_t pixel; /* -1: free */
@@ -909,6 +923,118 @@ typedef struct {
     int64_t cslot;
     int cbx, cby, cbz;
 } RayLane;
+
+/* The march of the 8 rows of ``band``, RC_LANES rays in flight, one step of each in turn, so that the long chain
+ * of dependent operations of one step (divisions, floors, two loads) of one ray overlaps those of the others;
+ * every ray's own arithmetic is unchanged. Adds to count[0..2] the steps, rays and look-ups outside the table. */
+static void rc_march_band(const RcCtx *c, Py_ssize_t band, int64_t count[3])
+{
+    const f32 *range = c->range, *Rc = c->Rc, *o = c->o, *tsdf = c->tsdf;
+    f32 *out = c->out;
+    const Py_ssize_t cols = c->cols, n_voxels = c->n_voxels;
+    const int64_t w_down = c->w_down, res = c->res, res2 = c->res2, res3 = c->res3, *kb = c->kb;
+    const f32 fx = c->fx, fy = c->fy, cx = c->cx, cy = c->cy, block_size = c->block_size;
+    const f32 voxel_size = c->voxel_size, sdf_trunc = c->sdf_trunc, weight_threshold = c->weight_threshold;
+    const Attr weight = *c->weight;
+    const BlockTable table = *c->table;
+    int64_t total_steps = 0, total_rays = 0, total_outside = 0;
+    RayLane lane[RC_LANES];
+    int active = 0;
+    Py_ssize_t next = band * 8 * cols, end = (band + 1) * 8 * cols;
+    for (int l = 0; l < RC_LANES; l++)
+        lane[l].pixel = -1;
+    for (;;) {
+        for (int l = 0; l < RC_LANES; l++) {
+            RayLane *L = &lane[l];
+            while (L->pixel < 0 && next < end) { /* start the next pixel that has a range */
+                Py_ssize_t p = next++, y = p / cols, x = p % cols;
+                out[p] = 0.0f;
+                const f32 *r = range + 2 * ((y / 8) * w_down + x / 8);
+                if (r[0] >= r[1])
+                    continue;
+                total_rays++;
+                f32 xc = ((f32)x - cx) * 1.0f / fx, yc = ((f32)y - cy) * 1.0f / fy, zc = 1.0f;
+                L->xd = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
+                L->yd = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
+                L->zd = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
+                L->t = L->t_prev = r[0];
+                L->t_max = r[1];
+                L->tsdf_prev = -1.0f;
+                L->tsdf = 1.0f;
+                L->cslot = -1;
+                L->pixel = p;
+                active++;
+            }
+            if (L->pixel < 0)
+                continue;
+            /* one step of Open3D's march */
+            int done = 0, found = 0;
+            total_steps++;
+            f32 t = L->t;
+            f32 xg = o[0] + t * L->xd, yg = o[1] + t * L->yd, zg = o[2] + t * L->zd;
+            f32 qx = xg / block_size, qy = yg / block_size, qz = zg / block_size;
+            int64_t slot = -1;
+            int bx = 0, by = 0, bz = 0;
+            if (in_range(qx) && in_range(qy) && in_range(qz)) {
+                bx = (int)floorf(qx);
+                by = (int)floorf(qy);
+                bz = (int)floorf(qz);
+                if (L->cslot >= 0 && bx == L->cbx && by == L->cby && bz == L->cbz)
+                    slot = L->cslot;
+                else {
+                    int64_t jx = bx - table.lo[0], jy = by - table.lo[1], jz = bz - table.lo[2];
+                    if ((jx < 0 || jy < 0 || jz < 0 || jx >= table.nx || jy >= table.ny || jz >= table.nz)
+                        && bx >= kb[0] && by >= kb[1] && bz >= kb[2] && bx <= kb[3] && by <= kb[4] && bz <= kb[5])
+                        total_outside++; /* a block the map may hold but the table does not: cast again */
+                    slot = block_slot(&table, bx, by, bz);
+                    if (slot >= 0) {
+                        L->cbx = bx, L->cby = by, L->cbz = bz, L->cslot = slot;
+                    }
+                }
+            }
+            if (slot < 0) {
+                L->t_prev = t;
+                L->t = t + block_size;
+            } else {
+                int xv = (int)((xg - (f32)bx * block_size) / voxel_size);
+                int yv = (int)((yg - (f32)by * block_size) / voxel_size);
+                int zv = (int)((zg - (f32)bz * block_size) / voxel_size);
+                int64_t li = slot * res3 + (int64_t)zv * res2 + (int64_t)yv * res + xv;
+                if (li < 0 || li >= n_voxels) /* Open3D would read outside the buffer: stop (never seen) */
+                    done = 1;
+                else {
+                    f32 tsdf_prev = L->tsdf, tsdf_v = tsdf[li];
+                    f32 w = weight.u16 ? (f32)((const uint16_t *)weight.data)[li]
+                                       : ((const f32 *)weight.data)[li];
+                    L->tsdf_prev = tsdf_prev;
+                    L->tsdf = tsdf_v;
+                    if (tsdf_prev > 0 && w >= weight_threshold && tsdf_v <= 0)
+                        done = found = 1;
+                    else {
+                        L->t_prev = t;
+                        f32 delta = tsdf_v * sdf_trunc;
+                        L->t = t + (delta < voxel_size ? voxel_size : delta);
+                    }
+                }
+            }
+            if (!done && !(L->t < L->t_max))
+                done = 1;
+            if (done) {
+                if (found)
+                    out[L->pixel] = (L->t * L->tsdf_prev - L->t_prev * L->tsdf) / (L->tsdf_prev - L->tsdf);
+                L->pixel = -1;
+                active--;
+            }
+        }
+        if (active == 0 && next >= end)
+            break;
+    }
+    count[0] += total_steps;
+    count[1] += total_rays;
+    count[2] += total_outside;
+}
+
+#include "_ckernels_raycast_simd.h"
 
 static PyObject *raycast_depth(PyObject *self, PyObject *args)
 {
@@ -918,9 +1044,10 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
     Py_buffer v[10] = {{0}}, vc[4] = {{0}};
     Attr weight, colour;
     BlockTable table;
-    if (!PyArg_ParseTuple(args, "OOOOOddddndddddOOOOOOOOOdO", &ob, &oR, &ot, &oRc, &oo, &fx_d, &fy_d, &cx_d, &cy_d,
+    int simd = 1; /* optional: 0 forces the scalar march (tests; RADIOMAP_SIMD=0) */
+    if (!PyArg_ParseTuple(args, "OOOOOddddndddddOOOOOOOOOdO|p", &ob, &oR, &ot, &oRc, &oo, &fx_d, &fy_d, &cx_d, &cy_d,
                           &res, &vs_d, &trunc_d, &dmin_d, &dmax_d, &wt_d, &ots, &ow, &oi, &ol, &oout, &osteps, &oRp,
-                          &oop, &oc, &scale_d, &ooc))
+                          &oop, &oc, &scale_d, &ooc, &simd))
         return NULL;
     /* the surface colour (surface_colour's, of each pixel's depth, band by band while its voxels are in the
      * caches): pose rotation and origin as surface_colour takes them, the colour buffer, out (rows, cols, 3) */
@@ -990,6 +1117,15 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
         return PyErr_NoMemory();
     }
     int64_t total_steps = 0, total_rays = 0, total_outside = 0;
+    RcCtx rc = {range, Rc, o, tsdf, out, cols, n_voxels, w_down, res, res2, res3,
+                {kb[0], kb[1], kb[2], kb[3], kb[4], kb[5]}, fx, fy, cx, cy, block_size, voxel_size, sdf_trunc,
+                weight_threshold, &weight, &table};
+#if RC_HAVE_SIMD
+    RcSimd rs;
+    const int use_simd = simd && rc_simd_supported() && rc_simd_setup(&rc, &rs);
+#else
+    const int use_simd = 0;
+#endif
     Py_BEGIN_ALLOW_THREADS
     for (int64_t i = 0; i < h_down * w_down; i++) {
         range[2 * i] = depth_max;
@@ -1008,104 +1144,22 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
                 if (z[1] > r[1]) r[1] = z[1];
             }
     }
-    /* The march: each thread takes 8 rows at a time and keeps RC_LANES rays in flight, one step of each in turn,
-     * so that the long chain of dependent operations of one step (divisions, floors, two loads) of one ray
-     * overlaps those of the others; every ray's own arithmetic is unchanged. */
+    /* The march: each thread takes 8 rows at a time (band), with AVX-512 where the CPU has it (16 rays a vector,
+     * _ckernels_raycast_simd.h) unless ``simd`` is 0, else RC_LANES scalar rays; both give the same bits. */
 #ifdef _OPENMP
 #pragma omp parallel for schedule(dynamic, 1) reduction(+ : total_steps, total_rays, total_outside)
 #endif
     for (Py_ssize_t band = 0; band < rows / 8; band++) {
-        RayLane lane[RC_LANES];
-        int active = 0;
-        Py_ssize_t next = band * 8 * cols, end = (band + 1) * 8 * cols;
-        for (int l = 0; l < RC_LANES; l++)
-            lane[l].pixel = -1;
-        for (;;) {
-            for (int l = 0; l < RC_LANES; l++) {
-                RayLane *L = &lane[l];
-                while (L->pixel < 0 && next < end) { /* start the next pixel that has a range */
-                    Py_ssize_t p = next++, y = p / cols, x = p % cols;
-                    out[p] = 0.0f;
-                    const f32 *r = range + 2 * ((y / 8) * w_down + x / 8);
-                    if (r[0] >= r[1])
-                        continue;
-                    total_rays++;
-                    f32 xc = ((f32)x - cx) * 1.0f / fx, yc = ((f32)y - cy) * 1.0f / fy, zc = 1.0f;
-                    L->xd = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
-                    L->yd = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
-                    L->zd = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
-                    L->t = L->t_prev = r[0];
-                    L->t_max = r[1];
-                    L->tsdf_prev = -1.0f;
-                    L->tsdf = 1.0f;
-                    L->cslot = -1;
-                    L->pixel = p;
-                    active++;
-                }
-                if (L->pixel < 0)
-                    continue;
-                /* one step of Open3D's march */
-                int done = 0, found = 0;
-                total_steps++;
-                f32 t = L->t;
-                f32 xg = o[0] + t * L->xd, yg = o[1] + t * L->yd, zg = o[2] + t * L->zd;
-                f32 qx = xg / block_size, qy = yg / block_size, qz = zg / block_size;
-                int64_t slot = -1;
-                int bx = 0, by = 0, bz = 0;
-                if (in_range(qx) && in_range(qy) && in_range(qz)) {
-                    bx = (int)floorf(qx);
-                    by = (int)floorf(qy);
-                    bz = (int)floorf(qz);
-                    if (L->cslot >= 0 && bx == L->cbx && by == L->cby && bz == L->cbz)
-                        slot = L->cslot;
-                    else {
-                        int64_t jx = bx - table.lo[0], jy = by - table.lo[1], jz = bz - table.lo[2];
-                        if ((jx < 0 || jy < 0 || jz < 0 || jx >= table.nx || jy >= table.ny || jz >= table.nz)
-                            && bx >= kb[0] && by >= kb[1] && bz >= kb[2] && bx <= kb[3] && by <= kb[4] && bz <= kb[5])
-                            total_outside++; /* a block the map may hold but the table does not: cast again */
-                        slot = block_slot(&table, bx, by, bz);
-                        if (slot >= 0) {
-                            L->cbx = bx, L->cby = by, L->cbz = bz, L->cslot = slot;
-                        }
-                    }
-                }
-                if (slot < 0) {
-                    L->t_prev = t;
-                    L->t = t + block_size;
-                } else {
-                    int xv = (int)((xg - (f32)bx * block_size) / voxel_size);
-                    int yv = (int)((yg - (f32)by * block_size) / voxel_size);
-                    int zv = (int)((zg - (f32)bz * block_size) / voxel_size);
-                    int64_t li = slot * res3 + (int64_t)zv * res2 + (int64_t)yv * res + xv;
-                    if (li < 0 || li >= n_voxels) /* Open3D would read outside the buffer: stop (never seen) */
-                        done = 1;
-                    else {
-                        f32 tsdf_prev = L->tsdf, tsdf_v = tsdf[li];
-                        f32 w = weight.u16 ? (f32)((const uint16_t *)weight.data)[li]
-                                           : ((const f32 *)weight.data)[li];
-                        L->tsdf_prev = tsdf_prev;
-                        L->tsdf = tsdf_v;
-                        if (tsdf_prev > 0 && w >= weight_threshold && tsdf_v <= 0)
-                            done = found = 1;
-                        else {
-                            L->t_prev = t;
-                            f32 delta = tsdf_v * sdf_trunc;
-                            L->t = t + (delta < voxel_size ? voxel_size : delta);
-                        }
-                    }
-                }
-                if (!done && !(L->t < L->t_max))
-                    done = 1;
-                if (done) {
-                    if (found)
-                        out[L->pixel] = (L->t * L->tsdf_prev - L->t_prev * L->tsdf) / (L->tsdf_prev - L->tsdf);
-                    L->pixel = -1;
-                    active--;
-                }
-            }
-            if (active == 0 && next >= end)
-                break;
-        }
+        int64_t count[3] = {0, 0, 0};
+#if RC_HAVE_SIMD
+        if (use_simd)
+            rc_march_band_simd(&rc, &rs, band, count);
+        else
+#endif
+            rc_march_band(&rc, band, count);
+        total_steps += count[0];
+        total_rays += count[1];
+        total_outside += count[2];
         for (Py_ssize_t y = band * 8; y < band * 8 + 8 && y < c_rows; y++)
             for (Py_ssize_t x = 0; x < c_cols; x++)
                 colour_pixel(&cc, out[y * cols + x], x, y, out_colour + 3 * (y * c_cols + x));
@@ -1118,7 +1172,7 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
     PyBuffer_Release(&vs_buf);
     rm_release(v, 10);
     rm_release(vc, 4);
-    Py_RETURN_NONE;
+    return PyBool_FromLong(use_simd);
 fail:
     rm_release(v, 10);
     rm_release(vc, 4);
@@ -1148,7 +1202,8 @@ PyMODINIT_FUNC PyInit__ckernels(void)
 {
     PyObject *m = PyModule_Create(&module);
     if (m != NULL && (PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0
-                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0)) {
+                      || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0
+                      || PyModule_AddIntConstant(m, "raycast_simd", rc_simd_supported()) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

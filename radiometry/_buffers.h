@@ -13,7 +13,7 @@
 
 /* The kernels' argument contract: radiometry._native.ABI must equal it (a stale build is then not used). Bump
  * both whenever a kernel's arguments change. */
-#define RM_ABI 2
+#define RM_ABI 3
 
 #ifdef _OPENMP
 #include <omp.h>

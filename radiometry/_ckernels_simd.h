@@ -24,39 +24,16 @@
 
 #define RM_PLAN_BYTES 1792
 
-/* RM_NO_SIMD (-DRM_NO_SIMD) builds without the kernel: what compilers other than GCC >= 8 / Clang >= 6 (the first
- * with GFNI's intrinsics and target name) and other CPUs get; an older compiler must not fail the whole extension */
-#if defined(__clang__)
-#define RM_COMPILER_OK (__clang_major__ >= 6)
-#elif defined(__GNUC__)
-#define RM_COMPILER_OK (__GNUC__ >= 8)
-#else
-#define RM_COMPILER_OK 0
-#endif
-#if !defined(RM_NO_SIMD) && RM_COMPILER_OK && (defined(__x86_64__) || defined(__i386__))
+#include "_simd_cpu.h"
+#if RM_X86_SIMD
 #define RM_HAVE_SIMD 1
-#include <immintrin.h>
 
 #define RM_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512vbmi,gfni")))
 
-/* whether this CPU (and the OS, which must save the 512-bit registers) runs the kernel below: CPUID leaf 7 for
- * AVX-512 F, BW, VL, VBMI and GFNI, XGETBV for the saved state (read directly rather than with
- * __builtin_cpu_supports, whose feature names older compilers do not know) */
-#include <cpuid.h>
+/* whether this CPU runs the kernel below: AVX-512 F, BW, VL (CPUID.7 ebx bits 16, 30, 31), VBMI and GFNI (ecx 1, 8) */
 static int rm_simd_detect(void)
 {
-    unsigned int a, b, c, d;
-    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & (1u << 27))) /* OSXSAVE */
-        return 0;
-    unsigned int lo, hi;
-    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
-    if ((lo & 0xe6) != 0xe6) /* XMM, YMM, opmask, ZMM 0-15 and 16-31 state */
-        return 0;
-    if (!__get_cpuid_count(7, 0, &a, &b, &c, &d))
-        return 0;
-    const unsigned int ebx = (1u << 16) | (1u << 30) | (1u << 31); /* AVX512F, AVX512BW, AVX512VL */
-    const unsigned int ecx = (1u << 1) | (1u << 8);                 /* AVX512_VBMI, GFNI */
-    return (b & ebx) == ebx && (c & ecx) == ecx;
+    return rm_cpu_avx512((1u << 16) | (1u << 30) | (1u << 31), (1u << 1) | (1u << 8));
 }
 
 /* detected once (CPUID traps to the hypervisor on virtual machines); a race writes the same value */

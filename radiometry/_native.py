@@ -24,10 +24,11 @@ from radiometry.errors import InstallationError
 log = logging.getLogger(__name__)
 
 CHOICES = ("auto", "c", "numba")
+_SIMD_OFF = ("0", "off", "no", "false", "scalar")
 
 #: the kernels' argument contract; each C module exports the number it was built with (``ABI``). Bump it here and
 #: in ``radiometry/_buffers.h`` whenever a kernel's arguments change: a stale build is then not used.
-ABI = 2
+ABI = 3
 
 _LOADED: dict[str, tuple[ModuleType | None, str]] = {}
 
@@ -39,6 +40,12 @@ def choice() -> str:
         raise InstallationError(f"RADIOMAP_KERNELS={value!r} is not a kernel choice: set it to auto, c or numba "
                                 f"(or unset it)")
     return value
+
+
+def simd_allowed() -> bool:
+    """Whether the C kernels may use their AVX-512 paths where the CPU has them (the uint8 correction, the ray
+    cast's march; both give the scalar kernels' bits): not when ``RADIOMAP_SIMD`` is ``0``/``off``/``scalar``."""
+    return os.environ.get("RADIOMAP_SIMD", "").strip().lower() not in _SIMD_OFF
 
 
 def _load(module: str) -> tuple[ModuleType | None, str]:

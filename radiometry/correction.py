@@ -42,7 +42,6 @@ keep the scalar kernel (the Numba kernels, ``RADIOMAP_KERNELS=numba``, have no A
 from __future__ import annotations
 
 import logging
-import os
 from collections import OrderedDict
 from typing import Iterable
 
@@ -115,7 +114,6 @@ _SIMD = None
 
 #: lanes of a 512-bit register in the order vpunpck[lh]bw put the bytes of a 64-byte plane into two words vectors
 _UNPACK_ORDER = np.array([16 * lane + half + x for half in (0, 8) for lane in range(4) for x in range(8)])
-_SIMD_OFF = ("0", "off", "no", "false", "scalar")
 
 
 def simd_available() -> bool:
@@ -125,7 +123,9 @@ def simd_available() -> bool:
 
 
 def _simd_allowed() -> bool:
-    return os.environ.get("RADIOMAP_SIMD", "").strip().lower() not in _SIMD_OFF
+    from radiometry._native import simd_allowed
+
+    return simd_allowed()
 
 
 def _simd_kernel():

@@ -94,6 +94,7 @@ import numpy as np
 
 from mapping._open3d import o3d
 from mapping.fusion.base import ColourPairs, ModelView, masked_depth
+from radiometry._native import simd_allowed
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +239,7 @@ class TSDFBackend:
             raise ValueError(f"ray_caster must be one of {', '.join(RAY_CASTERS)}, got {ray_caster!r}")
         self.ray_caster = ray_caster
         self.cast_steps = self.cast_rays = 0   # march steps and rays of the last cast by our kernel
+        self.cast_simd = False                 # whether that cast marched with AVX-512
         if colour_storage not in COLOUR_STORAGE:
             raise ValueError(f"colour_storage must be one of {', '.join(COLOUR_STORAGE)}, got {colour_storage!r}")
         if colour_scale is not None and not (isinstance(colour_scale, (int, float)) and np.isfinite(colour_scale)
@@ -367,16 +369,18 @@ class TSDFBackend:
         depth = np.empty((height, width), f32)
         keys, _ = self._known_blocks()
         steps = np.concatenate([np.zeros(3, np.int64), keys.min(axis=0), keys.max(axis=0)]).astype(np.int64)
-        _kernels().raycast_depth(np.ascontiguousarray(blocks.numpy(), np.int32), np.ascontiguousarray(E[:3, :3], f32),
-                                 np.ascontiguousarray(E[:3, 3], f32), np.ascontiguousarray(Rinv, f32),
-                                 np.ascontiguousarray(tinv, f32), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-                                 self.block_resolution, self.voxel_size,
-                                 float(f32(self.voxel_size) * f32(self.trunc_voxel_multiplier)), self.depth_min,
-                                 self.depth_max, weight, self.grid.attribute("tsdf").numpy().reshape(-1),
-                                 self.grid.attribute("weight").numpy().reshape(-1), table[0], table[1], depth, steps,
-                                 np.ascontiguousarray(pose[:3, :3], f32), np.ascontiguousarray(pose[:3, 3], f32),
-                                 self.grid.attribute("color").numpy().reshape(-1), float(f32(self.colour_scale)),
-                                 colour)
+        cast = _kernels().raycast_depth
+        self.cast_simd = bool(cast(np.ascontiguousarray(blocks.numpy(), np.int32), np.ascontiguousarray(E[:3, :3], f32),
+                                   np.ascontiguousarray(E[:3, 3], f32), np.ascontiguousarray(Rinv, f32),
+                                   np.ascontiguousarray(tinv, f32), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                                   self.block_resolution, self.voxel_size,
+                                   float(f32(self.voxel_size) * f32(self.trunc_voxel_multiplier)), self.depth_min,
+                                   self.depth_max, weight, self.grid.attribute("tsdf").numpy().reshape(-1),
+                                   self.grid.attribute("weight").numpy().reshape(-1), table[0], table[1], depth,
+                                   steps, np.ascontiguousarray(pose[:3, :3], f32),
+                                   np.ascontiguousarray(pose[:3, 3], f32),
+                                   self.grid.attribute("color").numpy().reshape(-1), float(f32(self.colour_scale)),
+                                   colour, simd_allowed()))
         self.cast_steps, self.cast_rays = int(steps[0]), int(steps[1])
         if steps[2] and whole_map is False:   # a ray looked beyond the table (never seen since the depth_min fix)
             log.debug("ray cast: %d look-ups outside the frustum table; cast again over the whole map", steps[2])
