@@ -250,22 +250,30 @@ RC_TARGET static inline __attribute__((always_inline)) void rc_step(const RcCtx 
         rc_refill(c, s, done, next, end, &count[1]);
 }
 
-/* rc_march_band with 2 x 16 rays in flight (see the header) */
+#ifndef RC_GROUPS
+#define RC_GROUPS 2 /* vectors of 16 rays in flight per thread */
+#endif
+
+/* rc_march_band with RC_GROUPS x 16 rays in flight (see the header) */
 RC_TARGET static void rc_march_band_simd(const RcCtx *c, const RcSimd *k, Py_ssize_t band, int64_t count[3])
 {
     Py_ssize_t next = band * 8 * c->cols, end = (band + 1) * 8 * c->cols;
-    RcRays s[2];
-    for (int g = 0; g < 2; g++) {
+    RcRays s[RC_GROUPS];
+    __mmask16 any = 0;
+    for (int g = 0; g < RC_GROUPS; g++) {
         s[g].active = 0;
         s[g].xd = s[g].yd = s[g].zd = s[g].t = s[g].t_max = s[g].t_prev = s[g].tsdf_prev = s[g].tsdf =
             _mm512_setzero_ps();
         rc_refill(c, &s[g], 0xffff, &next, end, &count[1]);
+        any |= s[g].active;
     }
-    while (s[0].active | s[1].active) {
-        if (s[0].active)
-            rc_step(c, k, &s[0], &next, end, count);
-        if (s[1].active)
-            rc_step(c, k, &s[1], &next, end, count);
+    while (any) {
+        any = 0;
+        for (int g = 0; g < RC_GROUPS; g++)
+            if (s[g].active) {
+                rc_step(c, k, &s[g], &next, end, count);
+                any |= s[g].active;
+            }
     }
 }
 #else

@@ -15,6 +15,9 @@ several poses, comparing depth bit for bit and colour value for value (Open3D's 
   focal length and principal point;
 - fused: 3-7 frames of a short sweep about one viewpoint; cast poses: the fused ones, ones moved away, turned toward empty space, outside the room, inside a sphere.
 
+Each cast is also made by the kernel's scalar march (``RADIOMAP_SIMD=0``) where the AVX-512 march runs
+(``mapping/_ckernels_raycast_simd.h``): depth, colour and the step and ray counts must agree too.
+
 A case passes when every cast agrees. Prints a line per failing case and a summary; exits 1 on any failure.
 Usage::
 
@@ -24,6 +27,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -71,9 +75,9 @@ def _render(room, spheres, pose, K, h, w) -> np.ndarray:
     return np.where(np.isfinite(t), t, 0).astype(np.float32)   # t is depth: d_cam has z = 1
 
 
-def run_case(seed: int) -> tuple[int, int, int, str, int]:
-    """One case: (casts, pixels compared, pixels differing in depth or colour, a description, pixels that found a
-    surface)."""
+def build_case(seed: int):
+    """One case's map and casts: (backend, K, h, w, cast poses, a description, the depth renderer), or None
+    when nothing could be fused."""
     from mapping.fusion.tsdf import TSDFBackend
 
     rng = np.random.default_rng(seed)
@@ -111,34 +115,70 @@ def run_case(seed: int) -> tuple[int, int, int, str, int]:
             if "No block is touched" not in str(e):
                 raise
     if backend.frames_integrated == 0:
-        return 0, 0, 0, f"seed {seed}: nothing to fuse", 0
+        return None
     casts = list(poses)
     casts.append(_look(centre + rng.uniform(-0.4, 0.4, 3) * size, centre + rng.uniform(-3, 3, 3) * size))
     casts.append(_look(centre + size * rng.choice([-1.5, 1.5], 3), centre))     # outside the room
     if spheres:
         casts.append(_look(spheres[0][0], spheres[0][0] + rng.normal(size=3)))  # inside a sphere
     casts.append(poses[0] @ np.diag([1.0, 1, 1, 1]) @ _shift(rng.uniform(-0.3, 0.3, 3)))
-    n = bad = hits = 0
-    for pose in casts:
-        depth = _render(room, spheres, pose, K, h, w)
-        try:   # the blocks this view's depth touches, as render_for_frame casts them
-            blocks = backend._prepare(depth, K, pose).blocks
-        except RuntimeError:   # it touches none (all beyond the range): the last fused frame's, as render() casts
-            blocks = backend._last_blocks
-        views = {}
-        for caster in ("open3d", "radiomap"):
-            backend.ray_caster = caster
-            views[caster] = backend._ray_cast(blocks, K, pose, h, w)
-        a, b = views["open3d"], views["radiomap"]
-        differ = (a.depth.view(np.uint32) != b.depth.view(np.uint32)) | np.any(a.colour != b.colour, axis=2)
-        n += a.depth.size
-        bad += int(np.count_nonzero(differ))
-        hits += int(np.count_nonzero(b.depth))
     desc = (f"seed {seed}: {w}x{h}, voxel {voxel * 1000:.1f} mm, res {res}, "
             f"trunc {settings['trunc_voxel_multiplier']:.1f}, depth {settings['depth_min']:.2f}-"
             f"{settings['depth_max']:.2f}, weight {settings['weight_threshold']:.0f}, {settings['colour_storage']}, "
             f"{len(poses)} fused, {len(casts)} casts")
-    return len(casts), n, bad, desc, hits
+    return backend, K, h, w, casts, desc, lambda pose: _render(room, spheres, pose, K, h, w)
+
+
+def own_casts(backend, blocks, K, pose, h, w):
+    """The kernel's cast with its default march and with the scalar one forced: ((view, steps, rays, SIMD ran)
+    per march)."""
+    backend.ray_caster = "radiomap"
+    out = []
+    saved = os.environ.get("RADIOMAP_SIMD")
+    try:
+        for value in ("1", "0"):
+            os.environ["RADIOMAP_SIMD"] = value
+            view = backend._ray_cast(blocks, K, pose, h, w)
+            out.append((view, backend.cast_steps, backend.cast_rays, backend.cast_simd))
+    finally:
+        if saved is None:
+            os.environ.pop("RADIOMAP_SIMD", None)
+        else:
+            os.environ["RADIOMAP_SIMD"] = saved
+    return out
+
+
+def _differ(a, b) -> np.ndarray:
+    return (a.depth.view(np.uint32) != b.depth.view(np.uint32)) | np.any(a.colour != b.colour, axis=2)
+
+
+def run_case(seed: int) -> tuple[int, int, int, str, int]:
+    """One case: (casts, pixels compared, pixels differing in depth or colour between Open3D's cast and the
+    kernel's or between the kernel's two marches (a cast whose marches' counts differ counts all its pixels), a
+    description, pixels that found a surface)."""
+    case = build_case(seed)
+    if case is None:
+        return 0, 0, 0, f"seed {seed}: nothing to fuse", 0
+    backend, K, h, w, casts, desc, render = case
+    n = bad = hits = simd = 0
+    for pose in casts:
+        depth = render(pose)
+        try:   # the blocks this view's depth touches, as render_for_frame casts them
+            blocks = backend._prepare(depth, K, pose).blocks
+        except RuntimeError:   # it touches none (all beyond the range): the last fused frame's, as render() casts
+            blocks = backend._last_blocks
+        backend.ray_caster = "open3d"
+        a = backend._ray_cast(blocks, K, pose, h, w)
+        (b, steps, rays, used), (c, steps_s, rays_s, _) = own_casts(backend, blocks, K, pose, h, w)
+        differ = _differ(a, b) | _differ(b, c)
+        if (steps, rays) != (steps_s, rays_s):
+            differ[:] = True
+        n += a.depth.size
+        bad += int(np.count_nonzero(differ))
+        hits += int(np.count_nonzero(b.depth))
+        simd += used
+    backend.ray_caster = "radiomap"
+    return len(casts), n, bad, desc + (f", {simd} with AVX-512" if simd else ""), hits
 
 
 def _shift(t) -> np.ndarray:
@@ -153,6 +193,10 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="first case's seed")
     args = p.parse_args(argv)
     start = time.perf_counter()
+    from radiometry._native import compiled
+
+    simd = getattr(compiled("mapping._ckernels"), "raycast_simd", 0)
+    print(f"the kernel's march: {'AVX-512 (compared with its scalar march)' if simd else 'scalar'}", flush=True)
     casts = pixels = failed = surface = 0
     for seed in range(args.seed, args.seed + args.runs):
         c, n, bad, desc, hits = run_case(seed)
