@@ -1123,6 +1123,8 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
 #if RC_HAVE_SIMD
     RcSimd rs;
     const int use_simd = simd && rc_simd_supported() && rc_simd_setup(&rc, &rs);
+    if (use_simd)
+        rc_colour_setup(&cc, &rs);
 #else
     const int use_simd = 0;
 #endif
@@ -1160,9 +1162,17 @@ static PyObject *raycast_depth(PyObject *self, PyObject *args)
         total_steps += count[0];
         total_rays += count[1];
         total_outside += count[2];
-        for (Py_ssize_t y = band * 8; y < band * 8 + 8 && y < c_rows; y++)
+        for (Py_ssize_t y = band * 8; y < band * 8 + 8 && y < c_rows; y++) {
+#if RC_HAVE_SIMD
+            if (use_simd && rs.colour) {
+                for (Py_ssize_t x0 = 0; x0 < c_cols; x0 += 16)
+                    rc_colour16(&cc, &rs, out + y * cols, y, x0, c_cols, out_colour + 3 * y * c_cols);
+                continue;
+            }
+#endif
             for (Py_ssize_t x = 0; x < c_cols; x++)
                 colour_pixel(&cc, out[y * cols + x], x, y, out_colour + 3 * (y * c_cols + x));
+        }
     }
     Py_END_ALLOW_THREADS
     PyMem_RawFree(range);

@@ -34,6 +34,8 @@ static int rc_simd_supported(void)
 /* the march's constants in 32-bit form (rc_simd_setup) */
 typedef struct {
     int32_t lo[3], n[3], kb[6], res, res2, res3, slot_cap, v_cap, n32, w_last;
+    int colour;        /* whether the colour pass runs in vectors too (rc_colour_setup) */
+    int32_t col_slots; /* slots from which on a corner's voxel lies past the colour buffers (ceil(n / res^3)) */
 } RcSimd;
 
 static int rc_fits(int64_t x, int64_t lim)
@@ -64,7 +66,18 @@ static int rc_simd_setup(const RcCtx *c, RcSimd *s)
     s->v_cap = (int32_t)(((int64_t)1 << 29) / (c->res2 + c->res + 1));
     s->n32 = (int32_t)(c->n_voxels < INT32_MAX ? c->n_voxels : INT32_MAX);
     s->w_last = c->weight->u16 && c->weight->n - 1 <= INT32_MAX ? (int32_t)(c->weight->n - 1) : -1;
+    s->colour = 0;
     return 1;
+}
+
+/* whether the colour pass of ``cc`` can run in vectors with 32-bit indices (else colour_pixel runs): 3 (n + res^3)
+ * below 2^31 (the colour index of any corner of a slot below col_slots), res >= 2 (a corner's coordinate wraps by at
+ * most one block), two weights at least (a uint16 weight is read as 32 bits ending at it) */
+static void rc_colour_setup(const ColourCtx *cc, RcSimd *s)
+{
+    const int64_t n = cc->n_voxels, res3 = cc->res3;
+    s->colour = cc->res >= 2 && n >= 2 && 3 * (n + res3) < INT32_MAX;
+    s->col_slots = s->colour ? (int32_t)((n + res3 - 1) / res3) : 0;
 }
 
 /* 16 rays in flight: their state as vectors, their pixels */
@@ -248,6 +261,189 @@ RC_TARGET static inline __attribute__((always_inline)) void rc_step(const RcCtx 
     }
     if (done)
         rc_refill(c, s, done, next, end, &count[1]);
+}
+
+/* ------------------------------------------------------------------------------------------ the colour pass */
+/* colour_pixel for 16 pixels of a row at a time: the same float32 (and, for a uint16 colour, float64) operations in
+ * the same order, a corner skipped by a mask where colour_pixel skips it. A pixel whose voxel coordinates in its
+ * block lie outside -1..res (a float rounding far from the origin) goes through colour_pixel itself. */
+RC_TARGET static inline __m256 rc_high8(__m512 v) /* lanes 8..15 (AVX-512 F: no vextractf32x8) */
+{
+    return _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(v), 1));
+}
+
+RC_TARGET static inline __m512 rc_join8(__m256 lo, __m256 hi)
+{
+    return _mm512_castpd_ps(_mm512_insertf64x4(_mm512_castps_pd(_mm512_castps256_ps512(lo)), _mm256_castps_pd(hi), 1));
+}
+
+RC_TARGET static inline __m512i rc_wrap(__m512i v, __m512i res)
+{
+    v = _mm512_mask_add_epi32(v, _mm512_cmplt_epi32_mask(v, _mm512_setzero_si512()), v, res);
+    return _mm512_mask_sub_epi32(v, _mm512_cmpge_epi32_mask(v, res), v, res);
+}
+
+/* a block's slot by a table look-up of the lanes ``m`` with coordinates (bx, by, bz); -1 elsewhere */
+RC_TARGET static inline __m512i rc_slot(const BlockTable *t, const RcSimd *k, __mmask16 m, __m512i bx, __m512i by,
+                                        __m512i bz)
+{
+    const __m512i jx = _mm512_sub_epi32(bx, _mm512_set1_epi32(k->lo[0]));
+    const __m512i jy = _mm512_sub_epi32(by, _mm512_set1_epi32(k->lo[1]));
+    const __m512i jz = _mm512_sub_epi32(bz, _mm512_set1_epi32(k->lo[2]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jx, _mm512_set1_epi32(k->n[0]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jy, _mm512_set1_epi32(k->n[1]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jz, _mm512_set1_epi32(k->n[2]));
+    const __m512i i = _mm512_add_epi32(
+        _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(jx, _mm512_set1_epi32(k->n[1])), jy),
+                           _mm512_set1_epi32(k->n[2])),
+        jz);
+    return _mm512_mask_i32gather_epi32(_mm512_set1_epi32(-1), m, i, t->index, 4);
+}
+
+/* pixels x0 .. x0 + 15 (those below c_cols) of row y: depth from ``depth`` (the row), colour into ``px`` (the
+ * row's colours, 3 per pixel) */
+RC_TARGET static void rc_colour16(const ColourCtx *cc, const RcSimd *k, const f32 *depth, Py_ssize_t y, Py_ssize_t x0,
+                                  Py_ssize_t c_cols, f32 *px)
+{
+    const __mmask16 m = (__mmask16)(c_cols - x0 >= 16 ? 0xffff : (1u << (c_cols - x0)) - 1);
+    const __m512 zero = _mm512_setzero_ps(), bs = _mm512_set1_ps(cc->block_size), vs = _mm512_set1_ps(cc->vs);
+    const __m512 lim = _mm512_set1_ps(1073741824.0f);
+    const __m512i ires = _mm512_set1_epi32(k->res);
+    const f32 *Rc = cc->Rc, *o = cc->o;
+    const __m512 t = _mm512_maskz_loadu_ps(m, depth + x0);
+    __mmask16 valid = _mm512_mask_cmp_ps_mask(m, t, zero, _CMP_GT_OQ);
+    const f32 dyc = ((f32)y - cc->cy) / cc->fy;
+    const __m512 xs = _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_set1_epi32((int32_t)x0),
+                                                          _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12,
+                                                                            13, 14, 15)));
+    const __m512 dxc = _mm512_div_ps(_mm512_sub_ps(xs, _mm512_set1_ps(cc->cx)), _mm512_set1_ps(cc->fx));
+    const __m512 vdyc = _mm512_set1_ps(dyc);
+    __m512 g[3];
+    __m512i b[3], iv[3];
+    __m512 fr[3];
+    for (int a = 0; a < 3; a++) {
+        const __m512 dir = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(_mm512_set1_ps(Rc[3 * a]), dxc),
+                                                       _mm512_mul_ps(_mm512_set1_ps(Rc[3 * a + 1]), vdyc)),
+                                         _mm512_set1_ps(Rc[3 * a + 2]));
+        const __m512 xg = _mm512_add_ps(_mm512_set1_ps(o[a]), _mm512_mul_ps(t, dir));
+        const __m512 q = _mm512_div_ps(xg, bs);
+        valid = _mm512_mask_cmp_ps_mask(valid, _mm512_abs_ps(q), lim, _CMP_LT_OQ);
+        const __m512 fq = _mm512_roundscale_ps(q, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+        b[a] = _mm512_cvttps_epi32(fq);
+        g[a] = _mm512_div_ps(_mm512_sub_ps(xg, _mm512_mul_ps(fq, bs)), vs);
+    }
+    const __m512i slot = rc_slot(cc->table, k, valid, b[0], b[1], b[2]);
+    valid = _mm512_mask_cmpge_epi32_mask(valid, slot, _mm512_setzero_si512());
+    __mmask16 safe = valid;
+    for (int a = 0; a < 3; a++) {
+        const __m512 fl = _mm512_roundscale_ps(g[a], _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+        fr[a] = _mm512_sub_ps(g[a], fl);
+        /* -1 <= floor(g) <= res (compared as floats: no integer overflow) */
+        safe = _mm512_mask_cmp_ps_mask(safe, fl, _mm512_set1_ps(-1.0f), _CMP_GE_OQ);
+        safe = _mm512_mask_cmp_ps_mask(safe, fl, _mm512_set1_ps((f32)k->res), _CMP_LE_OQ);
+        iv[a] = _mm512_cvttps_epi32(fl);
+    }
+    const int u16c = cc->colour->u16, u16w = cc->weight->u16;
+    const __m512 one = _mm512_set1_ps(1.0f);
+    const __m512 omr[3] = {_mm512_sub_ps(one, fr[0]), _mm512_sub_ps(one, fr[1]), _mm512_sub_ps(one, fr[2])};
+    __m512 r_sum = zero, f0 = zero, f1 = zero, f2 = zero;                           /* float32 colour */
+    __m512d d0[2] = {_mm512_setzero_pd(), _mm512_setzero_pd()}, d1[2] = {d0[0], d0[1]}, d2[2] = {d0[0], d0[1]};
+    for (int c = 0; safe && c < 8; c++) {
+        const int dx = c & 1, dy = (c >> 1) & 1, dz = (c >> 2) & 1;
+        const __m512i nx = _mm512_add_epi32(iv[0], _mm512_set1_epi32(dx));
+        const __m512i ny = _mm512_add_epi32(iv[1], _mm512_set1_epi32(dy));
+        const __m512i nz = _mm512_add_epi32(iv[2], _mm512_set1_epi32(dz));
+        __mmask16 in = _mm512_mask_cmplt_epu32_mask(safe, nx, ires);
+        in = _mm512_mask_cmplt_epu32_mask(in, ny, ires);
+        in = _mm512_mask_cmplt_epu32_mask(in, nz, ires);
+        __m512i s = slot;
+        const __mmask16 out = (__mmask16)(safe & ~in);
+        if (out) { /* the neighbouring block: b + (n >= res) - (n < 0) */
+            __m512i nb[3];
+            const __m512i n3[3] = {nx, ny, nz};
+            for (int a = 0; a < 3; a++) {
+                nb[a] = _mm512_mask_add_epi32(b[a], _mm512_cmpge_epi32_mask(n3[a], ires), b[a], _mm512_set1_epi32(1));
+                nb[a] = _mm512_mask_sub_epi32(nb[a], _mm512_cmplt_epi32_mask(n3[a], _mm512_setzero_si512()), nb[a],
+                                              _mm512_set1_epi32(1));
+            }
+            s = _mm512_mask_mov_epi32(s, out, rc_slot(cc->table, k, out, nb[0], nb[1], nb[2]));
+        }
+        __mmask16 use = _mm512_mask_cmpge_epi32_mask(safe, s, _mm512_setzero_si512());
+        use = _mm512_mask_cmplt_epi32_mask(use, s, _mm512_set1_epi32(k->col_slots)); /* else li >= n: skipped */
+        const __m512i li = _mm512_add_epi32(
+            _mm512_add_epi32(_mm512_mullo_epi32(s, _mm512_set1_epi32(k->res3)),
+                             _mm512_mullo_epi32(rc_wrap(nz, ires), _mm512_set1_epi32(k->res2))),
+            _mm512_add_epi32(_mm512_mullo_epi32(rc_wrap(ny, ires), ires), rc_wrap(nx, ires)));
+        use = _mm512_mask_cmplt_epi32_mask(use, li, _mm512_set1_epi32((int32_t)cc->n_voxels));
+        if (u16w) { /* 32 bits ending at weight[li] (starting at it where li = 0) */
+            const __mmask16 first = _mm512_cmpeq_epi32_mask(li, _mm512_setzero_si512());
+            const __m512i at = _mm512_mask_sub_epi32(li, (__mmask16)~first, li, _mm512_set1_epi32(1));
+            __m512i w = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), use, at, cc->weight->data, 2);
+            w = _mm512_mask_mov_epi32(_mm512_srli_epi32(w, 16), first, _mm512_and_si512(w, _mm512_set1_epi32(0xffff)));
+            use = _mm512_mask_cmpgt_epu32_mask(use, w, _mm512_setzero_si512());
+        } else {
+            const __m512 w = _mm512_mask_i32gather_ps(zero, use, li, cc->weight->data, 4);
+            use = _mm512_mask_cmp_ps_mask(use, w, zero, _CMP_GT_OQ);
+        }
+        if (!use)
+            continue;
+        const __m512 r = _mm512_mul_ps(_mm512_mul_ps(dx ? fr[0] : omr[0], dy ? fr[1] : omr[1]), dz ? fr[2] : omr[2]);
+        const __m512i l3 = _mm512_mullo_epi32(li, _mm512_set1_epi32(3));
+        if (u16c) { /* colour[3 li] | colour[3 li + 1] << 16, then colour[3 li + 2] in the high half */
+            const __m512i a01 = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), use, l3, cc->colour->data, 2);
+            const __m512i a12 = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), use,
+                                                            _mm512_add_epi32(l3, _mm512_set1_epi32(1)),
+                                                            cc->colour->data, 2);
+            const __m512i ch[3] = {_mm512_and_si512(a01, _mm512_set1_epi32(0xffff)), _mm512_srli_epi32(a01, 16),
+                                   _mm512_srli_epi32(a12, 16)};
+            __m512d *acc[3] = {d0, d1, d2};
+            for (int h = 0; h < 2; h++) {
+                const __mmask8 uh = (__mmask8)(use >> (8 * h));
+                const __m512d rh = _mm512_cvtps_pd(h ? rc_high8(r) : _mm512_castps512_ps256(r));
+                for (int a = 0; a < 3; a++) {
+                    const __m256i ci = h ? _mm512_extracti64x4_epi64(ch[a], 1) : _mm512_castsi512_si256(ch[a]);
+                    acc[a][h] = _mm512_mask_add_pd(acc[a][h], uh, acc[a][h], _mm512_mul_pd(rh, _mm512_cvtepi32_pd(ci)));
+                }
+            }
+        } else {
+            const __m512 c0 = _mm512_mask_i32gather_ps(zero, use, l3, cc->colour->data, 4);
+            const __m512 c1 = _mm512_mask_i32gather_ps(zero, use, _mm512_add_epi32(l3, _mm512_set1_epi32(1)),
+                                                       cc->colour->data, 4);
+            const __m512 c2 = _mm512_mask_i32gather_ps(zero, use, _mm512_add_epi32(l3, _mm512_set1_epi32(2)),
+                                                       cc->colour->data, 4);
+            f0 = _mm512_mask_add_ps(f0, use, f0, _mm512_mul_ps(r, c0));
+            f1 = _mm512_mask_add_ps(f1, use, f1, _mm512_mul_ps(r, c1));
+            f2 = _mm512_mask_add_ps(f2, use, f2, _mm512_mul_ps(r, c2));
+        }
+        r_sum = _mm512_mask_add_ps(r_sum, use, r_sum, r);
+    }
+    const __mmask16 seen = _mm512_mask_cmp_ps_mask(safe, r_sum, zero, _CMP_GT_OQ);
+    const __m512 rs = _mm512_mul_ps(r_sum, _mm512_set1_ps(cc->scale));
+    __attribute__((aligned(64))) f32 rgb[3][16];
+    if (u16c) {
+        __m512d *acc[3] = {d0, d1, d2};
+        for (int a = 0; a < 3; a++) {
+            const __m256 lo = _mm512_cvtpd_ps(_mm512_div_pd(acc[a][0], _mm512_cvtps_pd(_mm512_castps512_ps256(rs))));
+            const __m256 hi = _mm512_cvtpd_ps(_mm512_div_pd(acc[a][1], _mm512_cvtps_pd(rc_high8(rs))));
+            _mm512_store_ps(rgb[a], rc_join8(lo, hi));
+        }
+    } else {
+        _mm512_store_ps(rgb[0], _mm512_div_ps(f0, rs));
+        _mm512_store_ps(rgb[1], _mm512_div_ps(f1, rs));
+        _mm512_store_ps(rgb[2], _mm512_div_ps(f2, rs));
+    }
+    for (unsigned int bits = m; bits; bits &= bits - 1) {
+        const int l = __builtin_ctz(bits);
+        f32 *p = px + 3 * (x0 + l);
+        if (valid & ~safe & (1u << l))
+            colour_pixel(cc, depth[x0 + l], x0 + l, y, p);
+        else if (seen & (1u << l)) {
+            p[0] = rgb[0][l];
+            p[1] = rgb[1][l];
+            p[2] = rgb[2][l];
+        } else
+            p[0] = p[1] = p[2] = 0.0f;
+    }
 }
 
 #ifndef RC_GROUPS

@@ -48,7 +48,7 @@ def synthetic_cast(seed: int, simd: bool, u16: bool, rows: int, cols: int):
     """Cast a random grid with the kernel: (depth, colour, steps, whether the AVX-512 march ran)."""
     rng = np.random.default_rng(seed)
     f32 = np.float32
-    res = int(rng.choice([4, 8, 16]))
+    res = int(rng.choice([1, 2, 4, 8, 16]))
     voxel = float(rng.uniform(0.01, 0.05))
     size = res * voxel
     dims = rng.integers(2, 7, 3)
