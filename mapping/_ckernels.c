@@ -924,16 +924,41 @@ typedef struct {
     int cbx, cby, cbz;
 } RayLane;
 
+/* Start the band's next pixel that has a range (``next`` .. ``end``; the pixels passed get depth 0): its pixel,
+ * ray direction (d) and range of t (r), one more ray counted; 0 when none is left. */
+static inline int rc_start(const RcCtx *c, Py_ssize_t *next, Py_ssize_t end, Py_ssize_t *pixel, f32 d[3], f32 r[2],
+                           int64_t *rays)
+{
+    const f32 *Rc = c->Rc, *o = c->o;
+    while (*next < end) {
+        Py_ssize_t p = (*next)++, y = p / c->cols, x = p % c->cols;
+        c->out[p] = 0.0f;
+        const f32 *range = c->range + 2 * ((y / 8) * c->w_down + x / 8);
+        if (range[0] >= range[1])
+            continue;
+        ++*rays;
+        f32 xc = ((f32)x - c->cx) * 1.0f / c->fx, yc = ((f32)y - c->cy) * 1.0f / c->fy, zc = 1.0f;
+        d[0] = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
+        d[1] = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
+        d[2] = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
+        r[0] = range[0];
+        r[1] = range[1];
+        *pixel = p;
+        return 1;
+    }
+    return 0;
+}
+
 /* The march of the 8 rows of ``band``, RC_LANES rays in flight, one step of each in turn, so that the long chain
  * of dependent operations of one step (divisions, floors, two loads) of one ray overlaps those of the others;
  * every ray's own arithmetic is unchanged. Adds to count[0..2] the steps, rays and look-ups outside the table. */
 static void rc_march_band(const RcCtx *c, Py_ssize_t band, int64_t count[3])
 {
-    const f32 *range = c->range, *Rc = c->Rc, *o = c->o, *tsdf = c->tsdf;
+    const f32 *o = c->o, *tsdf = c->tsdf;
     f32 *out = c->out;
     const Py_ssize_t cols = c->cols, n_voxels = c->n_voxels;
-    const int64_t w_down = c->w_down, res = c->res, res2 = c->res2, res3 = c->res3, *kb = c->kb;
-    const f32 fx = c->fx, fy = c->fy, cx = c->cx, cy = c->cy, block_size = c->block_size;
+    const int64_t res = c->res, res2 = c->res2, res3 = c->res3, *kb = c->kb;
+    const f32 block_size = c->block_size;
     const f32 voxel_size = c->voxel_size, sdf_trunc = c->sdf_trunc, weight_threshold = c->weight_threshold;
     const Attr weight = *c->weight;
     const BlockTable table = *c->table;
@@ -946,23 +971,14 @@ static void rc_march_band(const RcCtx *c, Py_ssize_t band, int64_t count[3])
     for (;;) {
         for (int l = 0; l < RC_LANES; l++) {
             RayLane *L = &lane[l];
-            while (L->pixel < 0 && next < end) { /* start the next pixel that has a range */
-                Py_ssize_t p = next++, y = p / cols, x = p % cols;
-                out[p] = 0.0f;
-                const f32 *r = range + 2 * ((y / 8) * w_down + x / 8);
-                if (r[0] >= r[1])
-                    continue;
-                total_rays++;
-                f32 xc = ((f32)x - cx) * 1.0f / fx, yc = ((f32)y - cy) * 1.0f / fy, zc = 1.0f;
-                L->xd = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
-                L->yd = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
-                L->zd = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
+            f32 d[3], r[2];
+            if (L->pixel < 0 && rc_start(c, &next, end, &L->pixel, d, r, &total_rays)) {
+                L->xd = d[0], L->yd = d[1], L->zd = d[2];
                 L->t = L->t_prev = r[0];
                 L->t_max = r[1];
                 L->tsdf_prev = -1.0f;
                 L->tsdf = 1.0f;
                 L->cslot = -1;
-                L->pixel = p;
                 active++;
             }
             if (L->pixel < 0)

@@ -1,5 +1,5 @@
-/* The ray cast's march with AVX-512 (mapping/_ckernels.c includes this file after rc_march_band, the scalar march;
- * docs/performance.md, "The ray cast's march with AVX-512").
+/* The ray cast's march and surface colour with AVX-512 (mapping/_ckernels.c includes this file after rc_march_band,
+ * the scalar march; docs/performance.md, "The ray cast's march with AVX-512").
  *
  * 16 rays per vector, one step of Open3D's march for all 16 at a time, branch-free: the lanes' block, voxel and
  * TSDF look-ups are gathers, the choices are masks. A lane whose ray ends takes the band's next pixel (scalar
@@ -12,7 +12,10 @@
  * Integer work is 32-bit: rc_simd_setup refuses (scalar march) tables or offsets that do not fit; a lane whose
  * voxel index might not fit (a slot beyond 2^30 / res^3 voxels or voxel coordinates far outside the block, which a
  * float rounding of a far coordinate could give) and the last element of a uint16 weight buffer (a 32-bit gather
- * would read past its end) are looked up in scalar code instead, as the scalar march does. */
+ * would read past its end) are looked up in scalar code instead, as the scalar march does.
+ *
+ * The surface colour (colour_pixel: the trilinear colour of the 8 voxels around each hit) runs 16 pixels of a row
+ * at a time the same way (rc_colour16), where rc_colour_setup finds the buffers small enough for 32-bit indices. */
 #ifndef RADIOMAP_CKERNELS_RAYCAST_SIMD_H
 #define RADIOMAP_CKERNELS_RAYCAST_SIMD_H
 
@@ -87,32 +90,6 @@ typedef struct {
     Py_ssize_t pixel[16];
 } RcRays;
 
-/* the band's next pixel that has a range, started in lane ``l`` of the start arrays (the scalar march's start);
- * 0 when the band has none left */
-static inline int rc_start(const RcCtx *c, Py_ssize_t *next, Py_ssize_t end, Py_ssize_t *pixel, f32 init[5][16],
-                           int l, int64_t *rays)
-{
-    const f32 *Rc = c->Rc, *o = c->o;
-    const Py_ssize_t cols = c->cols;
-    while (*next < end) {
-        Py_ssize_t p = (*next)++, y = p / cols, x = p % cols;
-        c->out[p] = 0.0f;
-        const f32 *r = c->range + 2 * ((y / 8) * c->w_down + x / 8);
-        if (r[0] >= r[1])
-            continue;
-        ++*rays;
-        f32 xc = ((f32)x - c->cx) * 1.0f / c->fx, yc = ((f32)y - c->cy) * 1.0f / c->fy, zc = 1.0f;
-        init[0][l] = (xc * Rc[0] + yc * Rc[1] + zc * Rc[2] + o[0]) - o[0];
-        init[1][l] = (xc * Rc[3] + yc * Rc[4] + zc * Rc[5] + o[1]) - o[1];
-        init[2][l] = (xc * Rc[6] + yc * Rc[7] + zc * Rc[8] + o[2]) - o[2];
-        init[3][l] = r[0];
-        init[4][l] = r[1];
-        *pixel = p;
-        return 1;
-    }
-    return 0;
-}
-
 /* lanes ``m`` take new pixels (the others keep theirs); lanes that find none go idle */
 RC_TARGET static inline void rc_refill(const RcCtx *c, RcRays *s, __mmask16 m, Py_ssize_t *next, Py_ssize_t end,
                                        int64_t *rays)
@@ -121,8 +98,11 @@ RC_TARGET static inline void rc_refill(const RcCtx *c, RcRays *s, __mmask16 m, P
     __mmask16 started = 0;
     for (unsigned int bits = m; bits; bits &= bits - 1) {
         int l = __builtin_ctz(bits);
-        if (rc_start(c, next, end, &s->pixel[l], init, l, rays))
+        f32 d[3], r[2];
+        if (rc_start(c, next, end, &s->pixel[l], d, r, rays)) {
+            init[0][l] = d[0], init[1][l] = d[1], init[2][l] = d[2], init[3][l] = r[0], init[4][l] = r[1];
             started |= (__mmask16)(1u << l);
+        }
     }
     s->active = (__mmask16)((s->active & ~m) | started);
     s->xd = _mm512_mask_load_ps(s->xd, started, init[0]);
@@ -162,6 +142,25 @@ RC_TARGET static void rc_lookup_scalar(const RcCtx *c, __mmask16 m, __m512i slot
     *w = _mm512_mask_load_ps(*w, ok, wv);
 }
 
+/* the slots of blocks (bx, by, bz) in the lanes ``m`` by a table look-up (block_slot); -1 elsewhere; *in: the lanes
+ * inside the table */
+RC_TARGET static inline __m512i rc_slot(const BlockTable *t, const RcSimd *k, __mmask16 m, __m512i bx, __m512i by,
+                                        __m512i bz, __mmask16 *in)
+{
+    const __m512i jx = _mm512_sub_epi32(bx, _mm512_set1_epi32(k->lo[0]));
+    const __m512i jy = _mm512_sub_epi32(by, _mm512_set1_epi32(k->lo[1]));
+    const __m512i jz = _mm512_sub_epi32(bz, _mm512_set1_epi32(k->lo[2]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jx, _mm512_set1_epi32(k->n[0]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jy, _mm512_set1_epi32(k->n[1]));
+    m = _mm512_mask_cmplt_epu32_mask(m, jz, _mm512_set1_epi32(k->n[2]));
+    const __m512i i = _mm512_add_epi32(
+        _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(jx, _mm512_set1_epi32(k->n[1])), jy),
+                           _mm512_set1_epi32(k->n[2])),
+        jz);
+    *in = m;
+    return _mm512_mask_i32gather_epi32(_mm512_set1_epi32(-1), m, i, t->index, 4);
+}
+
 /* one step of Open3D's march for the active lanes of ``s`` (rc_march_band's step, lane by lane); the lanes whose
  * ray ends write their depth (if found) and take the next pixel */
 RC_TARGET static inline __attribute__((always_inline)) void rc_step(const RcCtx *c, const RcSimd *k, RcRays *s,
@@ -183,12 +182,8 @@ RC_TARGET static inline __attribute__((always_inline)) void rc_step(const RcCtx 
     const __m512 fqy = _mm512_roundscale_ps(qy, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
     const __m512 fqz = _mm512_roundscale_ps(qz, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
     const __m512i bx = _mm512_cvttps_epi32(fqx), by = _mm512_cvttps_epi32(fqy), bz = _mm512_cvttps_epi32(fqz);
-    const __m512i jx = _mm512_sub_epi32(bx, _mm512_set1_epi32(k->lo[0]));
-    const __m512i jy = _mm512_sub_epi32(by, _mm512_set1_epi32(k->lo[1]));
-    const __m512i jz = _mm512_sub_epi32(bz, _mm512_set1_epi32(k->lo[2]));
-    __mmask16 intab = _mm512_mask_cmplt_epu32_mask(inr, jx, _mm512_set1_epi32(k->n[0]));
-    intab = _mm512_mask_cmplt_epu32_mask(intab, jy, _mm512_set1_epi32(k->n[1]));
-    intab = _mm512_mask_cmplt_epu32_mask(intab, jz, _mm512_set1_epi32(k->n[2]));
+    __mmask16 intab;
+    const __m512i slot = rc_slot(c->table, k, inr, bx, by, bz, &intab);
     __mmask16 box = (__mmask16)(inr & ~intab); /* a block the map may hold but the table does not */
     if (box) {
         box = _mm512_mask_cmpge_epi32_mask(box, bx, _mm512_set1_epi32(k->kb[0]));
@@ -199,11 +194,6 @@ RC_TARGET static inline __attribute__((always_inline)) void rc_step(const RcCtx 
         box = _mm512_mask_cmple_epi32_mask(box, bz, _mm512_set1_epi32(k->kb[5]));
         count[2] += __builtin_popcount(box);
     }
-    const __m512i tidx = _mm512_add_epi32(
-        _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(jx, _mm512_set1_epi32(k->n[1])), jy),
-                           _mm512_set1_epi32(k->n[2])),
-        jz);
-    const __m512i slot = _mm512_mask_i32gather_epi32(_mm512_set1_epi32(-1), intab, tidx, c->table->index, 4);
     const __mmask16 hit = _mm512_mask_cmpge_epi32_mask(intab, slot, _mm512_setzero_si512());
     /* the voxel in the block: (int)((xg - bx * block_size) / voxel_size), bx * block_size = floor(q) * block_size */
     const __m512i xv = _mm512_cvttps_epi32(_mm512_div_ps(_mm512_sub_ps(xg, _mm512_mul_ps(fqx, bs)), vs));
@@ -283,23 +273,6 @@ RC_TARGET static inline __m512i rc_wrap(__m512i v, __m512i res)
     return _mm512_mask_sub_epi32(v, _mm512_cmpge_epi32_mask(v, res), v, res);
 }
 
-/* a block's slot by a table look-up of the lanes ``m`` with coordinates (bx, by, bz); -1 elsewhere */
-RC_TARGET static inline __m512i rc_slot(const BlockTable *t, const RcSimd *k, __mmask16 m, __m512i bx, __m512i by,
-                                        __m512i bz)
-{
-    const __m512i jx = _mm512_sub_epi32(bx, _mm512_set1_epi32(k->lo[0]));
-    const __m512i jy = _mm512_sub_epi32(by, _mm512_set1_epi32(k->lo[1]));
-    const __m512i jz = _mm512_sub_epi32(bz, _mm512_set1_epi32(k->lo[2]));
-    m = _mm512_mask_cmplt_epu32_mask(m, jx, _mm512_set1_epi32(k->n[0]));
-    m = _mm512_mask_cmplt_epu32_mask(m, jy, _mm512_set1_epi32(k->n[1]));
-    m = _mm512_mask_cmplt_epu32_mask(m, jz, _mm512_set1_epi32(k->n[2]));
-    const __m512i i = _mm512_add_epi32(
-        _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(jx, _mm512_set1_epi32(k->n[1])), jy),
-                           _mm512_set1_epi32(k->n[2])),
-        jz);
-    return _mm512_mask_i32gather_epi32(_mm512_set1_epi32(-1), m, i, t->index, 4);
-}
-
 /* pixels x0 .. x0 + 15 (those below c_cols) of row y: depth from ``depth`` (the row), colour into ``px`` (the
  * row's colours, 3 per pixel) */
 RC_TARGET static void rc_colour16(const ColourCtx *cc, const RcSimd *k, const f32 *depth, Py_ssize_t y, Py_ssize_t x0,
@@ -332,7 +305,8 @@ RC_TARGET static void rc_colour16(const ColourCtx *cc, const RcSimd *k, const f3
         b[a] = _mm512_cvttps_epi32(fq);
         g[a] = _mm512_div_ps(_mm512_sub_ps(xg, _mm512_mul_ps(fq, bs)), vs);
     }
-    const __m512i slot = rc_slot(cc->table, k, valid, b[0], b[1], b[2]);
+    __mmask16 in;
+    const __m512i slot = rc_slot(cc->table, k, valid, b[0], b[1], b[2], &in);
     valid = _mm512_mask_cmpge_epi32_mask(valid, slot, _mm512_setzero_si512());
     __mmask16 safe = valid;
     for (int a = 0; a < 3; a++) {
@@ -366,7 +340,7 @@ RC_TARGET static void rc_colour16(const ColourCtx *cc, const RcSimd *k, const f3
                 nb[a] = _mm512_mask_sub_epi32(nb[a], _mm512_cmplt_epi32_mask(n3[a], _mm512_setzero_si512()), nb[a],
                                               _mm512_set1_epi32(1));
             }
-            s = _mm512_mask_mov_epi32(s, out, rc_slot(cc->table, k, out, nb[0], nb[1], nb[2]));
+            s = _mm512_mask_mov_epi32(s, out, rc_slot(cc->table, k, out, nb[0], nb[1], nb[2], &in));
         }
         __mmask16 use = _mm512_mask_cmpge_epi32_mask(safe, s, _mm512_setzero_si512());
         use = _mm512_mask_cmplt_epi32_mask(use, s, _mm512_set1_epi32(k->col_slots)); /* else li >= n: skipped */

@@ -29,7 +29,8 @@ listed block's corners projected to 1/8 resolution) and its march (steps of ``ma
 a block at a time through absent blocks) in the same float32 operations, so the same depth bit for bit
 (``tests/test_raycast.py``, ``scripts/stress_raycast.py``), but with blocks looked up in a dense table of the
 view frustum's blocks instead of Open3D's hash map, eight rays in flight per thread (a step is a long chain of
-dependent divisions and loads: interleaving rays overlaps them), nothing written but depth, and each pixel's
+dependent divisions and loads: interleaving rays overlaps them; where the CPU has AVX-512, 2 x 16 rays in vectors,
+the same bits, ``RADIOMAP_SIMD=0`` forces the scalar march), nothing written but depth, and each pixel's
 surface colour (the kernel of :meth:`TSDFBackend._surface_colour`) computed in the same pass, eight rows at a
 time while their voxels are in the caches. It needs the compiled kernels and a CPU grid; otherwise, or with
 ``ray_caster="open3d"``, Open3D's cast runs (with the fragment-buffer guard below).
