@@ -18,6 +18,11 @@ Tests that need the AVX-512 march skip on CPUs (or builds) without it.
 from __future__ import annotations
 
 import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +49,9 @@ def _look(origin, target) -> np.ndarray:
     return _stress()._look(np.asarray(origin, float), np.asarray(target, float))
 
 
-def synthetic_cast(seed: int, simd: bool, u16: bool, rows: int, cols: int):
-    """Cast a random grid with the kernel: (depth, colour, steps, whether the AVX-512 march ran)."""
+def synthetic_cast(seed: int, simd: bool, u16: bool, rows: int, cols: int, kernels=None):
+    """Cast a random grid with the kernel (``kernels``: the module, the installed one by default): (depth,
+    colour, steps, whether the AVX-512 march ran)."""
     rng = np.random.default_rng(seed)
     f32 = np.float32
     res = int(rng.choice([1, 2, 4, 8, 16]))
@@ -99,7 +105,7 @@ def synthetic_cast(seed: int, simd: bool, u16: bool, rows: int, cols: int):
     out_colour = np.empty((rows, cols, 3), f32)
     hi = lo + dims - 1
     steps = np.concatenate([np.zeros(3, np.int64), lo - 2, hi + 2])     # the map's box beyond the table
-    used = KERNELS.raycast_depth(
+    used = (kernels or KERNELS).raycast_depth(
         np.ascontiguousarray(coords, np.int32), np.ascontiguousarray(E[:3, :3], f32), np.ascontiguousarray(E[:3, 3], f32),
         np.ascontiguousarray(Rinv, f32), np.ascontiguousarray(tinv, f32), f, f, cx, cy, res, voxel, trunc,
         float(rng.uniform(0, 0.3)), float(rng.uniform(2, 8)), float(rng.integers(1, 3)), tsdf.reshape(-1), weight,
@@ -187,3 +193,37 @@ def test_simd_march_equals_scalar_on_the_kitchen():
             compared += 1
         backend.integrate(frame.depth, frame.rgb.astype(np.float32) / 255, ds.K, frame.pose)
     assert compared == len(ds) - 1
+
+
+@needs_c
+@pytest.mark.slow
+def test_a_build_without_simd_marches_in_scalar_code(tmp_path):
+    """``-DRM_NO_SIMD`` (what other compilers and CPUs build): ``raycast_simd`` is 0, the cast says it did not use
+    AVX-512 although allowed, and its results are the installed module's (AVX-512 where this CPU has it)."""
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(cc) is None or sys.platform == "win32":
+        pytest.skip(f"no C compiler ({cc})")
+    repo = SCRIPT.parents[1]
+    env = dict(os.environ, CFLAGS="-DRM_NO_SIMD")
+    proc = subprocess.run([sys.executable, "setup.py", "build_ext", "--build-lib", str(tmp_path / "lib"),
+                           "--build-temp", str(tmp_path / "tmp")], cwd=repo, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    built = next((tmp_path / "lib" / "mapping").glob("_ckernels*"))
+    out = tmp_path / "casts.npz"
+    script = ("import sys, importlib.util, numpy as np; "
+              "spec = importlib.util.spec_from_file_location('mapping._ckernels', sys.argv[1]); "
+              "c = importlib.util.module_from_spec(spec); spec.loader.exec_module(c); "
+              "from tests.test_raycast_simd import synthetic_cast, SIZES; "
+              "r = [synthetic_cast(s, True, s % 2 == 0, *SIZES[s % 4], kernels=c) for s in range(8)]; "
+              "np.savez(sys.argv[2], *[a for x in r for a in x[:3]]); "
+              "print(c.raycast_simd, sum(x[3] for x in r))")
+    run = subprocess.run([sys.executable, "-c", script, str(built), str(out)], cwd=repo, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["0", "0"]
+    theirs = np.load(out)
+    for s in range(8):
+        ours = synthetic_cast(s, True, s % 2 == 0, *SIZES[s % 4])
+        for i in range(3):
+            np.testing.assert_array_equal(theirs[f"arr_{3 * s + i}"], ours[i], err_msg=f"seed {s}")
