@@ -25,6 +25,8 @@ alternating order, ``--repeats`` times; the table reports medians.
 - radiomap-serial: radiomap reading each frame when its turn comes (``reconstruct(prefetch=0)``; not run unless
             listed): the default reads the next frame in a background thread (:mod:`mapping.prefetch`) while the
             current one is tracked, fused and cast; this measures what that overlap saves, in the same run.
+- radiomap-scalar: radiomap with its AVX-512 paths off (``RADIOMAP_SIMD=0``: the ray cast's scalar march and colour,
+            the correction's scalar look-up; not run unless listed): what the AVX-512 kernels save, in the same run.
 - radiomap-numba: radiomap with its Numba kernels (``RADIOMAP_KERNELS=numba``; not run unless listed): what
             the compiled kernels save in memory and time, in the same run.
 
@@ -61,9 +63,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = REPO.parent / "shared" / "data" / "rgbd" / "redkitchen_7scenes_000-099"
 METHODS = ("open3d", "open3d-colour", "radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast",
-           "radiomap-serial")
+           "radiomap-serial", "radiomap-scalar")
 PEERS = ("open3d", "open3d-colour")
-OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast", "radiomap-serial")
+OURS = ("radiomap", "radiomap-float32", "radiomap-numba", "radiomap-o3dcast", "radiomap-serial", "radiomap-scalar")
 
 
 def parse_frames(text: str) -> slice:
@@ -219,6 +221,8 @@ def run_worker(method: str, args) -> dict:
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     if method == "radiomap-numba":
         env["RADIOMAP_KERNELS"] = "numba"
+    if method == "radiomap-scalar":
+        env["RADIOMAP_SIMD"] = "0"
     out = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if out.returncode != 0:
         how = f"signal {-out.returncode}" if out.returncode < 0 else f"exit code {out.returncode}"
