@@ -96,22 +96,34 @@ def synthetic_cast(seed: int, simd: bool, u16: bool, rows: int, cols: int, kerne
         pose = _look(box_centre + rng.normal(0, 0.1, 3) * size, box_centre + rng.normal(0, 1, 3))
     else:
         pose = _look(origin, 2 * origin - box_centre)
-    E = np.linalg.inv(pose)
-    Rinv = E[:3, :3].T
-    tinv = -(Rinv @ E[:3, 3])
     f = float(rng.uniform(0.6, 1.2)) * cols
     cx, cy = cols / 2 + rng.uniform(-5, 5), rows / 2 + rng.uniform(-5, 5)
-    depth = np.empty((rows, cols), f32)
-    out_colour = np.empty((rows, cols, 3), f32)
     hi = lo + dims - 1
-    steps = np.concatenate([np.zeros(3, np.int64), lo - 2, hi + 2])     # the map's box beyond the table
+    return kernel_cast(kernels, simd, coords=coords, index=index, lo=lo, tsdf=tsdf, weight=weight, colour=colour,
+                       pose=pose, K=(f, f, cx, cy), res=res, voxel=voxel, trunc=trunc,
+                       depth=(float(rng.uniform(0, 0.3)), float(rng.uniform(2, 8))),
+                       weight_threshold=float(rng.integers(1, 3)), scale=float(rng.uniform(0.5, 2)),
+                       box=(lo - 2, hi + 2), shape=(rows, cols))     # the map's box beyond the table
+
+
+def kernel_cast(kernels, simd, *, coords, index, lo, tsdf, weight, colour, pose, K, res, voxel, trunc, depth,
+                weight_threshold, scale, box, shape, directions=None):
+    """``raycast_depth`` of a grid given as buffers: (depth, colour, steps, whether the AVX-512 march ran).
+    ``directions``: the rotation that turns pixels into ray directions, if not the pose's."""
+    f32 = np.float32
+    E = np.linalg.inv(pose)
+    Rinv = E[:3, :3].T if directions is None else directions
+    tinv = -(E[:3, :3].T @ E[:3, 3])
+    out = np.empty(shape, f32)
+    out_colour = np.empty(shape + (3,), f32)
+    steps = np.concatenate([np.zeros(3, np.int64), box[0], box[1]]).astype(np.int64)
     used = (kernels or KERNELS).raycast_depth(
         np.ascontiguousarray(coords, np.int32), np.ascontiguousarray(E[:3, :3], f32), np.ascontiguousarray(E[:3, 3], f32),
-        np.ascontiguousarray(Rinv, f32), np.ascontiguousarray(tinv, f32), f, f, cx, cy, res, voxel, trunc,
-        float(rng.uniform(0, 0.3)), float(rng.uniform(2, 8)), float(rng.integers(1, 3)), tsdf.reshape(-1), weight,
-        index, lo, depth, steps, np.ascontiguousarray(pose[:3, :3], f32), np.ascontiguousarray(pose[:3, 3], f32),
-        colour, float(rng.uniform(0.5, 2)), out_colour, simd)
-    return depth, out_colour, steps[:3].copy(), used
+        np.ascontiguousarray(Rinv, f32), np.ascontiguousarray(tinv, f32), *K, res, voxel, trunc, *depth,
+        weight_threshold, tsdf.reshape(-1), weight, index, np.asarray(lo, np.int64), out, steps,
+        np.ascontiguousarray(pose[:3, :3], f32), np.ascontiguousarray(pose[:3, 3], f32), colour, scale, out_colour,
+        simd)
+    return out, out_colour, steps[:3].copy(), used
 
 
 SEED = 1                                                 # a synthetic case with rays (below)
@@ -136,6 +148,52 @@ def test_simd_march_equals_scalar_on_synthetic_grids(u16):
         misses += int(a[2][1]) - int(np.count_nonzero(a[0]))
     # the cases reach what they are meant to: surfaces, rays that find nothing, look-ups outside the table
     assert found > 1000 and misses > 1000 and outside > 0 and rays > found
+
+
+def exact_grid(spoil: str | None, present: bool, u16: bool):
+    """A grid whose march is exact in float32: camera at the origin looking along +z, blocks 0.25 m (res 8, voxel
+    2^-5 m), the listed blocks from z = 1 to 2 m (so every covered pixel marches t = 1, 1.25, 1.5, 1.75 and ends
+    when t reaches 2 exactly: 4 steps), the table's blocks absent or (``present``) of TSDF +1 and truncation
+    0.25 m (steps of 0.25 too). ``spoil``: ray directions with a NaN (z) or an infinity (x): every look-up is
+    out of range, the rays cross nothing and count no block outside the table though the map's box is huge."""
+    res, voxel = 8, 2.0 ** -5
+    coords = np.array([(x, y, z) for x in range(-4, 4) for y in range(-3, 3) for z in range(4, 8)])
+    lo, dims = np.array([-8, -8, 0]), (16, 16, 10)
+    index = np.full(dims, -1, np.int32)
+    n_blocks = 0
+    if present:
+        for x, y, z in coords:
+            index[x + 8, y + 8, z] = n_blocks
+            n_blocks += 1
+    n = max(n_blocks, 1) * res ** 3
+    tsdf = np.ones(n, np.float32)
+    weight = np.full(n, 3, np.uint16 if u16 else np.float32)
+    colour = np.full(3 * n, 7, np.uint16 if u16 else np.float32)
+    directions = None
+    if spoil:
+        directions = np.eye(3)
+        directions[2 if spoil == "nan" else 0] = np.nan if spoil == "nan" else np.inf
+    huge = 2 ** 40
+    box = (np.full(3, -huge), np.full(3, huge)) if spoil else (lo, lo + np.array(dims) - 1)
+    return dict(coords=coords, index=index, lo=lo, tsdf=tsdf, weight=weight, colour=colour, pose=np.eye(4),
+                K=(60.0, 60.0, 31.5, 23.5), res=res, voxel=voxel, trunc=0.25, depth=(0.1, 3.0), weight_threshold=1.0,
+                scale=1.0, box=box, shape=(48, 64), directions=directions)
+
+
+@needs_c
+@pytest.mark.parametrize("spoil, present", [(None, False), (None, True), ("nan", False), ("inf", True)])
+def test_exact_march_ends_at_t_max_and_skips_out_of_range(spoil, present):
+    """Built by hand: 4 steps per ray (the last lands on t_max exactly and stops), no surface, no look-up counted
+    outside the table; the AVX-512 march (where the CPU has it) and the scalar one agree."""
+    for u16 in (True, False):
+        grid = exact_grid(spoil, present, u16)
+        runs = [kernel_cast(None, simd, **grid) for simd in ((False, True) if KERNELS.raycast_simd else (False,))]
+        for depth, colour, steps, _ in runs:
+            assert steps[1] > 1000 and steps[0] == 4 * steps[1] and steps[2] == 0
+            assert not depth.any() and not colour.any()
+        if len(runs) == 2:
+            assert runs[1][3] is True
+            np.testing.assert_array_equal(runs[0][2], runs[1][2])
 
 
 @needs_c
