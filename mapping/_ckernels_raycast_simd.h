@@ -25,14 +25,8 @@
 #define RC_HAVE_SIMD 1
 #define RC_TARGET __attribute__((target("avx512f")))
 
-/* AVX-512 F (CPUID.7 ebx bit 16), detected once; a race writes the same value */
-static int rc_simd_supported(void)
-{
-    static int cached = -1;
-    if (cached < 0)
-        cached = rm_cpu_avx512(1u << 16, 0);
-    return cached;
-}
+/* whether this CPU runs the code below: AVX-512 F (CPUID.7 ebx bit 16) */
+RM_CPU_CHECK(rc_simd_supported, 1u << 16, 0)
 
 /* the march's constants in 32-bit form (rc_simd_setup) */
 typedef struct {

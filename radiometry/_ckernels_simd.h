@@ -31,19 +31,7 @@
 #define RM_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512vbmi,gfni")))
 
 /* whether this CPU runs the kernel below: AVX-512 F, BW, VL (CPUID.7 ebx bits 16, 30, 31), VBMI and GFNI (ecx 1, 8) */
-static int rm_simd_detect(void)
-{
-    return rm_cpu_avx512((1u << 16) | (1u << 30) | (1u << 31), (1u << 1) | (1u << 8));
-}
-
-/* detected once (CPUID traps to the hypervisor on virtual machines); a race writes the same value */
-static int rm_simd_supported(void)
-{
-    static int cached = -1;
-    if (cached < 0)
-        cached = rm_simd_detect();
-    return cached;
-}
+RM_CPU_CHECK(rm_simd_supported, (1u << 16) | (1u << 30) | (1u << 31), (1u << 1) | (1u << 8))
 
 /* searches side by side (RM_WAY / 2 planes of 64 values): one step's permute-compare-add chain takes ~11 cycles
  * on the EPYC measured, so 8 independent chains keep the vector units busy */

@@ -37,6 +37,16 @@ static inline int rm_cpu_avx512(unsigned int ebx, unsigned int ecx)
         return 0;
     return (b & ebx) == ebx && (c & ecx) == ecx;
 }
+
+/* defines ``static int NAME(void)``: rm_cpu_avx512(EBX, ECX), detected once (a race writes the same value) */
+#define RM_CPU_CHECK(NAME, EBX, ECX)                                                                               \
+    static int NAME(void)                                                                                          \
+    {                                                                                                              \
+        static int cached = -1;                                                                                    \
+        if (cached < 0)                                                                                            \
+            cached = rm_cpu_avx512((EBX), (ECX));                                                                  \
+        return cached;                                                                                             \
+    }
 #else
 #define RM_X86_SIMD 0
 #endif

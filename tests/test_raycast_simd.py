@@ -118,8 +118,8 @@ def kernel_cast(kernels, simd, *, coords, index, lo, tsdf, weight, colour, pose,
     out_colour = np.empty(shape + (3,), f32)
     steps = np.concatenate([np.zeros(3, np.int64), box[0], box[1]]).astype(np.int64)
     used = (kernels or KERNELS).raycast_depth(
-        np.ascontiguousarray(coords, np.int32), np.ascontiguousarray(E[:3, :3], f32), np.ascontiguousarray(E[:3, 3], f32),
-        np.ascontiguousarray(Rinv, f32), np.ascontiguousarray(tinv, f32), *K, res, voxel, trunc, *depth,
+        np.ascontiguousarray(coords, np.int32), np.ascontiguousarray(E[:3, :3], f32),
+        np.ascontiguousarray(E[:3, 3], f32), np.ascontiguousarray(Rinv, f32), np.ascontiguousarray(tinv, f32), *K, res, voxel, trunc, *depth,
         weight_threshold, tsdf.reshape(-1), weight, index, np.asarray(lo, np.int64), out, steps,
         np.ascontiguousarray(pose[:3, :3], f32), np.ascontiguousarray(pose[:3, 3], f32), colour, scale, out_colour,
         simd)
