@@ -18,6 +18,7 @@ Without the compiled kernels (``RADIOMAP_KERNELS=numba``, no C compiler) Open3D'
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -59,6 +60,16 @@ def _executor() -> ThreadPoolExecutor:
         if _pool is None:
             _pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="radiomap-bilateral")
         return _pool
+
+
+def _forget_pool_in_child() -> None:
+    """A forked child has none of the pool's threads (nor a usable lock): it makes its own when it needs one."""
+    global _pool, _pool_lock
+    _pool, _pool_lock = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_in_child)
 
 
 def _intrinsics(K) -> np.ndarray:

@@ -91,6 +91,31 @@ def test_concurrent_calls_from_many_threads_agree():
     assert errors == []
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_a_forked_child_makes_its_own_band_pool():
+    """A process that forks after the bands ran gets a pool of its own in the child (the parent's threads do not
+    exist there: submitting to the parent's pool would wait forever). Only the pool is exercised in the child:
+    OpenMP (GNU libgomp) itself does not survive a fork after use, which holds for every compiled kernel."""
+    import os
+
+    depth, _ = depth_case(np.random.default_rng(2), (240, 320))
+    surface_maps.bilateral(depth)               # the parent's pool exists now
+    parent_pool = surface_maps._executor()
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                # the child: use the pool, report, exit without pytest's teardown
+        try:
+            pool = surface_maps._executor()
+            ok = pool is not parent_pool and pool.submit(lambda: 41 + 1).result(timeout=30) == 42
+            os.write(write, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.close(write)
+    answer = os.read(read, 1)
+    os.waitpid(pid, 0)
+    assert answer == b"1"
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="K must be a 3x3"):
         surface_maps.vertex_map(np.ones((4, 4), np.float32), np.eye(4))
