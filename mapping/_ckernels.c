@@ -856,6 +856,9 @@ static PyObject *pyrdown(PyObject *self, PyObject *args)
     const f64 w1[5] = {1.0, 4.0, 6.0, 4.0, 1.0};
     Py_ssize_t orows = v[1].shape[0], ocols = v[1].shape[1];
     Py_BEGIN_ALLOW_THREADS
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static)
+#endif
     for (Py_ssize_t y = 0; y < orows; y++)
         for (Py_ssize_t x = 0; x < ocols; x++) {
             Py_ssize_t cy = 2 * y, cx = 2 * x;
@@ -882,6 +885,92 @@ static PyObject *pyrdown(PyObject *self, PyObject *args)
                 }
             }
             out[y * ocols + x] = ws > 0 ? (f32)(s / ws) : NAN; /* no neighbour within diff (diff <= 0, inf) */
+        }
+    Py_END_ALLOW_THREADS
+    rm_release(v, 2);
+    Py_INCREF(oo);
+    return oo;
+fail:
+    rm_release(v, 2);
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------------------- vertex and normal maps */
+/* Open3D 0.20's Image.create_vertex_map and create_normal_map (t/geometry/kernel/ImageImpl.h, CPU, one thread there)
+ * with the same float32 operations in the same order, so the same bits (tests/test_surface_maps.py compares them
+ * with Open3D's), on every thread. vertex_map: (x - cx) * d / fx, (y - cy) * d / fy, d; NaN depth gives NaN (as
+ * Open3D's with invalid_fill NaN). normal_map: the cross product of the differences to the pixel below and to the
+ * right, divided by its length but at most by 1e-5 (a tiny or zero cross product stays short: Open3D 0.20's floor,
+ * found by comparing); NaN in the last row and column and wherever a neighbour is NaN. */
+static PyObject *vertex_map(PyObject *self, PyObject *args)
+{
+    PyObject *od, *oo;
+    double fx_d, fy_d, cx_d, cy_d;
+    Py_buffer v[2] = {{0}};
+    if (!PyArg_ParseTuple(args, "OddddO", &od, &fx_d, &fy_d, &cx_d, &cy_d, &oo))
+        return NULL;
+    if (rm_get(od, &v[0], 'f', 4, 2, 0, "depth") || rm_get(oo, &v[1], 'f', 4, 3, 1, "out"))
+        goto fail;
+    Py_ssize_t rows = v[0].shape[0], cols = v[0].shape[1];
+    if (rm_dim(&v[1], 0, rows, "out") || rm_dim(&v[1], 1, cols, "out") || rm_dim(&v[1], 2, 3, "out"))
+        goto fail;
+    const f32 *depth = v[0].buf, fx = (f32)fx_d, fy = (f32)fy_d, cx = (f32)cx_d, cy = (f32)cy_d;
+    f32 *out = v[1].buf;
+    Py_BEGIN_ALLOW_THREADS
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static)
+#endif
+    for (Py_ssize_t y = 0; y < rows; y++)
+        for (Py_ssize_t x = 0; x < cols; x++) {
+            f32 d = depth[y * cols + x], *p = out + 3 * (y * cols + x);
+            p[0] = ((f32)x - cx) * d / fx;
+            p[1] = ((f32)y - cy) * d / fy;
+            p[2] = d;
+        }
+    Py_END_ALLOW_THREADS
+    rm_release(v, 2);
+    Py_INCREF(oo);
+    return oo;
+fail:
+    rm_release(v, 2);
+    return NULL;
+}
+
+static PyObject *normal_map(PyObject *self, PyObject *args)
+{
+    PyObject *ov, *oo;
+    Py_buffer v[2] = {{0}};
+    if (!PyArg_ParseTuple(args, "OO", &ov, &oo))
+        return NULL;
+    if (rm_get(ov, &v[0], 'f', 4, 3, 0, "vertex") || rm_get(oo, &v[1], 'f', 4, 3, 1, "out"))
+        goto fail;
+    Py_ssize_t rows = v[0].shape[0], cols = v[0].shape[1];
+    if (rm_dim(&v[0], 2, 3, "vertex") || rm_dim(&v[1], 0, rows, "out") || rm_dim(&v[1], 1, cols, "out")
+        || rm_dim(&v[1], 2, 3, "out"))
+        goto fail;
+    const f32 *vx = v[0].buf;
+    f32 *out = v[1].buf;
+    Py_BEGIN_ALLOW_THREADS
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static)
+#endif
+    for (Py_ssize_t y = 0; y < rows; y++)
+        for (Py_ssize_t x = 0; x < cols; x++) {
+            f32 *n = out + 3 * (y * cols + x);
+            if (y == rows - 1 || x == cols - 1) {
+                n[0] = n[1] = n[2] = NAN;
+                continue;
+            }
+            const f32 *v00 = vx + 3 * (y * cols + x), *v10 = v00 + 3, *v01 = v00 + 3 * cols;
+            f32 dx0 = v01[0] - v00[0], dy0 = v01[1] - v00[1], dz0 = v01[2] - v00[2];
+            f32 dx1 = v10[0] - v00[0], dy1 = v10[1] - v00[1], dz1 = v10[2] - v00[2];
+            f32 a = dy0 * dz1 - dz0 * dy1, b = dz0 * dx1 - dx0 * dz1, c = dx0 * dy1 - dy0 * dx1;
+            f32 norm = sqrtf(a * a + b * b + c * c);
+            if (norm < 1e-5f) /* Open3D's floor: a normal shorter than 1e-5 is divided by 1e-5, not by its length */
+                norm = 1e-5f;
+            n[0] = a / norm;
+            n[1] = b / norm;
+            n[2] = c / norm;
         }
     Py_END_ALLOW_THREADS
     rm_release(v, 2);
@@ -1218,6 +1307,8 @@ static PyMethodDef methods[] = {
     {"forward", forward, METH_VARARGS, "Display levels of irradiance (mapping._colour_kernels.forward)."},
     {"l1", l1, METH_VARARGS, "Display L1 of two irradiance arrays (mapping._colour_kernels.l1)."},
     {"pyrdown", pyrdown, METH_VARARGS, "Edge-preserving half-resolution depth (mapping.tracking)."},
+    {"vertex_map", vertex_map, METH_VARARGS, "Open3D's create_vertex_map, bit for bit (mapping.surface_maps)."},
+    {"normal_map", normal_map, METH_VARARGS, "Open3D's create_normal_map, bit for bit (mapping.surface_maps)."},
     RM_THREAD_METHODS,
     {NULL, NULL, 0, NULL}};
 

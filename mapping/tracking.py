@@ -27,10 +27,10 @@ import numpy as np
 from mapping._open3d import o3d, open3d_message
 from mapping.fusion.base import ModelView
 from mapping.metrics import rotation_angle
+from mapping.surface_maps import maps as surface_maps, vertex_map
 
 log = logging.getLogger(__name__)
 
-_NAN = float("nan")
 MOTION_MODELS = ("constant_velocity", "previous")
 
 
@@ -88,11 +88,8 @@ def _coarse_targets(target_depth: np.ndarray, K: np.ndarray, levels: int, depth_
     out = [None]
     for level in range(1, levels):
         d = pyrdown_depth(d, 2.0 * depth_diff)
-        Kt = o3d.core.Tensor(scaled_intrinsics(K, level))
-        img = o3d.t.geometry.Image(_to_tensor(d))
-        vertex = img.create_vertex_map(Kt, _NAN).as_tensor()
-        normal = img.filter_bilateral(5, 5.0, 10.0).create_vertex_map(Kt, _NAN).create_normal_map(_NAN).as_tensor()
-        out.append((vertex, normal))
+        vertex, normal = surface_maps(d, scaled_intrinsics(K, level))   # Open3D's, on every core
+        out.append((_to_tensor(vertex), _to_tensor(normal)))
     return out
 
 
@@ -133,8 +130,7 @@ def icp_point_to_plane(depth: np.ndarray, K: np.ndarray, target_vertex: np.ndarr
                 tgt_v, tgt_n = coarse[level]
             else:
                 tgt_v, tgt_n = tv[::step, ::step].contiguous(), tn[::step, ::step].contiguous()
-        src_img = o3d.t.geometry.Image(_to_tensor(src))
-        pyramid.append((src_img.create_vertex_map(Kt, _NAN).as_tensor(), tgt_v, tgt_n, Kt))
+        pyramid.append((_to_tensor(vertex_map(src, scaled_intrinsics(K, level))), tgt_v, tgt_n, Kt))
 
     T = o3d.core.Tensor(np.asarray(init_source_to_target, dtype=np.float64))
     fitness, rmse2 = 1.0, 0.0

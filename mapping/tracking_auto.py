@@ -153,10 +153,9 @@ class AutoTracker(_PhotometricTracker):
             return failed
         icp = FrameToModelTracker._track(self, depth, K, view, view_pose, init, None)
         T = np.linalg.inv(np.asarray(view_pose, dtype=np.float64)) @ (icp.pose if icp.ok else init)
-        sparse = np.zeros_like(depth)   # every 3rd pixel of every 3rd row: the same number at a tenth of the cost
-        sparse[::CONDITION_STEP, ::CONDITION_STEP] = depth[::CONDITION_STEP, ::CONDITION_STEP]
-        q, normals, r = point_to_plane_association(sparse, K, view, invalid_t, T, depth_min=self.depth_min,
-                                                   depth_max=self.depth_max)
+        # every 3rd pixel of every 3rd row: the same number at a tenth of the cost
+        q, normals, r = point_to_plane_association(depth, K, view, invalid_t, T, depth_min=self.depth_min,
+                                                   depth_max=self.depth_max, step=CONDITION_STEP)
         inl = np.abs(r) <= self.depth_diff
         self.condition = icp_condition(q[:, inl], normals[inl])
         ill = not self.condition <= self.max_condition

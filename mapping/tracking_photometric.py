@@ -187,12 +187,18 @@ def point_to_plane_fit(depth: np.ndarray, K: np.ndarray, view, invalid_t: np.nda
 
 
 def point_to_plane_association(depth: np.ndarray, K: np.ndarray, view, invalid_t: np.ndarray, T: np.ndarray, *,
-                               depth_min: float, depth_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                               depth_min: float, depth_max: float,
+                               step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The projective association of ``depth`` moved by ``T`` against ``view``: the moved points ``(3, M)`` (view
-    camera), the target normals ``(M, 3)`` they meet and the point-to-plane residuals ``(M,)``."""
-    valid = (depth > depth_min) & (depth < depth_max)
+    camera), the target normals ``(M, 3)`` they meet and the point-to-plane residuals ``(M,)``. ``step``: only
+    every ``step``-th pixel of every ``step``-th row (from 0) of ``depth`` (the same points, in the same order, as
+    a full-size image holding only those pixels)."""
+    grid = depth[::step, ::step] if step > 1 else depth
+    valid = (grid > depth_min) & (grid < depth_max)
     v, u = np.nonzero(valid)
-    z = depth[v, u].astype(np.float64)
+    z = grid[v, u].astype(np.float64)
+    if step > 1:
+        v, u = v * step, u * step
     p = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z])
     q = T[:3, :3] @ p + T[:3, 3:4]
     front = q[2] > 1e-6

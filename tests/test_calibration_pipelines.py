@@ -231,6 +231,41 @@ def test_the_quality_figure_of_a_jpeg_stack_is_good(radiance):
     assert q["grade"] == "good", q["summary"]
 
 
+def test_a_bend_in_the_curve_is_found_and_said():
+    """bends() on tables with a known shape: a x4 kink at level 150 is found there; gamma 2.2 and the EuRoC curve
+    (no bend from level 32 up: ratios 1.2-1.3) are not flagged; below level 32 gamma's own curvature is ignored."""
+    from radiometry.response.quality import bend_text, bends
+
+    levels = np.arange(256, dtype=np.float64)
+    slope = np.where(levels < 150, 1.0, 4.0)
+    kink = np.cumsum(slope)
+    kink /= kink[-1]
+    found = bends(CameraResponse(np.stack([kink] * 3, axis=1)), [(1, 254)] * 3)
+    assert [b["channel"] for b in found] == [0, 1, 2]
+    assert all(abs(b["level"] - 150) <= 3 and b["ratio"] > 3 for b in found), found
+    assert "R at level" in bend_text(found) and "PNG or raw" in bend_text(found)
+    for name in ("gamma-2.2", "euroc"):
+        table = curves()[name]
+        assert bends(CameraResponse(np.stack([table / table[-1]] * 3, axis=1)), [(1, 254)] * 3) == [], name
+    assert bend_text([]) == ""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("curve, pipeline, flagged", [("flat-then-steep", "wb-jpeg92", True), ("kink-4x", "jpeg75", True),
+                                                      ("gamma-2.2", "jpeg75", False), ("euroc", "wb-jpeg92", False),
+                                                      ("s-curve", "jpeg75", False)])
+def test_a_knee_rounded_by_jpeg_is_said_and_graded_doubtful(curve, pipeline, flagged, radiance):
+    """The held-out prediction does not see a knee rounded by JPEG (flat-then-steep 2.2 % off was graded good): the
+    fitted curve's bend is (fitted ratios: knees 2.2-4.9 in their sharpest channel, smooth curves <= 1.79 from level
+    32 up; docs/calibration_pipelines.md), and the summary says so."""
+    _, images, times, response = _fit(curve, pipeline, "2x", radiance)
+    q = assess(images, times, response, method=None)
+    assert bool(q["bends"]) is flagged, q["bends"]
+    assert ("bends sharply" in q["summary"]) is flagged
+    if flagged:
+        assert q["grade"] != "good", q["summary"]
+
+
 @pytest.mark.slow
 def test_the_quality_of_real_stacks_is_stated_and_a_moved_one_is_broken():
     """taipei (a Nikon night scene): 5.96 levels held-out, 2.1x its noise: doubtful (its 32 s exposure predicts at

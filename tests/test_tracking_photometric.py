@@ -365,6 +365,26 @@ def test_the_condition_number_tells_a_corner_from_a_wall():
     assert icp_condition(q * 10, n) == pytest.approx(corner, rel=1e-6)   # metres or decimetres alike
 
 
+def test_a_strided_association_is_the_sparse_image_s():
+    """step=3 gives the points, normals and residuals (same bits, same order) of a full-size image holding only every
+    3rd pixel of every 3rd row: what the auto tracker built before, at a tenth of the cost."""
+    from mapping.tracking_photometric import point_to_plane_association
+
+    scene = Planes(CORNER)
+    depth, _, _, _ = scene.render(np.eye(4))
+    view = _raw_view(scene, np.eye(4))
+    T = np.eye(4)
+    T[:3, 3] = [0.01, -0.02, 0.015]
+    for step in (2, 3, 5):
+        sparse = np.zeros_like(depth)
+        sparse[::step, ::step] = depth[::step, ::step]
+        want = point_to_plane_association(sparse, K, view, view.depth <= 0, T, depth_min=0.1, depth_max=5.0)
+        got = point_to_plane_association(depth, K, view, view.depth <= 0, T, depth_min=0.1, depth_max=5.0, step=step)
+        assert want[0].shape[1] > 100
+        for a, b in zip(want, got):
+            assert np.array_equal(a, b)
+
+
 @pytest.mark.slow
 def test_the_auto_tracker_uses_colour_where_icp_is_singular():
     """One textured wall, a sideways motion: ICP's system is singular, the auto tracker takes coloured ICP's pose

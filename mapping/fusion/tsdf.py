@@ -95,11 +95,11 @@ import numpy as np
 
 from mapping._open3d import o3d
 from mapping.fusion.base import ColourPairs, ModelView, masked_depth
+from mapping.surface_maps import maps as surface_maps
 from radiometry._native import simd_allowed
 
 log = logging.getLogger(__name__)
 
-_NAN = float("nan")
 _RANGE_FACTOR = 8          # Open3D's range map: one pixel per 8x8 image pixels
 _FRAGMENT = 16             # its fragments: 16x16 range-map pixels
 _ATTRS = ("tsdf", "weight", "color")
@@ -311,10 +311,7 @@ class TSDFBackend:
             depth = np.ascontiguousarray(depth[:height, :width])
         if colour is None:
             colour, table = self._surface_colour(depth, K, pose)
-        depth_nan = o3d.t.geometry.Image(_tensor(np.where(depth > 0, depth, np.float32(np.nan))))
-        vertex = depth_nan.create_vertex_map(Kt, _NAN).as_tensor().numpy()
-        normal = depth_nan.filter_bilateral(5, 5.0, 10.0).create_vertex_map(Kt, _NAN) \
-            .create_normal_map(_NAN).as_tensor().numpy()
+        vertex, normal = surface_maps(np.where(depth > 0, depth, np.float32(np.nan)), K)   # Open3D's, on every core
         c = pose[:3, :3].T @ np.ones(3)  # the grid diagonal (1, 1, 1) in the camera frame
         _kernels().finish_view(vertex, normal, depth, c.astype(np.float32), np.float32(0.5 * self.voxel_size),
                                self.surface != "open3d")
