@@ -113,9 +113,20 @@ def bilateral(depth: np.ndarray) -> np.ndarray:
     if parts <= 1:
         return band(0, rows)
     cuts = [rows * i // parts for i in range(parts + 1)]
-    futures = [_executor().submit(band, cuts[i], cuts[i + 1]) for i in range(1, parts)]
+    futures = [_submit(band, cuts[i], cuts[i + 1]) for i in range(1, parts)]
     first = band(cuts[0], cuts[1])      # the calling thread takes the first band
-    return np.concatenate([first] + [f.result() for f in futures])
+    return np.concatenate([first] + [band(cuts[i + 1], cuts[i + 2]) if f is None else f.result()
+                                     for i, f in enumerate(futures)])
+
+
+def _submit(fn, *args):
+    """``fn(*args)`` submitted to the band pool, or None when the pool takes no more work: once the interpreter
+    has begun to shut down (a non-daemon thread still mapping after the main thread ended, an atexit handler)
+    ThreadPoolExecutor refuses new futures and the caller filters that band itself (the same bits)."""
+    try:
+        return _executor().submit(fn, *args)
+    except RuntimeError:
+        return None
 
 
 def smoothed_normals(depth: np.ndarray, K) -> np.ndarray:

@@ -116,6 +116,33 @@ def test_a_forked_child_makes_its_own_band_pool():
     assert answer == b"1"
 
 
+def test_bands_after_interpreter_shutdown_began():
+    """Once the interpreter shuts down, ThreadPoolExecutor refuses new futures: a call then (an atexit handler here;
+    a non-daemon thread still mapping after the main thread ended alike) filters every band in the calling thread
+    and gives the same bits instead of RuntimeError. A child process, so that this one's pool is untouched."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (
+        "import atexit, sys, numpy as np\n"
+        "sys.path.insert(0, 'tests')\n"
+        "from surface_cases import depth_case, same\n"
+        "from mapping import surface_maps\n"
+        "from mapping._open3d import o3d\n"
+        "surface_maps._threads = lambda: 3\n"
+        "depth, K = depth_case(np.random.default_rng(5), (240, 320))\n"
+        "surface_maps.bilateral(depth)\n"                     # the pool exists and ran before the shutdown
+        "def late():\n"
+        "    whole = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(depth)).filter_bilateral(5, 5.0, 10.0)\n"
+        "    ok = same(surface_maps.bilateral(depth), whole.as_tensor().numpy().reshape(depth.shape))\n"
+        "    print('same' if ok else 'differ', flush=True)\n"
+        "atexit.register(late)\n")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[1],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.stdout.split() == ["same"], proc.stderr[-2000:]
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="K must be a 3x3"):
         surface_maps.vertex_map(np.ones((4, 4), np.float32), np.eye(4))
