@@ -86,11 +86,18 @@ def _depth(depth) -> np.ndarray:
     return depth
 
 
+def _empty(depth: np.ndarray) -> np.ndarray:
+    """The maps of an image without pixels (a side of 0): (H, W, 3) float32 (Open3D's calls fail on one)."""
+    return np.full(depth.shape + (3,), np.nan, np.float32)
+
+
 def vertex_map(depth: np.ndarray, K) -> np.ndarray:
     """(H, W, 3) float32 camera-frame points of ``depth`` (H, W) float32 (NaN where none: NaN points), as
     Open3D's ``Image.create_vertex_map(K, nan)``."""
     depth, K = _depth(depth), _intrinsics(K)
     c = _c()
+    if depth.size == 0:
+        return _empty(depth)
     if c is None:
         image = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(depth))
         return image.create_vertex_map(o3d.core.Tensor(K), _NAN).as_tensor().numpy()
@@ -101,6 +108,8 @@ def bilateral(depth: np.ndarray) -> np.ndarray:
     """Open3D's ``filter_bilateral(5, 5.0, 10.0)`` of ``depth`` (H, W) float32, on bands in parallel threads
     (module doc); the same bits as one call."""
     depth = _depth(depth)
+    if depth.size == 0:
+        return depth.copy()
     rows = depth.shape[0]
     parts = min(_threads(), 4, rows // (MIN_SPLIT_ROWS // 2)) if rows >= MIN_SPLIT_ROWS else 1
 
@@ -134,6 +143,8 @@ def smoothed_normals(depth: np.ndarray, K) -> np.ndarray:
     ``img.filter_bilateral(5, 5.0, 10.0).create_vertex_map(K, nan).create_normal_map(nan)``."""
     depth, K = _depth(depth), _intrinsics(K)
     c = _c()
+    if depth.size == 0:
+        return _empty(depth)
     if c is None:
         image = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(depth))
         return image.filter_bilateral(*BILATERAL).create_vertex_map(o3d.core.Tensor(K), _NAN) \

@@ -143,6 +143,19 @@ def test_bands_after_interpreter_shutdown_began():
     assert proc.stdout.split() == ["same"], proc.stderr[-2000:]
 
 
+@pytest.mark.parametrize("shape", [(0, 0), (5, 0), (0, 7), (64, 0)])
+def test_an_image_without_pixels_gets_empty_maps(monkeypatch, shape):
+    """A side of 0 (Open3D's calls fail on it with a multi-line error): empty maps of the right shape, with the
+    compiled kernels and without."""
+    for compiled_kernels in (True, False):
+        if not compiled_kernels:
+            monkeypatch.setattr(surface_maps, "_c", lambda: None)
+        depth = np.zeros(shape, np.float32)
+        vertex, normal = surface_maps.maps(depth, np.eye(3))
+        assert vertex.shape == normal.shape == shape + (3,) and vertex.dtype == normal.dtype == np.float32
+        assert surface_maps.bilateral(depth).shape == shape
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="K must be a 3x3"):
         surface_maps.vertex_map(np.ones((4, 4), np.float32), np.eye(4))

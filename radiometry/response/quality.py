@@ -202,7 +202,8 @@ def split_half(images: Sequence[np.ndarray], times: Sequence[float], fit: Callab
 def bends(response: CameraResponse, levels: list[tuple[int, int]]) -> list[dict[str, Any]]:
     """Per channel, the sharpest bend of ``f^-1`` within its declared levels (from :data:`BEND_FROM`) whose slope
     ratio (above / below, :data:`BEND_WIDTH` levels each, :data:`BEND_GAP` levels from it) exceeds
-    :data:`BEND_RATIO`: ``{"channel", "level", "ratio"}``. Noise on the levels (JPEG, a camera's processing) makes the
+    :data:`BEND_RATIO`: ``{"channel", "level", "ratio"}``. Only bends where ``f^-1`` grows steeper (a knee, a
+    highlight shoulder) are looked for, not where it flattens. Noise on the levels (JPEG, a camera's processing) makes the
     fit round such a bend, by 0.8-2.6 % of the range near it on the curves measured, and the held-out prediction
     (in levels, where a steep ``f^-1`` is flat) does not see it."""
     table = response.inverse_table
