@@ -86,9 +86,9 @@ def _depth(depth) -> np.ndarray:
     return depth
 
 
-def _empty(depth: np.ndarray) -> np.ndarray:
-    """The maps of an image without pixels (a side of 0): (H, W, 3) float32 (Open3D's calls fail on one)."""
-    return np.full(depth.shape + (3,), np.nan, np.float32)
+def _image(array: np.ndarray):
+    """``array`` as an Open3D image (sharing its memory)."""
+    return o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(array)))
 
 
 def vertex_map(depth: np.ndarray, K) -> np.ndarray:
@@ -96,12 +96,21 @@ def vertex_map(depth: np.ndarray, K) -> np.ndarray:
     Open3D's ``Image.create_vertex_map(K, nan)``."""
     depth, K = _depth(depth), _intrinsics(K)
     c = _c()
-    if depth.size == 0:
-        return _empty(depth)
+    if depth.size == 0:     # a side of 0 (Open3D's calls fail on one)
+        return np.full(depth.shape + (3,), np.nan, np.float32)
     if c is None:
-        image = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(depth))
-        return image.create_vertex_map(o3d.core.Tensor(K), _NAN).as_tensor().numpy()
+        return _image(depth).create_vertex_map(o3d.core.Tensor(K), _NAN).as_tensor().numpy()
     return c.vertex_map(depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.empty(depth.shape + (3,), np.float32))
+
+
+def _normal_map(points: np.ndarray) -> np.ndarray:
+    """Open3D's ``create_normal_map(nan)`` of a vertex map (H, W, 3) float32."""
+    c = _c()
+    if points.size == 0:
+        return points.copy()
+    if c is None:
+        return _image(points).create_normal_map(_NAN).as_tensor().numpy()
+    return c.normal_map(points, np.empty_like(points))
 
 
 def bilateral(depth: np.ndarray) -> np.ndarray:
@@ -115,8 +124,7 @@ def bilateral(depth: np.ndarray) -> np.ndarray:
 
     def band(lo: int, hi: int) -> np.ndarray:
         a, b = max(0, lo - HALO), min(rows, hi + HALO)
-        image = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(depth[a:b])))
-        out = image.filter_bilateral(*BILATERAL).as_tensor().numpy()
+        out = _image(depth[a:b]).filter_bilateral(*BILATERAL).as_tensor().numpy()
         return out.reshape(b - a, depth.shape[1])[lo - a:hi - a]
 
     if parts <= 1:
@@ -141,16 +149,7 @@ def _submit(fn, *args):
 def smoothed_normals(depth: np.ndarray, K) -> np.ndarray:
     """(H, W, 3) float32 normals of the bilaterally smoothed vertex map of ``depth`` (NaN where none), as
     ``img.filter_bilateral(5, 5.0, 10.0).create_vertex_map(K, nan).create_normal_map(nan)``."""
-    depth, K = _depth(depth), _intrinsics(K)
-    c = _c()
-    if depth.size == 0:
-        return _empty(depth)
-    if c is None:
-        image = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(depth))
-        return image.filter_bilateral(*BILATERAL).create_vertex_map(o3d.core.Tensor(K), _NAN) \
-            .create_normal_map(_NAN).as_tensor().numpy()
-    points = vertex_map(bilateral(depth), K)
-    return c.normal_map(points, np.empty_like(points))
+    return _normal_map(vertex_map(bilateral(depth), K))
 
 
 def maps(depth: np.ndarray, K) -> tuple[np.ndarray, np.ndarray]:

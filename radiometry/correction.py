@@ -47,6 +47,7 @@ from typing import Iterable
 
 import numpy as np
 
+from radiometry._native import simd_allowed
 from radiometry.errors import ModelMismatchError
 from radiometry.response import CameraResponse
 from radiometry.vignetting import VignettingModel
@@ -119,13 +120,7 @@ _UNPACK_ORDER = np.array([16 * lane + half + x for half in (0, 8) for lane in ra
 def simd_available() -> bool:
     """Whether :meth:`Corrector.correct` can run its uint8 AVX-512 kernel here: the C extension is in use and the
     CPU has AVX-512 (F, BW, VL, VBMI) and GFNI. ``RADIOMAP_SIMD=0`` turns it off (the scalar kernels, same output)."""
-    return _simd_kernel() is not None and _simd_allowed()
-
-
-def _simd_allowed() -> bool:
-    from radiometry._native import simd_allowed
-
-    return simd_allowed()
+    return _simd_kernel() is not None and simd_allowed()
 
 
 def _simd_kernel():
@@ -381,7 +376,7 @@ class Corrector:
             out = np.empty_like(src)
             done = 0  # pixels corrected by the AVX-512 kernel; the scalar kernels do the rest
             simd = _simd_kernel() if self.simd is not False else None
-            if simd is not None and (self.simd or _simd_allowed()):
+            if simd is not None and (self.simd or simd_allowed()):
                 plan = self._simd_plan(h, w, ch, scale)
                 if plan is not None:
                     done = simd(src, plan[0], plan[1], out, ch, plan[2])

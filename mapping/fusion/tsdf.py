@@ -287,7 +287,6 @@ class TSDFBackend:
         bilaterally smoothed vertex map, Open3D's own tracking recipe: the TSDF-gradient normals of a fine,
         noisy grid make worse ICP targets and cost 10% more ray-casting time); the surface bias removed."""
         weight = min(self.weight_threshold, float(max(self.frames_integrated, 1)))
-        Kt = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
         # Open3D's ray cast builds its range map at 1/8 resolution and reads it out of bounds (hanging or
         # returning nothing) unless both sides are multiples of 8: cast a padded image and crop it
         hp, wp = _padded(height, width)
@@ -302,7 +301,8 @@ class TSDFBackend:
             depth, colour = self._cast_depth(blocks, table, K, pose, extrinsic, hp, wp, weight, (height, width))
         else:
             self._fit_range_fragments(blocks.numpy(), K, extrinsic, hp, wp)
-            result = self.grid.ray_cast(blocks, Kt, o3d.core.Tensor(extrinsic), wp, hp, ["depth"], 1.0,
+            result = self.grid.ray_cast(blocks, o3d.core.Tensor(np.asarray(K, dtype=np.float64)),
+                                        o3d.core.Tensor(extrinsic), wp, hp, ["depth"], 1.0,
                                         self.depth_min, self.depth_max, weight, self.trunc_voxel_multiplier,
                                         _RANGE_FACTOR)
             depth = result["depth"].numpy()[:, :, 0]

@@ -210,7 +210,8 @@ def bends(response: CameraResponse, levels: list[tuple[int, int]]) -> list[dict[
     out = []
     reach = BEND_GAP + BEND_WIDTH
     for c, (lo, hi) in enumerate(levels):
-        t = table[:, min(c, table.shape[1] - 1)] / table[-1, min(c, table.shape[1] - 1)]
+        column = table[:, min(c, table.shape[1] - 1)]
+        t = column / column[-1]
         at = np.arange(max(lo, BEND_FROM) + reach, hi - reach + 1)
         if at.size == 0:
             continue
