@@ -26,6 +26,25 @@ def shared_path(*parts: str) -> Path:
     return path
 
 
+def build_without_simd(tmp_path: Path, package: str) -> Path:
+    """Build radiomap's C extensions with ``-DRM_NO_SIMD`` (what other compilers and CPUs build) under ``tmp_path``
+    and return the built ``<package>._ckernels`` file; skips the calling test without a C compiler."""
+    import shutil
+    import subprocess
+    import sys
+    import sysconfig
+
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(cc) is None or sys.platform == "win32":
+        pytest.skip(f"no C compiler ({cc})")
+    env = dict(os.environ, CFLAGS="-DRM_NO_SIMD")
+    proc = subprocess.run([sys.executable, "setup.py", "build_ext", "--build-lib", str(tmp_path / "lib"),
+                           "--build-temp", str(tmp_path / "tmp")], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return next((tmp_path / "lib" / package).glob("_ckernels*"))
+
+
 @pytest.fixture
 def shared_data() -> Path:
     return shared_path()

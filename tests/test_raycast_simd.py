@@ -18,18 +18,15 @@ Tests that need the AVX-512 march skip on CPUs (or builds) without it.
 from __future__ import annotations
 
 import importlib.util
-import os
-import shutil
 import subprocess
 import sys
-import sysconfig
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from radiometry._native import compiled
-from tests.conftest import shared_path
+from tests.conftest import build_without_simd, shared_path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "stress_raycast.py"
 KERNELS = compiled("mapping._ckernels")
@@ -259,16 +256,8 @@ def test_simd_march_equals_scalar_on_the_kitchen():
 def test_a_build_without_simd_marches_in_scalar_code(tmp_path):
     """``-DRM_NO_SIMD`` (what other compilers and CPUs build): ``raycast_simd`` is 0, the cast says it did not use
     AVX-512 although allowed, and its results are the installed module's (AVX-512 where this CPU has it)."""
-    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
-    if shutil.which(cc) is None or sys.platform == "win32":
-        pytest.skip(f"no C compiler ({cc})")
+    built = build_without_simd(tmp_path, "mapping")
     repo = SCRIPT.parents[1]
-    env = dict(os.environ, CFLAGS="-DRM_NO_SIMD")
-    proc = subprocess.run([sys.executable, "setup.py", "build_ext", "--build-lib", str(tmp_path / "lib"),
-                           "--build-temp", str(tmp_path / "tmp")], cwd=repo, env=env, capture_output=True,
-                          text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    built = next((tmp_path / "lib" / "mapping").glob("_ckernels*"))
     out = tmp_path / "casts.npz"
     script = ("import sys, importlib.util, numpy as np; "
               "spec = importlib.util.spec_from_file_location('mapping._ckernels', sys.argv[1]); "
