@@ -121,7 +121,7 @@ def icp_point_to_plane(depth: np.ndarray, K: np.ndarray, target_vertex: np.ndarr
     pyramid = []
     for level in range(levels):
         step = 2 ** level
-        Kt = o3d.core.Tensor(scaled_intrinsics(K, level))
+        Kl = scaled_intrinsics(K, level)
         if level == 0:
             tgt_v, tgt_n = tv, tn
         else:
@@ -130,7 +130,7 @@ def icp_point_to_plane(depth: np.ndarray, K: np.ndarray, target_vertex: np.ndarr
                 tgt_v, tgt_n = coarse[level]
             else:
                 tgt_v, tgt_n = tv[::step, ::step].contiguous(), tn[::step, ::step].contiguous()
-        pyramid.append((_to_tensor(vertex_map(src, scaled_intrinsics(K, level))), tgt_v, tgt_n, Kt))
+        pyramid.append((_to_tensor(vertex_map(src, Kl)), tgt_v, tgt_n, o3d.core.Tensor(Kl)))
 
     T = o3d.core.Tensor(np.asarray(init_source_to_target, dtype=np.float64))
     fitness, rmse2 = 1.0, 0.0
