@@ -518,6 +518,8 @@ def _solve_and_check(obs: Observations, held: np.ndarray, response: CameraRespon
     if ambiguity:
         lines.append(ambiguity)
         warnings.append(ambiguity)
+    if result.info.get("weak_tilt"):        # said, not a warning: the stated error covers it
+        lines.append(result.info["weak_tilt"])
     notes = plausibility(result.vignetting.evaluate(), result.vignetting.stderr, result.info["centre"])
     if notes:
         lines.extend(f"implausible: {n}" for n in notes)

@@ -431,6 +431,9 @@ def self_calibrate(obs: Observations, *, grid: tuple[int, int] | str = "auto", i
     ambiguity = visibility.text()
     if ambiguity:
         info["ambiguity"] = ambiguity
+    weak = visibility.weak_text()
+    if weak:
+        info["weak_tilt"] = weak
     vign = LUTVignetting(np.clip(lut, 1e-3, 10.0).astype(np.float32), info=info,
                          stderr=np.stack(ses, axis=2).astype(np.float32))
     sightings = np.bincount(frame, minlength=n_frames)

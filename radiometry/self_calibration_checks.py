@@ -63,6 +63,24 @@ class TiltVisibility:
                 "and tilting up and down, or give the exposures (--exposures FILE)")
 
 
+    def weak_text(self) -> str | None:
+        """One note when an axis is seen, but weakly (below :data:`FREE_VISIBILITY` and not open; None otherwise):
+        V's profile along it rests mostly on the polynomial's centre, and its standard error counts what that
+        leaves open."""
+        axes = [(a, v) for a, v, o in zip(("left-right", "up-down"), self.visibility, self.open)
+                if not o and v < FREE_VISIBILITY]
+        if not axes:
+            return None
+        seen = ", ".join(f"{a} {100 * v:.2f}%" for a, v in axes)
+        names = " and ".join(a for a, _ in axes)
+        return (f"note: V's {names} profile is seen weakly (what the sequence leaves of a tilt: {seen}; "
+                f"{100 * FREE_VISIBILITY:.1f}% pins it): it rests mostly on the polynomial's centre and its standard "
+                "error includes a sensor-shading tilt the data cannot exclude; "
+                + ("tilt the camera up and down" if names == "up-down" else
+                   "turn the camera back and forth" if names == "left-right" else "move the camera more")
+                + " to pin it")
+
+
 def _absorb(field: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,
             n_frames: int, fixed: np.ndarray) -> np.ndarray:
     """``field`` less its best weighted fit by radiances and exposures (the ``fixed`` frames' held)."""

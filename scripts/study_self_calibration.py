@@ -81,7 +81,7 @@ def study(motion: str, *, frames: int, size: int, known: bool, seed: int = 0, ex
             "within_2_stderr_pct": [round(100 * x, 1) for x in covered],
             "stderr_median_pct": [round(100 * float(np.median(se[:, :, c])), 2) for c in range(3)],
             "tilt_visibility": result.info["tilt_visibility"], "ambiguity": bool(result.info.get("ambiguity")),
-            "validation": checks["validation"], "warnings": checks["warnings"],
+            "validation": checks["validation"], "warnings": checks["warnings"], "lines": checks["lines"],
             "seconds": round(time.perf_counter() - t0, 1)}
 
 

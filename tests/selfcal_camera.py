@@ -5,8 +5,9 @@ Nothing here imports ``radiometry``; from ``mapping`` only the frame container (
 whose albedo varies slowly, with a few flat patches); depth is the exact ray-box distance. The camera:
 
 - vignetting from a real camera: the EuRoC MT9V034's measured ``vignette.png`` (``../shared/data``), resampled to
-  the image, its optical centre moved off the principal point, raised to a per-channel power (chromatic
-  vignetting; corners 0.50-0.62 as an Asus Xtion's), times a sensor-shading gradient and a dust shadow (the
+  the image, its optical centre moved off the principal point (where the moved image reaches past the measured
+  one, the lens's radial fall-off continues from the border), raised to a per-channel power (chromatic
+  vignetting; corners 0.45-0.68, an Asus Xtion's are about 0.5), times a sensor-shading gradient and a dust shadow (the
   non-radial structure real vignettes carry); without the shared data an even polynomial of the same strength;
 - auto exposure: a lagging controller that drives the mean level of the view to a target; auto white balance: a
   lagging grey-world gain per channel (both act as a per-channel ``k`` per frame before the sensor);
@@ -58,6 +59,34 @@ def _look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarr
     return pose
 
 
+def _sample_extended(real: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+    """``real`` (the measured vignette) at the points ``(mx, my)``, bilinear. The re-centred image reaches past the
+    measured one (its top ~20 and bottom ~35 rows at 640x480): there the nearest measured value is continued by the
+    lens's radial fall-off (an even polynomial in the radius, fitted to ``log real``) from that border point out to
+    the point, rather than repeating the border row (a flat band no lens makes)."""
+    import cv2
+
+    rh, rw = real.shape
+    half_diag2 = (rw / 2) ** 2 + (rh / 2) ** 2
+
+    def r2(x, y):
+        return ((x - (rw - 1) / 2) ** 2 + (y - (rh - 1) / 2) ** 2) / half_diag2
+
+    gy, gx = np.mgrid[0:rh:4, 0:rw:4]
+    q = r2(gx, gy).ravel()
+    coef = np.linalg.lstsq(np.stack([np.ones_like(q), q, q ** 2, q ** 3], axis=1),
+                           np.log(np.maximum(real[gy, gx].ravel(), 1e-3)), rcond=None)[0]
+
+    def falloff(x, y):
+        q = r2(x, y)
+        return coef[1] * q + coef[2] * q ** 2 + coef[3] * q ** 3
+
+    bx, by = np.clip(mx, 0, rw - 1), np.clip(my, 0, rh - 1)
+    inside = cv2.remap(real.astype(np.float32), bx.astype(np.float32), by.astype(np.float32), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    return inside * np.exp(falloff(mx, my) - falloff(bx, by))
+
+
 def true_vignetting(width: int, height: int, *, offset=(12.0, -7.0)) -> tuple[np.ndarray, tuple[float, float]]:
     """V (H, W, 3), 1 at its brightest, and its optical centre (module doc)."""
     import cv2
@@ -71,10 +100,9 @@ def true_vignetting(width: int, height: int, *, offset=(12.0, -7.0)) -> tuple[np
         # the real vignette as a function of the normalised radius from its own centre, re-centred on (cx, cy)
         rh, rw = real.shape
         scale = np.hypot(rw / 2, rh / 2) / radius
-        mx = ((xs - cx) * scale + (rw - 1) / 2).astype(np.float32)
-        my = ((ys - cy) * scale + (rh - 1) / 2).astype(np.float32)
-        base = cv2.remap(real.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        base = np.clip(base.astype(np.float64), 0.05, 1.0)
+        mx = (xs - cx) * scale + (rw - 1) / 2
+        my = (ys - cy) * scale + (rh - 1) / 2
+        base = np.clip(_sample_extended(real, mx, my), 0.05, 1.0)
     else:
         r2 = ((xs - cx) ** 2 + (ys - cy) ** 2) / radius ** 2
         base = np.clip(1 - 0.2 * r2 - 0.02 * r2 ** 2, 0.05, 1.0)

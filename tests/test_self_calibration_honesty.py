@@ -65,6 +65,20 @@ def test_a_pure_pan_leaves_the_tilt_open_and_random_positions_pin_it():
     assert vis.open == (False, False) and min(vis.visibility) > 0.3, vis
 
 
+def test_a_weakly_seen_axis_gets_a_note_and_an_open_or_well_seen_one_does_not():
+    from radiometry.self_calibration_checks import FREE_VISIBILITY, OPEN_VISIBILITY, TiltVisibility
+
+    weak = (OPEN_VISIBILITY + FREE_VISIBILITY) / 2
+    info = np.eye(2)
+    note = TiltVisibility((0.75, weak), info, (False, False)).weak_text()
+    assert note.startswith("note: V's up-down profile is seen weakly") and "tilt the camera up and down" in note
+    assert f"up-down {100 * weak:.2f}%" in note and "left-right" not in note
+    both = TiltVisibility((weak, weak), info, (False, False)).weak_text()
+    assert "left-right and up-down profile" in both and "move the camera more" in both
+    assert TiltVisibility((0.75, 0.5), info, (False, False)).weak_text() is None          # both pinned
+    assert TiltVisibility((0.75, OPEN_VISIBILITY / 2), info, (False, True)).weak_text() is None   # open: ambiguity
+
+
 @pytest.fixture(scope="module")
 def pan_fits():
     obs, k = pan()
