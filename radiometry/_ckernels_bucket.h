@@ -27,7 +27,8 @@
  *
  * Three channels: each channel's pass over a run of RM_RUN blocks splits its plane out of the interleaved pixels
  * itself (two vpermi2b); channels 0 and 1 leave their outputs in two plane buffers, channel 2 interleaves them with
- * its own into the output (one store per output register).
+ * its own into the output (one store per output register). The loop is software-pipelined: the index (hi, lo) of
+ * block b + 1 is computed beside the count of block b, two dependency chains in flight (9 % faster than one).
  *
  * Plan per channel (RM_BK_PLAN_BYTES): k low bytes [256], k high bytes [256], base [256], L_1 [256], L_2..L_NMAX
  * [128 each], then n, w0, clamp, neg, under, over. */
@@ -76,36 +77,46 @@ RM_TARGET static inline __attribute__((always_inline)) void rm_bk_pass(const rm_
     __m512i t[16]; /* k, base and L_1 stay in registers; L_2.. are read as memory operands */
     for (int i = 0; i < 16; i++)
         t[i] = RM_T(i);
+#define RM_FRONT(B, LO, HI, HT, LOW, HIGH)                                                                         \
+    do {                                                                                                           \
+        __m512i xv;                                                                                                \
+        if (CH < 0)                                                                                                \
+            xv = _mm512_loadu_si512(io->img + 64 * (B));                                                           \
+        else {                                                                                                     \
+            const uint8_t *src = io->img + 192 * (B);                                                              \
+            xv = _mm512_permutex2var_epi8(_mm512_loadu_si512(src), si, _mm512_loadu_si512(src + 64));               \
+            xv = _mm512_mask_permutexvar_epi8(xv, sm, ss, _mm512_loadu_si512(src + 128));                          \
+        }                                                                                                          \
+        __m512i ql = _mm512_loadu_si512(q + qstride * (B)), qh = _mm512_loadu_si512(q + qstride * (B) + 64);      \
+        __mmask64 xt = _mm512_movepi8_mask(xv);                                                                    \
+        __m512i kl = _mm512_mask_blend_epi8(xt, _mm512_permutex2var_epi8(t[0], xv, t[1]),                          \
+                                            _mm512_permutex2var_epi8(t[2], xv, t[3]));                             \
+        __m512i kh = _mm512_mask_blend_epi8(xt, _mm512_permutex2var_epi8(t[4], xv, t[5]),                          \
+                                            _mm512_permutex2var_epi8(t[6], xv, t[7]));                             \
+        LO = _mm512_add_epi8(ql, kl);                                                                              \
+        __mmask64 c1 = _mm512_cmplt_epu8_mask(LO, ql);                                                             \
+        __m512i hs = _mm512_add_epi8(qh, kh);                                                                      \
+        HI = _mm512_mask_add_epi8(hs, c1, hs, one);                                                                \
+        if (CLAMP) {                                                                                               \
+            __mmask64 carry = _mm512_cmplt_epu8_mask(hs, qh)                                                       \
+                              | _mm512_mask_cmpeq_epi8_mask(c1, HI, _mm512_setzero_si512());                       \
+            __mmask64 below = _mm512_cmplt_epu8_mask(xv, neg);                                                     \
+            LOW = below & ~carry;                                                                                  \
+            HIGH = carry & ~below;                                                                                 \
+        }                                                                                                          \
+        HT = _mm512_movepi8_mask(HI);                                                                              \
+    } while (0)
+    __m512i lo = _mm512_setzero_si512(), hi = lo;
+    __mmask64 ht = 0, low = 0, high = 0;
+    if (blocks > 0)
+        RM_FRONT(0, lo, hi, ht, low, high);
     for (Py_ssize_t b = 0; b < blocks; b++) {
         const uint8_t *pw = plan + 1024;
         __asm__("" : "+r"(pw)); /* keeps L_2.. out of registers (spilling the others costs more) */
-        __m512i xv;
-        if (CH < 0)
-            xv = _mm512_loadu_si512(io->img + 64 * b);
-        else {
-            const uint8_t *src = io->img + 192 * b;
-            xv = _mm512_permutex2var_epi8(_mm512_loadu_si512(src), si, _mm512_loadu_si512(src + 64));
-            xv = _mm512_mask_permutexvar_epi8(xv, sm, ss, _mm512_loadu_si512(src + 128));
-        }
-        __m512i ql = _mm512_loadu_si512(q + qstride * b), qh = _mm512_loadu_si512(q + qstride * b + 64);
-        __mmask64 xt = _mm512_movepi8_mask(xv);
-        __m512i kl = _mm512_mask_blend_epi8(xt, _mm512_permutex2var_epi8(t[0], xv, t[1]),
-                                            _mm512_permutex2var_epi8(t[2], xv, t[3]));
-        __m512i kh = _mm512_mask_blend_epi8(xt, _mm512_permutex2var_epi8(t[4], xv, t[5]),
-                                            _mm512_permutex2var_epi8(t[6], xv, t[7]));
-        __m512i lo = _mm512_add_epi8(ql, kl);
-        __mmask64 c1 = _mm512_cmplt_epu8_mask(lo, ql);
-        __m512i hs = _mm512_add_epi8(qh, kh);
-        __m512i hi = _mm512_mask_add_epi8(hs, c1, hs, one);
-        __mmask64 low = 0, high = 0;
-        if (CLAMP) { /* the carry out of the 16-bit sum: out of hs, or from lo into a high byte of 255 */
-            __mmask64 carry = _mm512_cmplt_epu8_mask(hs, qh)
-                              | _mm512_mask_cmpeq_epi8_mask(c1, hi, _mm512_setzero_si512());
-            __mmask64 below = _mm512_cmplt_epu8_mask(xv, neg);
-            low = below & ~carry;
-            high = carry & ~below;
-        }
-        __mmask64 ht = _mm512_movepi8_mask(hi);
+        __m512i lo_n = lo, hi_n = hi;
+        __mmask64 ht_n = ht, low_n = low, high_n = high;
+        if (b + 1 < blocks) /* the next block's index, beside this block's count: two chains in flight */
+            RM_FRONT(b + 1, lo_n, hi_n, ht_n, low_n, high_n);
         __m512i c = _mm512_mask_blend_epi8(ht, _mm512_permutex2var_epi8(t[8], hi, t[9]),
                                            _mm512_permutex2var_epi8(t[10], hi, t[11]));
         if (N >= 1) {
@@ -136,7 +147,9 @@ RM_TARGET static inline __attribute__((always_inline)) void rm_bk_pass(const rm_
                                     _mm512_mask_permutexvar_epi8(_mm512_permutex2var_epi8(p0, jx[r], p1), jm[r],
                                                                  jx[r], c));
         }
+        lo = lo_n, hi = hi_n, ht = ht_n, low = low_n, high = high_n;
     }
+#undef RM_FRONT
 #undef RM_T
 }
 
