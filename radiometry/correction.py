@@ -30,13 +30,20 @@ bounds the speed (``scripts/bench_correction.py``). Tables and gain maps are cac
 entries).
 
 Where the CPU has AVX-512 (F, BW, VL, VBMI) and GFNI and the C kernels are in use, whole blocks of 64 pixels go
-through ``radiometry/_ckernels_simd.h`` instead: ``k`` by in-register byte permutes, and the table replaced by the
-count of each channel's output thresholds below the index (``table`` is non-decreasing along a channel's part), an
-8-step binary search in registers; the result is bit-identical (:func:`_build_simd_plan`; tests compare both).
-It needs a per-(size, scale) plan (the gain indices reordered, 2 bytes a value, and 1.8 kB of tables per channel)
-and applies when the gain indices are 16-bit and a channel's thresholds span at most 65534 steps; elsewhere, and
-for the last pixels short of a block, the scalar kernel runs. ``Corrector(simd=False)`` or ``RADIOMAP_SIMD=0``
-keep the scalar kernel (the Numba kernels, ``RADIOMAP_KERNELS=numba``, have no AVX-512 twin).
+through one of two register kernels instead; both replace the table by the count of each channel's output thresholds
+below the index (``table`` is non-decreasing along a channel's part) and look ``k`` up by in-register byte permutes,
+and both are bit-identical to the scalar kernel (tests compare them):
+
+- ``radiometry/_ckernels_bucket.h`` (:func:`_build_bucket_plan`), where each bucket of 256 index steps holds at most
+  ``bucket_nmax`` (12) thresholds and the buckets holding two or more lie within 128 buckets (the response curves
+  and presets measured; docs/performance.md): the count is a byte table of the index's high byte plus one compare
+  per threshold of its bucket. 1.3-1.7x the search below.
+- ``radiometry/_ckernels_simd.h`` (:func:`_build_simd_plan`) elsewhere: an 8-step binary search in registers.
+
+They need a per-(size, scale) plan (the gain indices reordered, 2 bytes a value, and 2-4 kB of tables per channel)
+and apply when the gain indices are 16-bit and a channel's thresholds span at most 65534 steps; elsewhere, and for
+the last pixels short of a block, the scalar kernel runs. ``Corrector(simd=False)`` or ``RADIOMAP_SIMD=0`` keep the
+scalar kernel (the Numba kernels, ``RADIOMAP_KERNELS=numba``, have no AVX-512 twin).
 """
 
 from __future__ import annotations
