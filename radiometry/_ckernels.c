@@ -3,6 +3,7 @@
  * memory in every process that calls a kernel (issue 17); see mapping/_ckernels.c. */
 #include "_buffers.h"
 #include "_ckernels_simd.h"
+#include "_ckernels_bucket.h"
 
 #if defined(__GNUC__) || defined(__clang__)
 #define RM_UNLIKELY(x) __builtin_expect((x), 0)
@@ -151,6 +152,52 @@ fail:
     return NULL;
 }
 
+/* correct_bucket(img, qplan, plan, out, channels): correct_simd with the bucket kernel (_ckernels_bucket.h);
+ * qplan (blocks, channels, 128) uint8 (the low then the high bytes of q << s), plan (channels, RM_BK_PLAN_BYTES) */
+static PyObject *correct_bucket(PyObject *self, PyObject *args)
+{
+    PyObject *oi, *oq, *op, *oo;
+    Py_ssize_t channels;
+    Py_buffer v[4] = {{0}};
+    if (!PyArg_ParseTuple(args, "OOOOn", &oi, &oq, &op, &oo, &channels))
+        return NULL;
+    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', 1, 3, 0, "qplan")
+        || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
+        goto fail;
+    Py_ssize_t n = v[0].shape[0];
+    if ((channels != 1 && channels != 3) || n % channels) {
+        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of 1 or 3 channels (%zd)", n, channels);
+        goto fail;
+    }
+    Py_ssize_t blocks = v[1].shape[0];
+    if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, 128, "qplan")
+        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_BK_PLAN_BYTES, "plan")
+        || rm_dim(&v[3], 0, n, "out")) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
+        goto fail;
+    }
+    for (Py_ssize_t c = 0; c < channels; c++)
+        if (((const uint8_t *)v[2].buf)[c * RM_BK_PLAN_BYTES + RM_BK_PARAMS] > RM_BK_NMAX) {
+            PyErr_Format(PyExc_ValueError, "plan: channel %zd has more than %d thresholds per bucket", c, RM_BK_NMAX);
+            goto fail;
+        }
+    Py_ssize_t done = 0;
+#if RM_HAVE_SIMD
+    if (rm_simd_supported()) {
+        Py_BEGIN_ALLOW_THREADS
+        rm_bk_correct(v[0].buf, v[1].buf, v[2].buf, v[3].buf, blocks, (int)channels);
+        Py_END_ALLOW_THREADS
+        done = blocks * 64;
+    }
+#endif
+    rm_release(v, 4);
+    return PyLong_FromSsize_t(done);
+fail:
+    rm_release(v, 4);
+    return NULL;
+}
+
 /* out[p, c] = lut[c, img[p, c]] * gain[p, 0 or c] (float32) */
 static PyObject *irradiance(PyObject *self, PyObject *args)
 {
@@ -188,6 +235,7 @@ static PyMethodDef methods[] = {
     {"lookup_rgb", lookup_rgb, METH_VARARGS, "uint8 correction, a gain index per value (three channels)."},
     {"lookup_shared", lookup_shared, METH_VARARGS, "uint8 correction, one gain index per pixel."},
     {"correct_simd", correct_simd, METH_VARARGS, "uint8 correction with AVX-512 register look-ups (64-pixel blocks)."},
+    {"correct_bucket", correct_bucket, METH_VARARGS, "correct_simd's bucket kernel (spread-out thresholds)."},
     {"irradiance", irradiance, METH_VARARGS, "Irradiance of a uint8 image: lut[c, I] * gain."},
     RM_THREAD_METHODS,
     {NULL, NULL, 0, NULL}};
@@ -202,7 +250,8 @@ PyMODINIT_FUNC PyInit__ckernels(void)
     PyObject *m = PyModule_Create(&module);
     if (m != NULL && (PyModule_AddIntConstant(m, "openmp", RM_OPENMP) < 0
                       || PyModule_AddIntConstant(m, "ABI", RM_ABI) < 0
-                      || PyModule_AddIntConstant(m, "simd", rm_simd_supported()) < 0)) {
+                      || PyModule_AddIntConstant(m, "simd", rm_simd_supported()) < 0
+                      || PyModule_AddIntConstant(m, "bucket_nmax", RM_BK_NMAX) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

@@ -125,10 +125,14 @@ RM_TARGET static inline __m512i rm_level(const __m512i *idx)
                                          _mm512_set1_epi64(0x8040201008040201LL), 0); /* reverse the bits */
 }
 
-/* ``blocks`` planes of 64 values of one channel: x -> y; the q of block b at q + b * qstride. RM_WAY / 2 planes
- * at a time; past the last plane, the last run repeats its first plane (written first, then rewritten last). */
+/* one channel's plane function: ``blocks`` x 64 values x (levels) -> y (corrected); the q of block b at
+ * q + b * qstride (bytes) */
+typedef void (*rm_plane_fn)(const uint8_t *, const uint8_t *, Py_ssize_t, const uint8_t *, uint8_t *, Py_ssize_t);
+
+/* the search's plane functions (q: 64 uint16 per block). RM_WAY / 2 planes at a time; past the last plane, the
+ * last run repeats its first plane (written first, then rewritten last). */
 #define RM_CHANNEL(NAME, CLAMP)                                                                                    \
-    RM_TARGET static void NAME(const uint8_t *x, const uint16_t *q, Py_ssize_t qstride, const uint8_t *plan,        \
+    RM_TARGET static void NAME(const uint8_t *x, const uint8_t *q, Py_ssize_t qstride, const uint8_t *plan,         \
                                uint8_t *y, Py_ssize_t blocks)                                                       \
     {                                                                                                              \
         rm_tables tb;                                                                                              \
@@ -138,7 +142,8 @@ RM_TARGET static inline __m512i rm_level(const __m512i *idx)
             __m512i j[RM_WAY];                                                                                     \
             for (int i = 0; i < RM_WAY / 2; i++) {                                                                 \
                 bs[i] = b + i < blocks ? b + i : b;                                                                \
-                rm_index(_mm512_loadu_si512(x + 64 * bs[i]), q + qstride * bs[i], &tb, j + 2 * i, CLAMP);          \
+                rm_index(_mm512_loadu_si512(x + 64 * bs[i]), (const uint16_t *)(q + qstride * bs[i]), &tb, j + 2 * i, \
+                         CLAMP);                                                                                   \
             }                                                                                                      \
             rm_searchn(j, &tb);                                                                                    \
             for (int i = RM_WAY / 2 - 1; i >= 0; i--)                                                              \
@@ -147,12 +152,6 @@ RM_TARGET static inline __m512i rm_level(const __m512i *idx)
     }
 RM_CHANNEL(rm_channel_add, 0)
 RM_CHANNEL(rm_channel_clamp, 1)
-
-static void rm_channel(const uint8_t *x, const uint16_t *q, Py_ssize_t qstride, const uint8_t *plan, uint8_t *y,
-                       Py_ssize_t blocks, int clamp)
-{
-    (clamp ? rm_channel_clamp : rm_channel_add)(x, q, qstride, plan, y, blocks);
-}
 
 /* byte indices that split 192 interleaved RGB bytes into planes and back (built once) */
 static uint8_t rm_split_idx[3][64], rm_split_sel[3][64], rm_join_idx[3][64];
@@ -178,14 +177,15 @@ static void rm_simd_init(void)
 
 #define RM_RUN 16 /* blocks split into planes at a time (3 KB in, 3 KB out: in L1) */
 
-/* Corrects the first ``blocks`` * 64 pixels: img/out interleaved (``channels`` 1 or 3), qplan (blocks, channels,
- * 64) uint16, plan (channels, RM_PLAN_BYTES). Three channels go through planes a run of blocks at a time, so
- * that each channel's 20 table registers stay loaded across the run. */
-RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan, const uint8_t *plan, uint8_t *out,
-                                      Py_ssize_t blocks, int channels, int clamp)
+/* Corrects the first ``blocks`` * 64 pixels: img/out interleaved (``channels`` 1 or 3) through fn[c], the plane
+ * function of channel c, with plan + c * plan_bytes; qplan: per block and channel, ``qbytes`` bytes. Three channels
+ * go through planes a run of blocks at a time, so that each channel's tables stay in registers across the run. */
+RM_TARGET static void rm_planes(const uint8_t *img, const uint8_t *qplan, Py_ssize_t qbytes, const uint8_t *plan,
+                                Py_ssize_t plan_bytes, uint8_t *out, Py_ssize_t blocks, int channels,
+                                const rm_plane_fn *fn)
 {
     if (channels == 1) {
-        rm_channel(img, qplan, 64, plan, out, blocks, clamp);
+        fn[0](img, qplan, qbytes, plan, out, blocks);
         return;
     }
     uint8_t xs[3][RM_RUN * 64], ys[3][RM_RUN * 64];
@@ -206,7 +206,7 @@ RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan,
             }
         }
         for (int c = 0; c < 3; c++)
-            rm_channel(xs[c], qplan + (3 * b0 + c) * 64, 192, plan + RM_PLAN_BYTES * c, ys[c], run, clamp);
+            fn[c](xs[c], qplan + (3 * b0 + c) * qbytes, 3 * qbytes, plan + plan_bytes * c, ys[c], run);
         for (Py_ssize_t b = 0; b < run; b++) {
             __m512i p0 = _mm512_loadu_si512(ys[0] + 64 * b), p1 = _mm512_loadu_si512(ys[1] + 64 * b);
             __m512i p2 = _mm512_loadu_si512(ys[2] + 64 * b);
@@ -217,6 +217,16 @@ RM_TARGET static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan,
             }
         }
     }
+}
+
+/* the binary search on the first ``blocks`` * 64 pixels: qplan (blocks, channels, 64) uint16, plan (channels,
+ * RM_PLAN_BYTES) */
+static void rm_correct_simd(const uint8_t *img, const uint16_t *qplan, const uint8_t *plan, uint8_t *out,
+                            Py_ssize_t blocks, int channels, int clamp)
+{
+    rm_plane_fn f = clamp ? rm_channel_clamp : rm_channel_add;
+    const rm_plane_fn fn[3] = {f, f, f};
+    rm_planes(img, (const uint8_t *)qplan, 128, plan, RM_PLAN_BYTES, out, blocks, channels, fn);
 }
 #else
 #define RM_HAVE_SIMD 0

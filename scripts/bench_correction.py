@@ -1,7 +1,8 @@
 """Benchmark: vignetting correction of 640x480 RGB uint8 frames on ONE core.
 
 Compares ``Corrector.correct`` (a quantised log-gain map, a small uint8 table indexed by gain plus
-exposure; the AVX-512 kernel where the CPU has AVX-512 VBMI and GFNI, else a gather in C, or Numba's with
+exposure; an AVX-512 kernel where the CPU has AVX-512 VBMI and GFNI (the bucket kernel for the xtion preset's
+tables, the line below it says which), else a gather in C, or Numba's with
 ``RADIOMAP_KERNELS=numba``), its scalar gather alone (``Corrector(simd=False)``, same output) and a straightforward
 NumPy implementation of the same formula
 ``f(scale * f^-1(I) / V)`` (``radiometry.correction.correct_reference_numpy``) in the same run, and
@@ -128,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     gather = "C" if compiled("radiometry._ckernels") is not None else "Numba"
     kernel = "AVX-512 kernel)" if simd_available() else gather + " gather)"
     print(f"  Corrector.correct (tables + {kernel:<15}: {fmt(fast)}")
+    if simd_available():
+        print(f"    AVX-512 kernel on whole blocks         : {corrector._simd_choice(h, w, 3, args.scale)[0]}")
     sc = res["cache", "scalar"]
     print(f"  Corrector(simd=False): {gather} gather      : {fmt(sc)}  ({fast[0] / sc[0]:.2f} / "
           f"{fast[1] / sc[1]:.2f} x faster with the default path)")

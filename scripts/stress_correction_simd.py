@@ -1,13 +1,15 @@
 #!/usr/bin/env python
-"""Stress the uint8 correction's AVX-512 kernel against the scalar path (issue 33): the same bytes on varied inputs.
+"""Stress the uint8 correction's AVX-512 kernels against the scalar path (issue 33): the same bytes on varied inputs.
 
-``Corrector.correct`` runs ``radiometry._ckernels.correct_simd`` (radiometry/_ckernels_simd.h: register look-ups and
-a binary search of per-channel thresholds) where the CPU has AVX-512 VBMI and GFNI, and the scalar gather
-``table[q + k[c, I]]`` elsewhere. Every case here corrects one image three ways and compares them byte for byte:
+Where the CPU has AVX-512 VBMI and GFNI, ``Corrector.correct`` runs ``radiometry._ckernels.correct_bucket``
+(radiometry/_ckernels_bucket.h: bucket look-ups) where its plan applies, else ``correct_simd``
+(radiometry/_ckernels_simd.h: a binary search of per-channel thresholds), and the scalar gather
+``table[q + k[c, I]]`` elsewhere. Every case here corrects one image four ways and compares them byte for byte:
 
-- the default path (the AVX-512 kernel on the whole 64-pixel blocks, the scalar kernel on the rest);
+- the default path (an AVX-512 kernel on the whole 64-pixel blocks, the scalar kernel on the rest);
+- the same with the bucket kernel turned off (the search kernel where it applies);
 - ``Corrector(simd=False)``: the scalar C kernel (or Numba's);
-- NumPy indexing of the same tables, ``table[q + k[c, I]]``, written here (independent of both kernels).
+- NumPy indexing of the same tables, ``table[q + k[c, I]]``, written here (independent of the kernels).
 
 Cases are drawn per run: responses (gamma 0.3-3.5, S-curves, random increasing tables with near-flat runs, 1 or 3
 channels), vignetting (none, or a radial LUT at the image's size falling to 0.02-1 with a random centre, 1 or 3
@@ -17,7 +19,7 @@ gain indices, past the AVX kernel: the scalar path then runs alone, which is che
 constant, a ramp of all 256 levels, or mostly 0 and 255, given contiguous, strided or Fortran-ordered. Tables whose
 thresholds span more than 16 bits (everything darkened under mild vignetting) also run the scalar path alone.
 
-Prints a line per failing case and a summary (how many cases ran the AVX-512 kernel); exits 1 on any failure.
+Prints a line per failing case and a summary (how many cases ran each AVX-512 kernel); exits 1 on any failure.
 Usage::
 
     python scripts/stress_correction_simd.py --runs 500     # ~0.05-0.5 s per case
@@ -118,21 +120,53 @@ def table_lookup(corrector, img: np.ndarray, scale: float) -> np.ndarray:
     return out if img.ndim == 3 else out[:, :, 0]
 
 
-def check(case: dict) -> tuple[bool, bool, str]:
-    """``(passed, ran_simd, detail)`` for one case."""
-    from radiometry.correction import Corrector, simd_available
+def kernel_run(corrector, img: np.ndarray, scale: float) -> str | None:
+    """The AVX-512 kernel ``corrector.correct(img)`` runs: ``"bucket"``, ``"search"`` or None (the scalar path)."""
+    from radiometry.correction import simd_available
+
+    arr = img if img.ndim == 3 else img[:, :, None]
+    h, w, ch = arr.shape
+    if not simd_available() or h * w < 64:
+        return None
+    return corrector._simd_choice(h, w, ch, scale)[0]
+
+
+def without_bucket():
+    """A context in which new Correctors never use the bucket kernel (its plan is None): the search kernel runs."""
+    from contextlib import contextmanager
+
+    from radiometry import correction
+
+    @contextmanager
+    def ctx():
+        saved = correction._build_bucket_plan
+        correction._build_bucket_plan = lambda *args: None
+        try:
+            yield
+        finally:
+            correction._build_bucket_plan = saved
+
+    return ctx()
+
+
+def check(case: dict) -> tuple[bool, str | None, str]:
+    """``(passed, kernel, detail)`` for one case; ``kernel``: the AVX-512 kernel of the default path, or None."""
+    from radiometry.correction import Corrector
 
     img, scale = case["image"], case["scale"]
-    fast = Corrector(case["response"], case["vignetting"], gain_levels=case["gain_levels"])
-    scalar = Corrector(case["response"], case["vignetting"], gain_levels=case["gain_levels"], simd=False)
-    a, b = fast.correct(img, scale=scale), scalar.correct(img, scale=scale)
+    args, kw = (case["response"], case["vignetting"]), {"gain_levels": case["gain_levels"]}
+    fast = Corrector(*args, **kw)
+    a = fast.correct(img, scale=scale)
+    with without_bucket():
+        searched = Corrector(*args, **kw)
+        d = searched.correct(img, scale=scale)
+    b = Corrector(*args, simd=False, **kw).correct(img, scale=scale)
     c = table_lookup(fast, img, scale)
-    h, w = case["size"]
-    ran = simd_available() and h * w >= 64 and fast._simd_plan(h, w, case["channels"], scale) is not None
-    ok = a.dtype == np.uint8 and a.shape == img.shape and np.array_equal(a, b) and np.array_equal(a, c)
+    ok = (a.dtype == np.uint8 and a.shape == img.shape and np.array_equal(a, b) and np.array_equal(a, c)
+          and np.array_equal(d, c))
     detail = "" if ok else (f"differs at {int(np.sum(a != c))} values from the table, {int(np.sum(a != b))} from "
-                            f"the scalar path")
-    return ok, ran, detail
+                            f"the scalar path, search kernel at {int(np.sum(d != c))}")
+    return ok, kernel_run(fast, img, scale), detail
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -143,19 +177,20 @@ def main(argv: list[str] | None = None) -> int:
     from radiometry.correction import simd_available
 
     rng = np.random.default_rng(args.seed)
-    failures = ran = 0
+    failures = 0
+    ran = {"bucket": 0, "search": 0, None: 0}
     start = time.perf_counter()
     for run in range(args.runs):
         case = random_case(rng)
-        ok, simd, detail = check(case)
-        ran += simd
+        ok, kernel, detail = check(case)
+        ran[kernel] += 1
         if not ok:
             failures += 1
             img = case["image"]
             print(f"case {run}: FAILED {detail} (size {case['size']}, image {img.shape} {img.strides}, scale "
                   f"{case['scale']:.4g}, gain_levels {case['gain_levels']})")
-    print(f"{args.runs} cases, {failures} failed, {ran} ran the AVX-512 kernel (available here: {simd_available()}), "
-          f"{time.perf_counter() - start:.1f} s")
+    print(f"{args.runs} cases, {failures} failed; AVX-512 kernel run (available here: {simd_available()}): bucket "
+          f"{ran['bucket']}, search {ran['search']}, none {ran[None]}; {time.perf_counter() - start:.1f} s")
     return 1 if failures else 0
 
 

@@ -1,9 +1,12 @@
-"""The uint8 correction's AVX-512 kernel (radiometry/_ckernels_simd.h): byte for byte the scalar path's output.
+"""The uint8 correction's AVX-512 kernels (radiometry/_ckernels_bucket.h, _ckernels_simd.h): byte for byte the scalar
+path's output.
 
-Every check compares three ways of correcting the same image: the default path (the AVX-512 kernel on whole
+Every check compares three ways of correcting the same image: the default path (an AVX-512 kernel on whole
 64-pixel blocks where the CPU has AVX-512 VBMI and GFNI, the scalar kernel on the rest), ``Corrector(simd=False)``
-(the scalar kernel alone) and NumPy indexing of the fast path's tables, ``table[q + k[c, I]]`` (no kernel). Tests
-that need the kernel to run skip on CPUs without it; the fallback tests run everywhere.
+(the scalar kernel alone) and NumPy indexing of the fast path's tables, ``table[q + k[c, I]]`` (no kernel). The
+tests marked with the ``kernel`` fixture run twice: as the default path chooses (the bucket kernel wherever its
+plan applies) and with the bucket kernel turned off (the binary search). Tests that need a kernel to run skip on
+CPUs without it; the fallback tests run everywhere. tests/test_correction_bucket.py tests the bucket plan itself;
 ``scripts/stress_correction_simd.py`` runs hundreds of random cases; a smaller loop of it runs here.
 """
 
@@ -47,6 +50,12 @@ def s_curve(channels: int = 3) -> CameraResponse:
     return CameraResponse.from_table(np.stack(cols, axis=1) + 1e-4 * x[:, None])
 
 
+def gammas(channels: int = 3) -> CameraResponse:
+    """Gamma 2.0, 2.2, 1.8 per channel: tables the bucket kernel takes (tests/test_correction_bucket.py)."""
+    x = np.linspace(0, 1, 256)
+    return CameraResponse.from_table(np.stack([x ** g for g in (2.0, 2.2, 1.8)[:channels]], axis=1))
+
+
 def three_ways(response, vignetting, img, scale=1.0, **kwargs):
     fast = Corrector(response, vignetting, **kwargs)
     scalar = Corrector(response, vignetting, simd=False, **kwargs)
@@ -59,19 +68,28 @@ def three_ways(response, vignetting, img, scale=1.0, **kwargs):
 
 
 def ran_kernel(corrector, img, scale) -> bool:
-    arr = img if img.ndim == 3 else img[:, :, None]
-    h, w, ch = arr.shape
-    return simd_available() and h * w >= 64 and corrector._simd_plan(h, w, ch, scale) is not None
+    return _stress().kernel_run(corrector, img, scale) is not None
+
+
+@pytest.fixture(params=["default", "search"])
+def kernel(request, monkeypatch):
+    """``default``: the kernel the default path chooses; ``search``: the bucket kernel turned off."""
+    if request.param == "search":
+        monkeypatch.setattr(correction, "_build_bucket_plan", lambda *args: None)
+    return request.param
 
 
 @needs_simd
 @pytest.mark.parametrize("h, w", [(1, 64), (1, 65), (2, 33), (8, 8), (7, 13), (3, 100), (17, 129), (31, 97),
                                   (64, 64), (121, 161), (480, 640)])
 @pytest.mark.parametrize("channels", [1, 3])
-def test_kernel_matches_scalar_path_at_varied_sizes(h, w, channels):
+def test_kernel_matches_scalar_path_at_varied_sizes(h, w, channels, kernel):
     img = np.random.default_rng(h * w + channels).integers(0, 256, (h, w, channels), dtype=np.uint8)
-    fast, _ = three_ways(s_curve(channels), radial(h, w, 0.3, channels), img, 0.8)
-    assert ran_kernel(fast, img, 0.8)  # every size here has at least one whole block of 64 pixels
+    # every size here has at least one whole block of 64 pixels. The bucket kernel takes the gammas' tables and the
+    # one-channel S-curve's; the three S-curves put too many thresholds in a bucket of one channel: search kernel
+    for response, choice in [(gammas(channels), "bucket"), (s_curve(channels), "search" if channels == 3 else "bucket")]:
+        fast, _ = three_ways(response, radial(h, w, 0.3, channels), img, 0.8)
+        assert _stress().kernel_run(fast, img, 0.8) == ("search" if kernel == "search" else choice)
 
 
 def test_images_smaller_than_a_block_take_the_scalar_path():
@@ -84,7 +102,7 @@ def test_images_smaller_than_a_block_take_the_scalar_path():
 @needs_simd
 @pytest.mark.parametrize("scale", [0.005, 0.3, 1.0, 4.0, 50.0])
 @pytest.mark.parametrize("vmin", [0.02, 0.2, 0.8, 0.99])
-def test_every_level_at_extreme_gains(scale, vmin):
+def test_every_level_at_extreme_gains(scale, vmin, kernel):
     h, w = 64, 256  # each row holds the 256 levels, shifted per row and channel: every level at every gain
     levels = (np.arange(w)[None, :, None] + 37 * np.arange(h)[:, None, None] + 85 * np.arange(3)) % 256
     img = levels.astype(np.uint8)
@@ -101,7 +119,7 @@ def test_every_level_at_extreme_gains(scale, vmin):
 @needs_simd
 @pytest.mark.parametrize("vignetting", ["none", "one-channel", "three-channel"])
 @pytest.mark.parametrize("shape", [(48, 80), (48, 80, 1), (48, 80, 3)])
-def test_grayscale_shared_gain_and_flat_field(vignetting, shape):
+def test_grayscale_shared_gain_and_flat_field(vignetting, shape, kernel):
     h, w = shape[:2]
     channels = shape[2] if len(shape) == 3 else 1
     if vignetting == "three-channel" and channels == 1:
@@ -113,8 +131,9 @@ def test_grayscale_shared_gain_and_flat_field(vignetting, shape):
 
 
 @needs_simd
-def test_both_forms_of_the_kernel_run():
-    """The direct form (every index below 65535) and the clamped one (mild vignetting: longer tables)."""
+def test_both_forms_of_the_kernel_run(kernel):
+    """The direct form (every index below 65535) and the clamped one (mild vignetting: longer tables), of the search
+    kernel's plan; the default path runs the bucket kernel (its own two forms: tests/test_correction_bucket.py)."""
     h, w = 48, 64
     img = np.random.default_rng(2).integers(0, 256, (h, w, 3), dtype=np.uint8)
     forms = set()
@@ -126,7 +145,7 @@ def test_both_forms_of_the_kernel_run():
 
 @needs_simd
 @pytest.mark.parametrize("layout", ["strided", "fortran", "transposed", "negative-step"])
-def test_non_contiguous_images(layout):
+def test_non_contiguous_images(layout, kernel):
     rng = np.random.default_rng(3)
     base = rng.integers(0, 256, (96, 130, 3), dtype=np.uint8)
     img = {"strided": base[::2, ::2], "fortran": np.asfortranarray(base[:48, :65]),
@@ -150,13 +169,18 @@ def test_dispatch_falls_back_to_the_scalar_path(monkeypatch, how):
     expected = Corrector(s_curve(), radial(h, w, 0.3), simd=False).correct(img, scale=0.8)
     calls = []
     correction._kernels()
-    kernel = correction._SIMD
+    kernel, bucket = correction._SIMD, correction._BUCKET
 
     def spy(*args):
         calls.append(args[4])
         return kernel(*args) if kernel is not None else 0
 
+    def bucket_spy(*args):
+        calls.append(args[4])
+        return bucket(*args) if bucket is not None else 0
+
     monkeypatch.setattr(correction, "_SIMD", spy)
+    monkeypatch.setattr(correction, "_BUCKET", bucket_spy)
     kwargs = {}
     if how == "env":
         monkeypatch.setenv("RADIOMAP_SIMD", "0")
@@ -168,6 +192,7 @@ def test_dispatch_falls_back_to_the_scalar_path(monkeypatch, how):
         assert not simd_available()
     else:  # the C kernel's own CPU check said no: it corrected 0 pixels
         monkeypatch.setattr(correction, "_SIMD", lambda *args: calls.append(args[4]) or 0)
+        monkeypatch.setattr(correction, "_BUCKET", lambda *args: calls.append(args[4]) or 0)
     out = Corrector(s_curve(), radial(h, w, 0.3), **kwargs).correct(img, scale=0.8)
     np.testing.assert_array_equal(out, expected)
     assert calls == ([3] if how == "kernel-declines" else [])
@@ -179,8 +204,9 @@ def test_simd_true_overrides_the_environment(monkeypatch):
     h, w = 48, 64
     img = np.random.default_rng(6).integers(0, 256, (h, w, 3), dtype=np.uint8)
     calls = []
-    kernel = correction._SIMD
-    monkeypatch.setattr(correction, "_SIMD", lambda *args: calls.append(1) or kernel(*args))
+    bucket, search = correction._BUCKET, correction._SIMD
+    monkeypatch.setattr(correction, "_BUCKET", lambda *args: calls.append(1) or bucket(*args))
+    monkeypatch.setattr(correction, "_SIMD", lambda *args: calls.append(1) or search(*args))
     out = Corrector(s_curve(), radial(h, w, 0.3), simd=True).correct(img, scale=0.8)
     np.testing.assert_array_equal(out, Corrector(s_curve(), radial(h, w, 0.3), simd=False).correct(img, scale=0.8))
     assert calls == [1]
@@ -230,18 +256,19 @@ def test_stress_loop(seed):
     """A short run of scripts/stress_correction_simd.py (the script runs hundreds)."""
     module = _stress()
     rng = np.random.default_rng(100 + seed)
-    ran = 0
+    ran = {"bucket": 0, "search": 0, None: 0}
     for _ in range(40):
-        ok, simd, detail = module.check(module.random_case(rng))
+        ok, kernel, detail = module.check(module.random_case(rng))
         assert ok, detail
-        ran += simd
-    assert ran > 10 or not simd_available()
+        ran[kernel] += 1
+    assert (ran["bucket"] > 5 and ran["search"] > 2) or not simd_available(), ran
 
 
 @pytest.mark.slow
 def test_a_build_without_the_kernel_corrects_with_the_scalar_path(tmp_path):
     """``-DRM_NO_SIMD``: what a compiler other than GCC / Clang or a CPU other than x86 builds. The module says
-    ``simd = 0``, ``correct_simd`` corrects no pixel, and its scalar kernels give the same bytes."""
+    ``simd = 0``, ``correct_simd`` and ``correct_bucket`` correct no pixel, and its scalar kernels give the same
+    bytes."""
     built = build_without_simd(tmp_path, "radiometry")
     repo = SCRIPT.parents[1]
     script = ("import sys, importlib.util, numpy as np; "
@@ -255,11 +282,12 @@ def test_a_build_without_the_kernel_corrects_with_the_scalar_path(tmp_path):
               "out = np.empty_like(img); done = c.correct_simd(img, qp, plan, out, 3, clamp); "
               "ref = np.empty_like(img); c.lookup_shared(img, q.reshape(-1), k, t, ref, 3); "
               "want = cor.correct(img.reshape(48, 64, 3), scale=0.8).reshape(-1); "
-              "print(c.simd, done, ref.tobytes() == want.tobytes())")
+              "bq, bp = cor._bucket_plan(48, 64, 3, 0.8); done2 = c.correct_bucket(img, bq, bp, out, 3); "
+              "print(c.simd, done, done2, ref.tobytes() == want.tobytes())")
     run = subprocess.run([sys.executable, "-c", script, str(built)], cwd=repo, capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert run.stdout.split() == ["0", "0", "True"]
+    assert run.stdout.split() == ["0", "0", "0", "True"]
 
 
 @needs_simd
