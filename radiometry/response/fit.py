@@ -176,7 +176,9 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
                              int(np.flatnonzero(np.bincount(sol["z"], minlength=LEVELS))[-1])] for sol in solved],
         **level_meta,
         "inverse_stderr": np.stack([sol["log_stderr"] for sol in solved], axis=1).tolist(),
-        "inverse_stderr_source": "debevec: covariance of the weighted least squares (smoothness rows as a prior)",
+        "inverse_stderr_source": ("debevec: covariance of the weighted least squares (smoothness rows as a prior; "
+                                  "the pixels' noise only: the bias of the smoothness prior, at bends and at the "
+                                  "top levels is not in it)"),
     }
     if scores is not None:
         meta.update({"lambda_selection": "cross-validation", "lambda_scores": scores})

@@ -23,8 +23,9 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
   ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel, as
   :func:`~radiometry.response.fit.fit_response_debevec` and
   :func:`~radiometry.response.loglog.fit_response_loglog` record it) that is
-  propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``); else its roughness, the departure of ``ln f^-1`` from a
-  local quadratic over 9 levels, as one signed error pattern. Roughness is what a
+  propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``; that error is the fit's noise only, not its
+  bias, so this part too is a lower bound: docs/calibration_pipelines.md); else its roughness, the departure of
+  ``ln f^-1`` from a local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape
   (a rounded knee) is invisible to it, so this part is a lower bound.
 """
@@ -201,7 +202,7 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     out: dict[str, Any] = {name: [round(float(x), 4) for x in p] for name, p in parts.items()}
     out["total"] = [round(float(x), 4) for x in total]
     out["response_source"] = ("none" if not with_response else "roughness" if given is None
-                              else "the response's own standard error")
+                              else "the response's own standard error (its pixels' noise only: a lower bound)")
     out["level"] = float(level)
     out["min_samples"] = int(min_samples)
     return out
