@@ -236,6 +236,8 @@ def _bucket_channel(part: np.ndarray, rel: np.ndarray, qmax: int, nmax: int):
     neg = int(np.sum(kk < 0))
     if np.any(kk[:neg] >= 0) or np.any(kk[neg:] < 0):  # k not non-decreasing: the levels below S are no prefix
         return None
+    if neg > 255:  # every level below S: the kernel's byte compare with ``neg`` cannot say so
+        return None
     tt = (t - shift) << s
     base = np.searchsorted(np.sort(tt), 256 * np.arange(256), side="right")
     inside = tt[(tt > 0) & (tt & 255 != 0)]  # thresholds inside a bucket (at 256 b: in base[b])

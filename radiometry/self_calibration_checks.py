@@ -58,10 +58,9 @@ class TiltVisibility:
         seen = ", ".join(f"{a} {100 * v:.2f}%" for a, v in zip(("left-right", "up-down"), self.visibility))
         return (f"ambiguous: this sequence cannot pin a {' or '.join(axes)} tilt of V: exposure drift and the "
                 f"surfaces' own brightness absorb it (what they leave of a tilt: {seen}; "
-                f"{100 * OPEN_VISIBILITY:.1f}% needed); V's tilt is held at the plausible member (centred near the "
+                f"{100 * OPEN_VISIBILITY:.2f}% needed); V's tilt is held at the plausible member (centred near the "
                 "principal point) and its standard error includes the tilt left open; record turning back and forth "
                 "and tilting up and down, or give the exposures (--exposures FILE)")
-
 
     def weak_text(self) -> str | None:
         """One note when an axis is seen, but weakly (below :data:`FREE_VISIBILITY` and not open; None otherwise):
@@ -72,13 +71,13 @@ class TiltVisibility:
         if not axes:
             return None
         seen = ", ".join(f"{a} {100 * v:.2f}%" for a, v in axes)
-        names = " and ".join(a for a, _ in axes)
-        return (f"note: V's {names} profile is seen weakly (what the sequence leaves of a tilt: {seen}; "
-                f"{100 * FREE_VISIBILITY:.1f}% pins it): it rests mostly on the polynomial's centre and its standard "
-                "error includes a sensor-shading tilt the data cannot exclude; "
-                + ("tilt the camera up and down" if names == "up-down" else
-                   "turn the camera back and forth" if names == "left-right" else "move the camera more")
-                + " to pin it")
+        both = len(axes) == 2
+        motion = {"left-right": "turn the camera back and forth", "up-down": "tilt the camera up and down"}
+        return (f"note: V's {' and '.join(a for a, _ in axes)} profile{'s are' if both else ' is'} seen weakly (what "
+                f"the sequence leaves of a tilt: {seen}; {100 * FREE_VISIBILITY:.1f}% pins it): "
+                f"{'they rest' if both else 'it rests'} mostly on the polynomial's centre and the standard error "
+                "includes a sensor-shading tilt the data cannot exclude; "
+                + " and ".join(motion[a] for a, _ in axes) + f" to pin {'them' if both else 'it'}")
 
 
 def _absorb(field: np.ndarray, w: np.ndarray, point: np.ndarray, frame: np.ndarray, n_points: int,

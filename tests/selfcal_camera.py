@@ -7,7 +7,7 @@ whose albedo varies slowly, with a few flat patches); depth is the exact ray-box
 - vignetting from a real camera: the EuRoC MT9V034's measured ``vignette.png`` (``../shared/data``), resampled to
   the image, its optical centre moved off the principal point (where the moved image reaches past the measured
   one, the lens's radial fall-off continues from the border), raised to a per-channel power (chromatic
-  vignetting; corners 0.45-0.68, an Asus Xtion's are about 0.5), times a sensor-shading gradient and a dust shadow (the
+  vignetting; corners 0.45-0.68 at 640x480, 0.39-0.73 at 320x240; an Asus Xtion's are about 0.5), times a sensor-shading gradient and a dust shadow (the
   non-radial structure real vignettes carry); without the shared data an even polynomial of the same strength;
 - auto exposure: a lagging controller that drives the mean level of the view to a target; auto white balance: a
   lagging grey-world gain per channel (both act as a per-channel ``k`` per frame before the sensor);

@@ -143,6 +143,16 @@ def test_clamped_plan_needs_k_non_decreasing():
     assert correction._build_simd_plan(q, k[None, :].astype(np.uint32), part, [size], 1) is not None
 
 
+def test_clamped_plan_with_every_level_below_the_shift_is_declined_not_an_error():
+    """When every level's k lies below the shift S (the largest gain index dwarfs k's range), the kernel's byte
+    count of such levels would be 256: the plan is declined (it raised OverflowError; review, 2026-11-28)."""
+    n = 66048
+    q = (np.arange(n) * 65000 // (n - 1)).astype(np.uint16)[:, None]
+    k = np.linspace(0, 1000, 256).astype(np.uint32)[None, :]
+    part = staircase(65000 + 1001, [30000, 40000, 50000, 60000, 65500])
+    assert _build_bucket_plan(q, k, part, [part.size], 1) is None
+
+
 def test_plan_declines_too_many_thresholds_per_bucket_or_a_wide_window():
     m = nmax()
     size = 65536

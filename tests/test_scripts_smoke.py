@@ -53,3 +53,15 @@ def test_repeatability_script_needs_two_sessions(tmp_path, capsys):
         script.main(["-o", str(tmp_path / "rep"), "--sessions", "1"])
     assert info.value.code == 2 and "--sessions must be at least 2" in capsys.readouterr().err
     assert not (tmp_path / "rep").exists()
+
+
+@pytest.mark.slow
+def test_response_stderr_study_script(capsys):
+    """The coverage study of the response's stated standard error runs and reports shares in 0..1 per channel."""
+    script = load_script("study_response_stderr")
+    rows = script.study("gamma-2.2", "clean", width=96, height=72, sensitivity=True)
+    assert [r["channel"] for r in rows] == ["R", "G", "B"]
+    for r in rows:
+        assert 0.0 <= r["within_2se"] <= r["within_2se_with_sensitivity"] <= 1.0 and r["max_error_percent"] > 0.0
+    assert script.main(["--curves", "gamma-2.2", "--pipelines", "clean", "--size", "96x72"]) == 0
+    assert "gamma-2.2" in capsys.readouterr().out

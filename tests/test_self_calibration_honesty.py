@@ -74,7 +74,8 @@ def test_a_weakly_seen_axis_gets_a_note_and_an_open_or_well_seen_one_does_not():
     assert note.startswith("note: V's up-down profile is seen weakly") and "tilt the camera up and down" in note
     assert f"up-down {100 * weak:.2f}%" in note and "left-right" not in note
     both = TiltVisibility((weak, weak), info, (False, False)).weak_text()
-    assert "left-right and up-down profile" in both and "move the camera more" in both
+    assert "left-right and up-down profiles are seen weakly" in both and "they rest" in both
+    assert "turn the camera back and forth and tilt the camera up and down to pin them" in both
     assert TiltVisibility((0.75, 0.5), info, (False, False)).weak_text() is None          # both pinned
     assert TiltVisibility((0.75, OPEN_VISIBILITY / 2), info, (False, True)).weak_text() is None   # open: ambiguity
 
