@@ -109,6 +109,34 @@ static PyObject *lookup_shared(PyObject *self, PyObject *args)
     return lookup(args, 0);
 }
 
+/* The buffers of correct_simd / correct_bucket, checked: img, qplan (blocks, channels, q_last) of q_size-byte
+ * items, plan (channels, plan_bytes), out; returns the number of whole blocks, or -1 with the error set (the
+ * buffers released). */
+static Py_ssize_t correct_buffers(PyObject *oi, PyObject *oq, PyObject *op, PyObject *oo, Py_ssize_t channels,
+                                  int q_size, Py_ssize_t q_last, Py_ssize_t plan_bytes, Py_buffer v[4])
+{
+    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', q_size, 3, 0, "qplan")
+        || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
+        goto fail;
+    Py_ssize_t n = v[0].shape[0];
+    if ((channels != 1 && channels != 3) || n % channels) {
+        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of 1 or 3 channels (%zd)", n, channels);
+        goto fail;
+    }
+    Py_ssize_t blocks = v[1].shape[0];
+    if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, q_last, "qplan")
+        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, plan_bytes, "plan")
+        || rm_dim(&v[3], 0, n, "out")) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
+        goto fail;
+    }
+    return blocks;
+fail:
+    rm_release(v, 4);
+    return -1;
+}
+
 /* correct_simd(img, qplan, plan, out, channels, clamp): the uint8 correction of the first (pixels // 64) * 64
  * pixels with AVX-512 register look-ups (_ckernels_simd.h); returns the number of pixels done (0 where the CPU
  * lacks the instructions: the caller does the rest with lookup_rgb / lookup_shared) */
@@ -120,22 +148,9 @@ static PyObject *correct_simd(PyObject *self, PyObject *args)
     Py_buffer v[4] = {{0}};
     if (!PyArg_ParseTuple(args, "OOOOnp", &oi, &oq, &op, &oo, &channels, &clamp))
         return NULL;
-    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', 2, 3, 0, "qplan")
-        || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
-        goto fail;
-    Py_ssize_t n = v[0].shape[0];
-    if ((channels != 1 && channels != 3) || n % channels) {
-        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of 1 or 3 channels (%zd)", n, channels);
-        goto fail;
-    }
-    Py_ssize_t blocks = v[1].shape[0];
-    if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, 64, "qplan")
-        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_PLAN_BYTES, "plan")
-        || rm_dim(&v[3], 0, n, "out")) {
-        if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
-        goto fail;
-    }
+    Py_ssize_t blocks = correct_buffers(oi, oq, op, oo, channels, 2, 64, RM_PLAN_BYTES, v);
+    if (blocks < 0)
+        return NULL;
     Py_ssize_t done = 0;
 #if RM_HAVE_SIMD
     if (rm_simd_supported()) {
@@ -147,9 +162,6 @@ static PyObject *correct_simd(PyObject *self, PyObject *args)
 #endif
     rm_release(v, 4);
     return PyLong_FromSsize_t(done);
-fail:
-    rm_release(v, 4);
-    return NULL;
 }
 
 /* correct_bucket(img, qplan, plan, out, channels): correct_simd with the bucket kernel (_ckernels_bucket.h);
@@ -161,26 +173,14 @@ static PyObject *correct_bucket(PyObject *self, PyObject *args)
     Py_buffer v[4] = {{0}};
     if (!PyArg_ParseTuple(args, "OOOOn", &oi, &oq, &op, &oo, &channels))
         return NULL;
-    if (rm_get(oi, &v[0], 'u', 1, 1, 0, "img") || rm_get(oq, &v[1], 'u', 1, 3, 0, "qplan")
-        || rm_get(op, &v[2], 'u', 1, 2, 0, "plan") || rm_get(oo, &v[3], 'u', 1, 1, 1, "out"))
-        goto fail;
-    Py_ssize_t n = v[0].shape[0];
-    if ((channels != 1 && channels != 3) || n % channels) {
-        PyErr_Format(PyExc_ValueError, "img: %zd values are not whole pixels of 1 or 3 channels (%zd)", n, channels);
-        goto fail;
-    }
-    Py_ssize_t blocks = v[1].shape[0];
-    if (blocks * 64 > n / channels || rm_dim(&v[1], 1, channels, "qplan") || rm_dim(&v[1], 2, 128, "qplan")
-        || rm_dim(&v[2], 0, channels, "plan") || rm_dim(&v[2], 1, RM_BK_PLAN_BYTES, "plan")
-        || rm_dim(&v[3], 0, n, "out")) {
-        if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "qplan: more blocks of 64 pixels than img has");
-        goto fail;
-    }
+    Py_ssize_t blocks = correct_buffers(oi, oq, op, oo, channels, 1, 128, RM_BK_PLAN_BYTES, v);
+    if (blocks < 0)
+        return NULL;
     for (Py_ssize_t c = 0; c < channels; c++)
         if (((const uint8_t *)v[2].buf)[c * RM_BK_PLAN_BYTES + RM_BK_PARAMS] > RM_BK_NMAX) {
             PyErr_Format(PyExc_ValueError, "plan: channel %zd has more than %d thresholds per bucket", c, RM_BK_NMAX);
-            goto fail;
+            rm_release(v, 4);
+            return NULL;
         }
     Py_ssize_t done = 0;
 #if RM_HAVE_SIMD
@@ -193,9 +193,6 @@ static PyObject *correct_bucket(PyObject *self, PyObject *args)
 #endif
     rm_release(v, 4);
     return PyLong_FromSsize_t(done);
-fail:
-    rm_release(v, 4);
-    return NULL;
 }
 
 /* out[p, c] = lut[c, img[p, c]] * gain[p, 0 or c] (float32) */

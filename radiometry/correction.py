@@ -458,12 +458,7 @@ class Corrector:
     def _simd_plan(self, height: int, width: int, channels: int, scale: float):
         """``(qplan, plan, clamp)`` of the AVX-512 kernel (:func:`_build_simd_plan`), cached, or None where it does not
         apply."""
-        key = (int(height), int(width), int(channels), float(scale))
-        if key in self._plans:
-            self._plans.move_to_end(key)
-            return self._plans[key]
-        q, k, table, sizes = self._table_parts(height, width, channels, scale)
-        return self._remember(self._plans, key, _build_simd_plan(q, k, table, sizes, channels))
+        return self._cached_plan(self._plans, _build_simd_plan, height, width, channels, scale)
 
     def _simd_choice(self, height: int, width: int, channels: int, scale: float) -> tuple[str | None, tuple | None]:
         """The AVX-512 kernel :meth:`correct` runs on the whole blocks of 64 pixels and its data: ``("bucket",
@@ -478,12 +473,17 @@ class Corrector:
     def _bucket_plan(self, height: int, width: int, channels: int, scale: float):
         """``(qplan, plan)`` of the bucket kernel (:func:`_build_bucket_plan`), cached, or None where it does not
         apply."""
+        return self._cached_plan(self._bucket_plans, _build_bucket_plan, height, width, channels, scale)
+
+    def _cached_plan(self, cache: OrderedDict, build, height: int, width: int, channels: int, scale: float):
+        """``build(q, k, table, sizes, channels)`` for this size and scale, kept in ``cache`` (None too: a plan that
+        does not apply is not tried again)."""
         key = (int(height), int(width), int(channels), float(scale))
-        if key in self._bucket_plans:
-            self._bucket_plans.move_to_end(key)
-            return self._bucket_plans[key]
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
         q, k, table, sizes = self._table_parts(height, width, channels, scale)
-        return self._remember(self._bucket_plans, key, _build_bucket_plan(q, k, table, sizes, channels))
+        return self._remember(cache, key, build(q, k, table, sizes, channels))
 
     # ---------------------------------------------------------------- public API
     def irradiance(self, image: np.ndarray) -> np.ndarray:
