@@ -67,17 +67,33 @@ def study(curve: str, pipeline: str, *, design: str = "2x", width: int = 320, he
     return rows
 
 
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT, e.g. 320x240") from None
+    if width < 16 or height < 16:
+        raise argparse.ArgumentTypeError(f"{text!r}: at least 16x16")
+    return width, height
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--curves", default="gamma-2.2,euroc,kink-4x,s-curve")
     ap.add_argument("--pipelines", default="clean,post-noise,wb-jpeg92")
     ap.add_argument("--design", choices=("2x", "varied"), default="2x")
-    ap.add_argument("--size", default="320x240", help="WIDTHxHEIGHT of the bracket")
+    ap.add_argument("--size", default="320x240", type=_size, help="WIDTHxHEIGHT of the bracket")
     ap.add_argument("--sensitivity", action="store_true", help="also add the fit's sensitivity to its weights")
     args = ap.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    width, height = args.size
+    from camera_pipelines import PIPELINES
     from response_curves import curves
 
+    known = set(curves()) | {"euroc"}
+    for name, given, choices in (("--curves", args.curves, known), ("--pipelines", args.pipelines, set(PIPELINES))):
+        unknown = sorted(set(given.split(",")) - choices)
+        if unknown:
+            ap.error(f"{name}: unknown {', '.join(unknown)}; choose from {', '.join(sorted(choices))}")
     for curve in args.curves.split(","):
         if curve not in curves():
             print(f"{curve}: not available (the EuRoC curve needs ../shared/data)")
