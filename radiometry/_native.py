@@ -45,7 +45,8 @@ def choice() -> str:
 def simd_allowed() -> bool:
     """Whether the C kernels may use their AVX-512 paths where the CPU has them (the uint8 correction, the ray
     cast's march; both give the scalar kernels' bits): not when ``RADIOMAP_SIMD`` is ``0``/``off``/``scalar``."""
-    return os.environ.get("RADIOMAP_SIMD", "").strip().lower() not in _SIMD_OFF
+    value = os.environ.get("RADIOMAP_SIMD")
+    return not value or value.strip().lower() not in _SIMD_OFF
 
 
 def _load(module: str) -> tuple[ModuleType | None, str]:

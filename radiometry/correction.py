@@ -49,6 +49,7 @@ scalar kernel (the Numba kernels, ``RADIOMAP_KERNELS=numba``, have no AVX-512 tw
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict
 from typing import Iterable
 
@@ -370,6 +371,7 @@ class Corrector:
         self._tables: OrderedDict[tuple[int, int, int, float], tuple] = OrderedDict()
         self._plans: OrderedDict[tuple[int, int, int, float], tuple | None] = OrderedDict()
         self._bucket_plans: OrderedDict[tuple[int, int, int, float], tuple | None] = OrderedDict()
+        self._last: tuple | None = None  # (key, parts) of the last uint8 correction (_fast_path)
         self.simd = simd
 
     def __repr__(self) -> str:
@@ -510,30 +512,39 @@ class Corrector:
         scale = self._check_scale(scale)
         arr, flat = _as_hwc(image)
         h, w, ch = arr.shape
-        self._check_channels(ch)
         if arr.dtype != np.uint8:
             out = self.correct_exact(arr, scale=scale)
-        else:
-            q, k, table = self._fast_tables(h, w, ch, scale)
-            src = np.ascontiguousarray(arr).reshape(-1)
-            out = _aligned_empty(src.size)
-            done = 0  # pixels corrected by an AVX-512 kernel; the scalar kernels do the rest
-            simd = _simd_kernel() if self.simd is not False else None
-            if simd is not None and (self.simd or simd_allowed()):
-                kind, plan = self._simd_choice(h, w, ch, scale)
-                if kind == "bucket":
-                    done = _BUCKET(src, plan[0], plan[1], out, ch)
-                elif kind == "search":
-                    done = simd(src, plan[0], plan[1], out, ch, plan[2])
-            if done < h * w:
-                rest, qs = slice(done * ch, None), slice(done * q.shape[1], None)
-                lookup_rgb, lookup_shared, _ = _kernels()
-                if q.shape[1] == ch == 3:
-                    lookup_rgb(src[rest], q.reshape(-1)[qs], k, table, out[rest])
-                else:
-                    lookup_shared(src[rest], q.reshape(-1)[qs], k, table, out[rest], ch)
-            out = out.reshape(h, w, ch)
-        return out[:, :, 0] if flat else out
+            return out[:, :, 0] if flat else out
+        kind, plan, q, k, table = self._fast_path(h, w, ch, scale)
+        src = np.ascontiguousarray(arr).reshape(-1)
+        dst = np.empty(src.size, dtype=np.uint8)  # a 64-byte aligned one: no faster (measured)
+        done = 0  # pixels corrected by an AVX-512 kernel; the scalar kernels do the rest
+        if kind == "bucket":
+            done = _BUCKET(src, plan[0], plan[1], dst, ch)
+        elif kind == "search":
+            done = _SIMD(src, plan[0], plan[1], dst, ch, plan[2])
+        if done < h * w:
+            rest, qs = slice(done * ch, None), slice(done * q.shape[1], None)
+            lookup_rgb, lookup_shared, _ = _kernels()
+            if q.shape[1] == ch == 3:
+                lookup_rgb(src[rest], q.reshape(-1)[qs], k, table, dst[rest])
+            else:
+                lookup_shared(src[rest], q.reshape(-1)[qs], k, table, dst[rest], ch)
+        return dst.reshape(h, w) if flat else dst.reshape(h, w, ch)
+
+    def _fast_path(self, height: int, width: int, channels: int, scale: float) -> tuple:
+        """``(kind, plan, q, k, table)`` of the uint8 fast path: the AVX-512 kernel and its plan
+        (:meth:`_simd_choice`; ``(None, None)`` where the scalar kernel does it all) and :meth:`_fast_tables`. The last
+        one is kept for the next call (a sequence of frames of one size), so that call checks nothing again."""
+        use_simd = self.simd is not False and _simd_kernel() is not None and (self.simd or simd_allowed())
+        key = (height, width, channels, scale, use_simd)
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        self._check_channels(channels)
+        q, k, table = self._fast_tables(height, width, channels, scale)
+        kind, plan = self._simd_choice(height, width, channels, scale) if use_simd else (None, None)
+        self._last = (key, (kind, plan, q, k, table))
+        return self._last[1]
 
     def correct_exact(self, image: np.ndarray, *, scale: float = 1.0) -> np.ndarray:
         """The exact float formula ``f(scale * f^-1(I) / V(x))`` in float32 levels (not rounded).
@@ -584,7 +595,7 @@ class Corrector:
             value = float(scale)
         except (TypeError, ValueError):
             raise TypeError(f"scale must be a number, got {scale!r}") from None
-        if not (np.isfinite(value) and value > 0):
+        if not (math.isfinite(value) and value > 0):
             raise ValueError(f"scale must be a positive finite number, got {scale!r}; use e.g. 0.8 to avoid "
                              "clipping at the corners")
         return value

@@ -318,3 +318,32 @@ def test_clamped_form_at_the_edge_of_16_bits(gap, applies):
     assert done == img.size // 64 * 64
     np.testing.assert_array_equal(out[:done], part[q[:done, 0].astype(np.int64) + k[0, levels[:done]]])
     assert {1, 2} <= set(np.unique(out[:done]))  # both thresholds crossed
+
+
+def test_one_corrector_over_changing_sizes_scales_and_settings(monkeypatch):
+    """Corrector.correct keeps the last size's kernel choice for the next call (_fast_path): a change of size, scale,
+    channels, ``RADIOMAP_SIMD`` or ``simd`` between calls must not reuse it."""
+    fast = Corrector(gammas(), radial(96, 128, 0.3))
+    rng = np.random.default_rng(8)
+    calls = []
+    bucket = correction._BUCKET
+    if bucket is not None:
+        monkeypatch.setattr(correction, "_BUCKET", lambda *args: calls.append(args[0].size) or bucket(*args))
+    steps = [((96, 128, 3), 0.8, None), ((48, 64, 3), 0.8, None), ((96, 128, 3), 0.5, None), ((96, 128, 3), 0.8, "0"),
+             ((96, 128, 3), 0.8, None), ((96, 128, 3), 0.8, "off")]
+    for shape, scale, env in steps:
+        if env is None:
+            monkeypatch.delenv("RADIOMAP_SIMD", raising=False)
+        else:
+            monkeypatch.setenv("RADIOMAP_SIMD", env)
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        calls.clear()
+        expected = Corrector(gammas(), radial(96, 128, 0.3), simd=False).correct(img, scale=scale)
+        np.testing.assert_array_equal(fast.correct(img, scale=scale), expected)
+        assert calls == ([img.size] if env is None and simd_available() else [])
+    fast.simd = False
+    calls.clear()
+    fast.correct(img, scale=0.8)
+    assert calls == []
+    with pytest.raises(correction.ModelMismatchError, match="1 channels|3 channels"):
+        fast.correct(img[:, :, 0], scale=0.8)  # grayscale against a 3-channel vignetting model, after a hit
