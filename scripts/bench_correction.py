@@ -15,7 +15,10 @@ in the CPU caches, and with ``--stream`` frames (default 64, 59 MB) cycled so th
 main memory.
 
 Rates are the best of several timing windows, by wall clock and by the process's CPU time (on a shared
-machine the CPU time leaves out the time other processes held the core). The process is pinned to one
+machine the CPU time leaves out the time other processes held the core). The share of the in-cache floor that the
+target line judges is the median over 15 pairs of short CPU-time windows, the correction's then the floor's, back
+to back: the best-of figures of the two are taken seconds apart, and on a shared machine the speed drifts by
++-10 % between them. The process is pinned to one
 CPU (``os.sched_setaffinity``) and BLAS/Numba are limited to one thread, so the numbers are single-core
 numbers. Usage::
 
@@ -47,6 +50,20 @@ def rate(fn, seconds: float, min_runs: int = 5, windows: int = 5) -> tuple[float
         wall = max(wall, n / (time.perf_counter() - start))
         cpu = max(cpu, n / max(time.process_time() - start_cpu, 1e-9))
     return wall, cpu
+
+
+def paired_share(fn, floor, seconds: float, rounds: int = 15) -> np.ndarray:
+    """``fn``'s rate over ``floor``'s in ``rounds`` pairs of short CPU-time windows taken back to back, so that a
+    change of the machine's speed during the run (a shared core, another process) moves both sides of a pair."""
+    def window(f, budget):
+        n, start = 0, time.process_time()
+        while n < 3 or time.process_time() - start < budget:
+            f()
+            n += 1
+        return n / max(time.process_time() - start, 1e-9)
+
+    budget = seconds / (2 * rounds)
+    return np.array([window(fn, budget) / window(floor, budget) for _ in range(rounds)])
 
 
 def _traffic_kernel():
@@ -105,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         res[label, "scalar"] = rate(cycling(lambda f: scalar.correct(f, scale=args.scale), count), s)
         res[label, "copy"] = rate(cycling(lambda f: np.copyto(out, f.reshape(-1)), count), s)
         res[label, "rw"] = rate(cycling(lambda f: read_write(f.reshape(-1), q, out), count), s)
+    pairs = paired_share(cycling(lambda f: corrector.correct(f, scale=args.scale), 4),
+                         cycling(lambda f: read_write(f.reshape(-1), q, out), 4), 2 * s)
     peer = rate(cycling(lambda f: correct_reference_numpy(f, response, vmap, scale=args.scale), 4), s,
                 min_runs=3)
     irr = rate(cycling(corrector.irradiance, 4), s)
@@ -154,9 +173,11 @@ def main(argv: list[str] | None = None) -> int:
           f"after rounding, {100 * frac:.3f}% of values differ")
     best = max(fast)
     print(f"  target >= {TARGET:.0f} frames/s: {'met' if best >= TARGET else 'NOT met'} (best {best:.0f})")
-    share = max(fast[i] / res["cache", "rw"][i] for i in range(2))
-    print(f"  target >= 25 % of the in-cache floor (issue 33): {'met' if share >= 0.25 else 'NOT met'} "
-          f"(best {100 * share:.0f} %)")
+    lo, mid, hi = np.percentile(100 * pairs, [10, 50, 90])
+    print(f"  share of the in-cache floor in {pairs.size} back-to-back pairs of CPU-time windows: median {mid:.1f} % "
+          f"(10-90 %: {lo:.1f}-{hi:.1f} %)")
+    print(f"  target >= 25 % of the in-cache floor (issue 33): {'met' if mid >= 25 else 'NOT met'} "
+          f"(median of the pairs {mid:.1f} %{'' if lo >= 25 else '; not in every pair'})")
     return 0
 
 
