@@ -58,16 +58,16 @@ def plot_response(ax, response, *, log: bool = False, label: str | None = None, 
     ``log=True`` uses a logarithmic irradiance axis (Debevec's ``g = ln f^-1`` up to the axis scale), which
     shows the dark levels. ``label`` prefixes the legend entries (e.g. a method name, to overlay several
     responses); ``line_kw`` go to ``ax.plot`` (e.g. ``linestyle="--"``). When the response carries its standard
-    error (``meta["inverse_stderr"]``) and ``band`` is True, a band of +-1 standard error is shaded around each
-    line; levels the fit extrapolated rather than estimated from data (``meta["extrapolated_levels"]``) are marked
+    error (``meta["inverse_stderr"]``) and ``band`` is True, a band of +-1 standard uncertainty (that error and the
+    levels' 8-bit width: :func:`radiometry.response.relative_uncertainty`) is shaded around each line; levels the fit extrapolated rather than estimated from data (``meta["extrapolated_levels"]``) are marked
     with open circles. Returns the lines.
     """
     table = np.asarray(response.inverse_table)
     n_ch = table.shape[1]
     levels = np.arange(table.shape[0])
-    from radiometry.response import relative_stderr
+    from radiometry.response import relative_uncertainty
 
-    se = relative_stderr(response) if band else None
+    se = relative_uncertainty(response) if band else None
     extrapolated = _channel_lists(response.meta, "extrapolated_levels", n_ch)
     lines = []
     for c in range(n_ch):
@@ -79,7 +79,7 @@ def plot_response(ax, response, *, log: bool = False, label: str | None = None, 
         lines += ax.plot(levels, y, label=f"{label} {name}" if label else name, **kw)
         if se is not None:
             ax.fill_between(levels, y * np.exp(-se[:, c]), y * np.exp(se[:, c]), color=kw["color"], alpha=0.25,
-                            linewidth=0, label="$\\pm$1 standard error" if c == 0 else None)
+                            linewidth=0, label="$\\pm$1 standard uncertainty" if c == 0 else None)
         if extrapolated is not None and extrapolated[c].size:
             k = extrapolated[c]
             ax.plot(k, y[k], linestyle="none", marker="o", markersize=4, markerfacecolor="none",

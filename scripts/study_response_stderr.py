@@ -5,7 +5,8 @@ stated standard error is the pixels' noise only").
 For each curve and camera pipeline of ``tests/camera_pipelines.py`` (written without radiometry) it renders a
 bracket of ``tests/response_curves.py``'s scene, fits it with the default fit and prints, per channel: the largest
 error of ``ln(f^-1(z) / f^-1(255))`` against the truth over the declared levels from 32 up (%), the share of those
-levels where the truth lies within two stated standard errors (``meta["inverse_stderr"]``), and with
+levels where the truth lies within two stated standard errors (``meta["inverse_stderr"]``), the same share for the
+stated uncertainty (:func:`radiometry.response.relative_uncertainty`: that and the levels' 8-bit width), and with
 ``--sensitivity`` the same share once the fit's sensitivity to its own weights (the largest change of ``ln f^-1``
 with the prior's or the smoothness weight x4 and /4: four more fits) is added in quadrature::
 
@@ -37,14 +38,14 @@ def study(curve: str, pipeline: str, *, design: str = "2x", width: int = 320, he
     from camera_pipelines import PIPELINES, render
     from radiometry.response.fit import fit_response
     from radiometry.response.levels import declared
-    from radiometry.response.model import relative_stderr
+    from radiometry.response.model import relative_stderr, relative_uncertainty
     from response_curves import TIMES, curves, scene
 
     times = TIMES if design == "2x" else TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
     table = curves()[curve]
     images = render(table, scene(height, width, seed=1), times, seed=2, **PIPELINES[pipeline])
     response = fit_response(images, times)
-    se = relative_stderr(response, 3)
+    se, stated = relative_stderr(response, 3), relative_uncertainty(response, 3)
     fitted = _log_table(response)
     sens = None
     if sensitivity:
@@ -59,7 +60,8 @@ def study(curve: str, pipeline: str, *, design: str = "2x", width: int = 320, he
         z = np.arange(max(lo, 32), hi + 1)
         err = np.abs(fitted[z, c] - np.log(truth[z, c] / truth[-1, c]))
         row = {"channel": "RGB"[c], "max_error_percent": round(100 * float(err.max()), 2),
-               "within_2se": round(float(np.mean(err <= 2 * se[z, c])), 2)}
+               "within_2se": round(float(np.mean(err <= 2 * se[z, c])), 2),
+               "within_2u": round(float(np.mean(err <= 2 * stated[z, c])), 2)}
         if sens is not None:
             wider = np.sqrt(se[z, c] ** 2 + sens[z, c] ** 2)
             row["within_2se_with_sensitivity"] = round(float(np.mean(err <= 2 * wider)), 2)
@@ -101,10 +103,12 @@ def main(argv: list[str] | None = None) -> int:
         for pipeline in args.pipelines.split(","):
             rows = study(curve, pipeline, design=args.design, width=width, height=height,
                          sensitivity=args.sensitivity)
-            cells = ", ".join(f"{r['channel']} {r['max_error_percent']:.2f} % / {100 * r['within_2se']:.0f} %"
+            cells = ", ".join(f"{r['channel']} {r['max_error_percent']:.2f} % / {100 * r['within_2se']:.0f} % / "
+                              f"{100 * r['within_2u']:.0f} %"
                               + (f" / {100 * r['within_2se_with_sensitivity']:.0f} %" if args.sensitivity else "")
                               for r in rows)
-            print(f"{curve:16s} {pipeline:14s} {args.design}: largest error / within 2 stderr"
+            print(f"{curve:16s} {pipeline:14s} {args.design}: largest error / within 2 stderr / within 2 stated "
+                  f"uncertainties (stderr and 8-bit width)"
                   f"{' / with sensitivity' if args.sensitivity else ''}: {cells}", flush=True)
     return 0
 

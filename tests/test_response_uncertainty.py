@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from radiometry.plots import new_figure, plot_response
-from radiometry.response import CameraResponse, relative_stderr
+from radiometry.response import CameraResponse, level_width, relative_stderr, relative_uncertainty
 from radiometry.response.fit import fit_response_debevec
 from response_curves import TIMES, gamma_curve, kink_curve, render_brackets, scene
 
@@ -128,13 +128,14 @@ def test_the_plot_shows_the_band_and_the_extrapolated_levels():
     assert len(bands) == 3  # one band per channel
     band = bands[0].get_paths()[0].vertices
     at_200 = band[np.isclose(band[:, 0], 200.0), 1]
-    np.testing.assert_allclose(sorted(at_200), [table[200, 0] * np.exp(-0.02), table[200, 0] * np.exp(0.02)],
-                               rtol=1e-9)
+    width = 2.2 / (200 * np.sqrt(12.0))  # gamma 2.2: f^-1'(z) / (sqrt(12) f^-1(z)) = 2.2 / (sqrt(12) z)
+    u = np.hypot(0.02, width)  # the stated error and the level's 8-bit width
+    np.testing.assert_allclose(sorted(at_200), [table[200, 0] * np.exp(-u), table[200, 0] * np.exp(u)], rtol=2e-4)
     markers = [line for line in ax.lines if line.get_marker() == "o"]
     assert [list(m.get_xdata()) for m in markers] == extrapolated
     np.testing.assert_allclose(markers[0].get_ydata(), table[extrapolated[0], 0])
     labels = ax.get_legend_handles_labels()[1]
-    assert "extrapolated (no data)" in labels and any("standard error" in t for t in labels)
+    assert "extrapolated (no data)" in labels and any("standard uncertainty" in t for t in labels)
 
 
 def test_the_plot_without_stderr_or_extrapolation_has_neither():
@@ -145,3 +146,48 @@ def test_the_plot_without_stderr_or_extrapolation_has_neither():
     response = CameraResponse(np.repeat(gamma_curve()[:, None], 3, axis=1), {"inverse_stderr": [[0.01] * 3] * 256})
     plot_response(ax, response, band=False)
     assert not ax.collections
+
+
+def test_level_width_is_the_relative_width_of_a_level():
+    gamma = CameraResponse.from_table(gamma_curve(2.2))
+    width = level_width(gamma, 3)
+    z = np.arange(16, 251)
+    np.testing.assert_allclose(width[z, 0], 2.2 / (np.sqrt(12.0) * z), rtol=0.01)  # f^-1'/f^-1 = 2.2 / z
+    assert width.shape == (256, 3) and width[0, 0] == width[1, 0] and np.all(np.isfinite(width))
+    dark = np.linspace(0, 1, 256) ** 2.2
+    dark[:4] = 0.0  # a clamped black level: f^-1 ~ 0 at levels 0..3 (its relative width unbounded at level 3)
+    wd = level_width(CameraResponse.from_table(dark + np.arange(256) * 1e-9), 1)
+    assert np.all(np.isfinite(wd)) and wd.max() == 1.0 and wd[3, 0] == 1.0 and wd[100, 0] < 0.01
+    assert relative_uncertainty(gamma) is None  # no standard error carried: nothing stated
+    stated = CameraResponse(gamma.inverse_table, {"inverse_stderr": np.full(256, 0.003).tolist()})
+    np.testing.assert_allclose(relative_uncertainty(stated, 3), np.hypot(0.003, width))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("curve", ["gamma-2.2", "s-curve"])
+@pytest.mark.parametrize("design", ["2x", "varied"])
+def test_the_stated_uncertainty_covers_a_clean_cameras_error(curve, design):
+    """On a clean camera (tests/camera_pipelines.py: photon and read noise, full-well clip, 8 bits; no JPEG, no
+    noise after the response) the default fit's error of ln(f^-1(z) / f^-1(255)) over its declared levels from 32
+    up lies within two stated uncertainties (the pixels' noise and the levels' 8-bit width) at 85-100 % of them
+    (measured 2026-11-28, 320x240, both designs); the pixels' noise alone covered 9-61 %. Other scene and noise
+    seeds: 74-100 % (noise alone 1-71 %); the EuRoC curve 47-94 % (docs/calibration_pipelines.md)."""
+    from camera_pipelines import render
+    from radiometry.response import relative_uncertainty
+    from radiometry.response.fit import fit_response
+    from radiometry.response.levels import declared
+    from response_curves import curves
+
+    times = TIMES if design == "2x" else TIMES * 2.0 ** np.random.default_rng(5).uniform(-0.35, 0.35, TIMES.size)
+    table = np.asarray(curves()[curve], dtype=np.float64).reshape(256, -1)
+    truth = np.repeat(table, 3, axis=1) if table.shape[1] == 1 else table
+    response = fit_response(render(table, scene(240, 320, seed=1), times, seed=2), times)
+    u, se = relative_uncertainty(response, 3), relative_stderr(response, 3)
+    inv = response.inverse_table.astype(np.float64)
+    covered, noise_only = [], []
+    for c, (lo, hi) in enumerate(declared(response, 3)):
+        z = np.arange(max(lo, 32), hi + 1)
+        err = np.abs(np.log(inv[z, c] / inv[-1, c]) - np.log(truth[z, c] / truth[-1, c]))
+        covered.append(np.mean(err <= 2 * u[z, c]))
+        noise_only.append(np.mean(err <= 2 * se[z, c]))
+    assert min(covered) >= 0.8 and min(noise_only) < 0.7, (covered, noise_only)

@@ -204,8 +204,9 @@ def test_kinked_response_sweep_stays_within_a_quarter_level_with_the_true_respon
 
 @pytest.mark.slow
 def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumulation(sweep, tmp_path):
-    """se(f^-1) = 0.5 % at every level: dlnV = sqrt(2) 0.5 % at every pixel, so the response part is
-    sqrt(2) 0.005 times the RMS of dI/dlnV = z / 2.2 (gamma 2.2) of the flat field at 200."""
+    """se(f^-1) = 0.5 % at every level, and the levels' 8-bit width w(z) = 2.2 / (sqrt(12) z) (gamma 2.2) added in
+    quadrature: dlnV = sqrt(u(z)^2 + u(200)^2) with u = sqrt(0.005^2 + w^2), so the response part is the RMS of
+    dI/dlnV = z / 2.2 of the flat field at 200 times that."""
     table, truth = sweep["table"], sweep["truth"]
     response = CameraResponse(table, {"inverse_stderr": np.full(256, 0.005)})
     frames = render_sweep(table, truth, frames=48, seed=2, full_well=3000.0)
@@ -218,10 +219,11 @@ def test_a_response_with_its_own_stderr_is_propagated_and_kept_with_the_accumula
     model = fit_vignetting(back, model="lut")
     v = model.evaluate().astype(np.float64)
     z = 255.0 * ((200 / 255.0) ** 2.2 * v) ** (1 / 2.2)
-    expected = np.sqrt(2) * 0.005 * np.sqrt(np.mean((z / 2.2) ** 2, axis=(0, 1)))
+    u2 = 0.005 ** 2 + (2.2 / (np.sqrt(12.0) * z)) ** 2 + 0.005 ** 2 + (2.2 / (np.sqrt(12.0) * 200.0)) ** 2
+    expected = np.sqrt(np.mean((z / 2.2) ** 2 * u2, axis=(0, 1)))
     np.testing.assert_allclose(model.info["error_budget"]["response"], expected, rtol=0.05)
     assert model.info["error_budget"]["response_source"].startswith(
-        "the response's own standard error (its pixels' noise only")
+        "the response's own standard error and its levels' 8-bit width")
     assert sweep["model"].info["error_budget"]["response_source"] == "roughness"
 
 
@@ -239,9 +241,10 @@ def test_a_fitted_response_carries_its_stderr_into_the_budget():
     acc = collect_vignetting(render_sweep(table, truth, frames=32, seed=3, full_well=3000.0), response,
                              progress=False)
     budget = fit_vignetting(acc, model="lut").info["error_budget"]
-    assert budget["response_source"].startswith("the response's own standard error (its pixels' noise only")
+    assert budget["response_source"].startswith("the response's own standard error and its levels' 8-bit width")
     part = np.asarray(budget["response"])
-    # se(f^-1) of this fit is 0.1-0.3 % over the sheet's levels: a few hundredths of a level, never NaN or zero
+    # se(f^-1) of this fit is 0.1-0.3 % over the sheet's levels, the 8-bit width 0.3-0.4 %: a few tenths of a
+    # level, never NaN or zero
     assert np.all(np.isfinite(part)) and np.all(part > 0.005) and np.all(part < 0.5), part
     rough = fit_vignetting(collect_vignetting(render_sweep(table, truth, frames=32, seed=3, full_well=3000.0),
                                               CameraResponse(response.inverse_table, {}), progress=False),

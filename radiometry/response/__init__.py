@@ -21,10 +21,12 @@ package's ``__init__``; ``tests/test_architecture.py`` fails on an import cycle)
 - :mod:`~radiometry.response.quality`: the truth-free quality figure (held-out prediction, split halves).
 """
 
-from radiometry.response.model import (KIND, LEVELS, CameraResponse, relative_stderr, repair_monotone,
+from radiometry.response.model import (KIND, LEVELS, CameraResponse, level_width, relative_stderr,
+                                       relative_uncertainty, repair_monotone,
                                        srgb_to_linear, validate_inverse_table)
 
-__all__ = ["KIND", "LEVELS", "CameraResponse", "relative_stderr", "repair_monotone", "srgb_to_linear",
+__all__ = ["KIND", "LEVELS", "CameraResponse", "level_width", "relative_stderr", "relative_uncertainty",
+           "repair_monotone", "srgb_to_linear",
            "validate_inverse_table", "fit_response", "METHODS", "load_brackets"]
 
 

@@ -178,7 +178,8 @@ def fit_response_debevec(images: Sequence[np.ndarray], times: Sequence[float], *
         "inverse_stderr": np.stack([sol["log_stderr"] for sol in solved], axis=1).tolist(),
         "inverse_stderr_source": ("debevec: covariance of the weighted least squares (smoothness rows as a prior; "
                                   "the pixels' noise only: the bias of the smoothness prior, at bends and at the "
-                                  "top levels is not in it)"),
+                                  "top levels is not in it; radiomap adds the levels' 8-bit width where it "
+                                  "states the response's error: radiometry.response.relative_uncertainty)"),
     }
     if scores is not None:
         meta.update({"lambda_selection": "cross-validation", "lambda_scores": scores})

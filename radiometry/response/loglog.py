@@ -85,7 +85,10 @@ _LEVELS_F = np.arange(LEVELS, dtype=np.float64)
 #: what the stated standard error leaves out (docs/calibration_pipelines.md, "The stated standard error")
 BIAS_NOT_IN = ("the fit's bias is not in it: the prior's choice where equal exposure ratios leave the curve open, "
                "the rounding of bends and the top levels by noise on the levels, the extrapolation; on simulated "
-               "stacks the bias was the larger part at most levels: judge the curve by quality.grade and "
+               "stacks the bias was the larger part at most levels. Where radiomap states the response's error "
+               "(the plot's band, a vignetting budget) it adds the levels' 8-bit width "
+               "(radiometry.response.relative_uncertainty), which covered most of a clean camera's error on simulated "
+               "stacks (the median level; not JPEG's or processing's): judge a curve by quality.grade and "
                "quality.bends")
 _HAT = np.maximum(np.minimum(_LEVELS_F, 255.0 - _LEVELS_F), 1.0)
 

@@ -99,6 +99,33 @@ def relative_stderr(response: "CameraResponse", channels: int | None = None) -> 
     return np.repeat(arr, channels, axis=1) if arr.shape[1] == 1 else arr
 
 
+def level_width(response: "CameraResponse", channels: int | None = None) -> np.ndarray:
+    """The relative width of each 8-bit level in ``f^-1``, as a standard uncertainty: ``f^-1'(z) / (sqrt(12)
+    f^-1(z))`` per level, float64 ``(256, channels)``, at most 1 (level 0, where ``f^-1`` may be 0: level 1's).
+
+    A fit maps a level to the mean exposure of the pixels that read it, which lies anywhere in the level's span
+    depending on how the scene's irradiances and the noise fall in it; on simulated clean stacks the fits' errors
+    were of this size (docs/calibration_pipelines.md), far above the pixels' noise that :func:`relative_stderr`
+    states."""
+    channels = response.channels if channels is None else channels
+    tables = response.channel_tables(channels).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        width = np.gradient(tables, axis=0) / (np.sqrt(12.0) * tables)
+    width[0] = np.where(tables[0] > 0, width[0], width[1])
+    return np.minimum(np.where(np.isfinite(width) & (width >= 0), width, 1.0), 1.0)
+
+
+def relative_uncertainty(response: "CameraResponse", channels: int | None = None) -> np.ndarray | None:
+    """The relative standard uncertainty of ``f^-1`` per level that radiomap states for a fitted response (the
+    response plot's band, the response part of a vignetting calibration's error budget): its own standard error
+    (:func:`relative_stderr`, the pixels' noise) and the levels' 8-bit width (:func:`level_width`) in quadrature,
+    float64 ``(256, channels)``; None when the response carries no standard error. Still not in it: the bias that
+    noise on the levels (JPEG, processing after the response) puts on a fit, the rounding of sharp bends and the
+    extrapolation past the declared levels."""
+    se = relative_stderr(response, channels)
+    return None if se is None else np.hypot(se, level_width(response, se.shape[1]))
+
+
 @dataclass(frozen=True, eq=False)
 class CameraResponse:
     """Inverse camera response: ``inverse_table[I, c] = f_c^-1(I)``, normalised to 1 at I = 255."""

@@ -22,9 +22,10 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
   level ``z`` each pixel saw, averaged over the levels a pixel's noise spreads its samples. When the response's
   ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel, as
   :func:`~radiometry.response.fit.fit_response_debevec` and
-  :func:`~radiometry.response.loglog.fit_response_loglog` record it) that is
-  propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``; that error is the fit's noise only, not its
-  bias, so this part too is a lower bound: docs/calibration_pipelines.md); else its roughness, the departure of
+  :func:`~radiometry.response.loglog.fit_response_loglog` record it), that and the levels' 8-bit width
+  (:func:`radiometry.response.relative_uncertainty`) are propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``;
+  the bias that noise on the levels, JPEG or a sharp bend put on the fit is not in it, so this part too is a lower
+  bound: docs/calibration_pipelines.md); else its roughness, the departure of
   ``ln f^-1`` from a local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape
   (a rounded knee) is invisible to it, so this part is a lower bound.
@@ -36,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.response import CameraResponse, relative_stderr
+from radiometry.response import CameraResponse, relative_stderr, relative_uncertainty
 
 
 def _blur(a: np.ndarray, sigma: float, *, squared: bool = False) -> np.ndarray:
@@ -174,7 +175,7 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     resp = np.full(ch, np.nan)
     given = None
     if with_response:
-        given = response_log_stderr(response, ch)
+        given = relative_uncertainty(response, ch)
         rough = response_log_roughness(response, ch) if given is None else given
         tables = response.channel_tables(ch).astype(np.float64)
         levels = np.arange(256.0)
@@ -202,7 +203,8 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     out: dict[str, Any] = {name: [round(float(x), 4) for x in p] for name, p in parts.items()}
     out["total"] = [round(float(x), 4) for x in total]
     out["response_source"] = ("none" if not with_response else "roughness" if given is None
-                              else "the response's own standard error (its pixels' noise only: a lower bound)")
+                              else "the response's own standard error and its levels' 8-bit width (not the bias of noise "
+                              "on the levels or of a bend: a lower bound)")
     out["level"] = float(level)
     out["min_samples"] = int(min_samples)
     return out
