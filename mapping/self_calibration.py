@@ -128,6 +128,14 @@ class SelfCalibrationFolder(ResultsFolder):
         self._completed = True
         super().complete()
 
+    def __exit__(self, exc_type, exc, tb) -> None:
+        from radiometry.errors import RadiomapError
+
+        if exc_type is not None and issubclass(exc_type, RadiomapError):
+            self.refuse()   # a refusal (data that cannot constrain V, too few poses, ...): no trace, no --force next
+        else:
+            super().__exit__(exc_type, exc, tb)
+
     def release(self) -> None:
         if self._publication is not None:   # not completed: the staged files go, the previous set stands
             publication, self._publication, self._set = self._publication, None, None

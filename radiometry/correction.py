@@ -377,6 +377,13 @@ class Corrector:
     def __repr__(self) -> str:
         return f"Corrector({self.response!r}, {self.vignetting!r})"
 
+    def __setattr__(self, name: str, value) -> None:
+        super().__setattr__(name, value)
+        if name in ("response", "vignetting", "gain_levels") and "_last" in self.__dict__:
+            for cache in (self._gains, self._tables, self._plans, self._bucket_plans):
+                cache.clear()  # a new model: every table, plan and gain map was made for the old one
+            self._last = None
+
     # ---------------------------------------------------------------- cached per-size data
     def _remember(self, cache: OrderedDict, key, value):
         cache[key] = value
@@ -538,13 +545,15 @@ class Corrector:
         one is kept for the next call (a sequence of frames of one size), so that call checks nothing again."""
         use_simd = self.simd is not False and _simd_kernel() is not None and (self.simd or simd_allowed())
         key = (height, width, channels, scale, use_simd)
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
+        last = self._last  # read once: another thread may replace it meanwhile
+        if last is not None and last[0] == key:
+            return last[1]
         self._check_channels(channels)
         q, k, table = self._fast_tables(height, width, channels, scale)
         kind, plan = self._simd_choice(height, width, channels, scale) if use_simd else (None, None)
-        self._last = (key, (kind, plan, q, k, table))
-        return self._last[1]
+        parts = (kind, plan, q, k, table)
+        self._last = (key, parts)
+        return parts
 
     def correct_exact(self, image: np.ndarray, *, scale: float = 1.0) -> np.ndarray:
         """The exact float formula ``f(scale * f^-1(I) / V(x))`` in float32 levels (not rounded).

@@ -349,3 +349,48 @@ def test_correct_writes_the_relative_stderr_on_request(sweep, model_file, tmp_pa
     result = invoke("correct", frame, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "out3",
                     "--stderr", tmp_path / "x.png")
     assert result.exit_code == 2 and ".npy, .tiff or .exr" in result.output
+
+
+@pytest.mark.slow
+def test_the_grade_says_what_the_response_and_the_budget_say(sweep, tmp_path):
+    """The summary's last line is the calibration's grade with every reason that lowered it, as the JSON records it:
+    a response graded broken when it was calibrated makes the calibration broken, an assumed one (``response
+    --gamma``) doubtful; a calibrated response with a budget within 0.5 levels leaves it good."""
+    from radiometry.formats import load_response
+
+    true = load_response(sweep["response"])
+    broken = tmp_path / "broken.npz"
+    CameraResponse(true.inverse_table, {**true.meta, "quality": {
+        "grade": "broken", "summary": "quality broken: held-out prediction 40 levels RMS"}}).save(broken)
+    assert invoke("response", "--gamma", "2.2", "-o", tmp_path / "g22.npz").exit_code == 0
+    grades = {}
+    for name, response in (("true", sweep["response"]), ("broken", broken), ("assumed", tmp_path / "g22.npz")):
+        out = tmp_path / name / "vig.npz"
+        result = invoke("vignetting", sweep["rgb"], "--response", response, "-o", out, "--no-plots")
+        assert result.exit_code == 0, result.output
+        last = result.stdout.strip().splitlines()[-1]
+        facts = _summary(out.with_name("vig"))
+        assert last.startswith(f"quality: {facts['quality']}"), (last, facts["quality"])
+        grades[name] = (facts["quality"], last, facts["error_budget"]["total"])
+        if name == "assumed":  # gamma 2.2 given, not measured: the budget cannot put a number on its error
+            assert facts["error_budget"]["response_source"] == "assumed", facts["error_budget"]
+            assert "response (assumed, not calibrated: its error is unknown" in result.stdout
+    assert grades["broken"][0] == "broken" and "graded broken when it was calibrated" in grades["broken"][1]
+    assert grades["assumed"][0] == "doubtful" and "assumed (gamma 2.2)" in grades["assumed"][1]
+    total = max(grades["true"][2])
+    assert (grades["true"][0] == "good") == (total <= 0.5 and "split-half" not in grades["true"][1]), grades["true"]
+
+
+@pytest.mark.slow
+def test_a_budget_above_half_a_level_is_not_graded_good(sweep):
+    from mapping.cli.vignetting import _truth_free_lines
+    from radiometry.formats import load_response
+    from radiometry.vignetting_calibration import collect_vignetting
+
+    response = load_response(sweep["response"])
+    acc = collect_vignetting(str(sweep["rgb"]), response, progress=False)
+    for total, grade in (([0.2, 0.3, 0.2], "good"), ([0.2, 0.8, 0.2], "doubtful")):
+        facts = {"error_budget": {"total": total}}
+        lines = _truth_free_lines(acc, response, "lut", {}, facts, True)
+        assert facts["quality"] == grade and lines[-1].startswith(f"quality: {grade}"), lines
+    assert "the error budget's total is 0.80 levels" in lines[-1]

@@ -347,3 +347,21 @@ def test_one_corrector_over_changing_sizes_scales_and_settings(monkeypatch):
     assert calls == []
     with pytest.raises(correction.ModelMismatchError, match="1 channels|3 channels"):
         fast.correct(img[:, :, 0], scale=0.8)  # grayscale against a 3-channel vignetting model, after a hit
+
+
+def test_a_new_model_on_a_used_corrector_is_checked_and_used():
+    """Reassigning ``vignetting`` or ``response`` clears every cached table and the last kernel choice: an
+    incompatible model raises, a compatible one is applied (not the old one's tables)."""
+    gray = np.random.default_rng(9).integers(0, 256, (48, 64), dtype=np.uint8)
+    fast = Corrector(gammas(1), radial(48, 64, 0.3, channels=1))
+    fast.correct(gray, scale=0.8)
+    fast.vignetting = radial(48, 64, 0.3)  # 3 channels: does not apply to a grayscale image
+    with pytest.raises(correction.ModelMismatchError):
+        fast.correct(gray, scale=0.8)
+    mild = radial(48, 64, 0.6, channels=1)
+    fast.vignetting = mild
+    expected = Corrector(gammas(1), mild, simd=False).correct(gray, scale=0.8)
+    np.testing.assert_array_equal(fast.correct(gray, scale=0.8), expected)
+    fast.response = s_curve(1)
+    expected = Corrector(s_curve(1), mild, simd=False).correct(gray, scale=0.8)
+    np.testing.assert_array_equal(fast.correct(gray, scale=0.8), expected)

@@ -170,7 +170,7 @@ def test_the_stated_uncertainty_covers_a_clean_cameras_error(curve, design):
     """On a clean camera (tests/camera_pipelines.py: photon and read noise, full-well clip, 8 bits; no JPEG, no
     noise after the response) the default fit's error of ln(f^-1(z) / f^-1(255)) over its declared levels from 32
     up lies within two stated uncertainties (the pixels' noise and the levels' 8-bit width) at 85-100 % of them
-    (measured 2026-11-28, 320x240, both designs); the pixels' noise alone covered 9-61 %. Other scene and noise
+    (measured 2026-11-28, 320x240, both designs); the pixels' noise alone covered 9-59 %. Other scene and noise
     seeds: 74-100 % (noise alone 1-71 %); the EuRoC curve 47-94 % (docs/calibration_pipelines.md)."""
     from camera_pipelines import render
     from radiometry.response import relative_uncertainty

@@ -435,3 +435,30 @@ def test_given_exposures_are_looked_up_relative_to_the_first_frame():
         est.estimate(SimpleNamespace(index=7, timestamp=0.2))
     with pytest.raises(ValueError, match="finite and > 0"):
         GivenExposures(CameraResponse.gamma(2.2), known={1: [1.0, -1.0, 1.0]})
+
+
+@pytest.mark.slow
+def test_a_run_refused_after_the_folder_was_made_leaves_no_trace(room, tmp_path, monkeypatch):
+    """A refusal raised while the run works (data that cannot constrain V, found only after reading the frames)
+    removes the RUNNING marker and the folder this run made: the next run into it needs no --force
+    (docs/real_inputs.md, "A refused run writes nothing")."""
+    from click.testing import CliRunner
+
+    from mapping import self_calibration as msc
+    from mapping.cli import cli
+    from radiometry.self_calibration import SelfCalibrationError
+
+    def refuse(*args, **kwargs):
+        raise SelfCalibrationError("the sequence cannot constrain vignetting: too few surface points")
+
+    out = tmp_path / "sc"
+    args = ["self-calibrate", str(room), "-r", str(room / "truth" / "response.npz"), "--poses", "gt", "-o", str(out),
+            "--no-progress", "--no-plots", "--frames", "0:20"]
+    with monkeypatch.context() as m:
+        m.setattr(msc, "_solve_and_check", refuse)
+        res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 1 and "cannot constrain vignetting" in res.output
+    assert not out.exists()
+    res = CliRunner().invoke(cli, args)            # not refused for an earlier run: there was none
+    assert res.exit_code == 0, res.output
+    assert (out / "vignetting.npz").is_file()

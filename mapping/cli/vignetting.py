@@ -169,14 +169,28 @@ def frame_scale_spread(acc) -> float:
     return float(np.max(scales) / np.min(scales) - 1.0)
 
 
+#: responses radiomap did not calibrate but assumed (``radiomap response --gamma`` / ``--linear``)
+ASSUMED_RESPONSES = ("gamma", "linear")
+
+
 def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: dict, drift: bool) -> list[str]:
     """The figures a user without the truth can judge a calibration by (also recorded in ``facts``): the split-half
-    uncertainty (the model on the even and the odd frames) and the spread of the frames' brightness."""
+    uncertainty (the model on the even and the odd frames), the error budget's total, JPEG frames, the spread of the
+    frames' brightness and the response's own grade; the last line is the calibration's grade (``facts["quality"]``:
+    good, doubtful or broken) with every reason that lowered it."""
     import numpy as np
 
+    from radiometry.response.levels import BLOCKY
     from radiometry.vignetting_calibration.evaluate import split_half_levels
 
-    lines = []
+    lines, reasons, grade = [], [], "good"
+
+    def lower(to: str, reason: str) -> None:
+        nonlocal grade
+        if ("good", "doubtful", "broken").index(to) > ("good", "doubtful", "broken").index(grade):
+            grade = to
+        reasons.append(reason)
+
     split = split_half_levels(acc, response, model=model_name, **fit_options)
     names = "R/G/B" if acc.channels == 3 else "grey"
     if split is None:
@@ -185,24 +199,24 @@ def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: 
     else:
         facts["split_half_levels"] = [round(float(v), 4) for v in split]
         worst = float(np.max(split))
-        grade = "good" if worst <= SPLIT_GOOD_LEVELS else "doubtful"
-        facts["quality"] = grade
         text = "/".join(f"{v:.3f}" for v in split)
         lines.append(f"split-half uncertainty ({names}, levels of a flat field at 200; the model on the even vs the "
-                     f"odd frames, halved): {text}: {grade}"
-                     + ("" if grade == "good" else f" (trusted up to {SPLIT_GOOD_LEVELS:g}); record a longer sweep "
-                                                   "that covers every part of the image several times"))
-    from radiometry.response.levels import BLOCKY
-
+                     f"odd frames, halved): {text} (trusted up to {SPLIT_GOOD_LEVELS:g})")
+        if worst > SPLIT_GOOD_LEVELS:
+            lower("doubtful", f"the split-half uncertainty is {worst:.2f} levels: record a longer sweep that covers "
+                              "every part of the image several times")
+    budget = facts.get("error_budget") or {}
+    total = np.nan_to_num(np.asarray(budget.get("total", [0.0]), dtype=np.float64), nan=0.0)
+    if total.size and float(total.max()) > SPLIT_GOOD_LEVELS:
+        lower("doubtful", f"the error budget's total is {float(total.max()):.2f} levels (its parts above)")
     blocky = getattr(acc, "blockiness", None)
     facts["blockiness"] = None if blocky is None else round(float(blocky), 3)
     if blocky is not None and blocky > BLOCKY:
-        facts["quality"] = "doubtful"
-        lines.append(f"note: the frames are JPEG-compressed (blockiness {blocky:.2f}): JPEG rounds a sheet that looks "
-                     f"the same in every frame the same way every time, an error the split-half figure does not see "
-                     f"(0.4-1.9 levels on simulated JPEG sweeps with the true response, "
-                     f"docs/calibration_pipelines.md); record PNG or raw frames for a LUT within "
-                     f"{SPLIT_GOOD_LEVELS:g} levels")
+        lower("doubtful", f"the frames are JPEG-compressed (blockiness {blocky:.2f}): JPEG rounds a sheet that looks "
+                          "the same in every frame the same way every time, an error the split-half figure does not "
+                          "see (0.4-1.9 levels on simulated JPEG sweeps with the true response, "
+                          f"docs/calibration_pipelines.md); record PNG or raw frames for a LUT within "
+                          f"{SPLIT_GOOD_LEVELS:g} levels")
     spread = frame_scale_spread(acc)
     facts["frame_scale_spread"] = round(spread, 4)
     if spread > SCALE_SPREAD:
@@ -214,4 +228,21 @@ def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: 
             lines.append(f"warning: the sheet's brightness varied by {100 * spread:.0f}% between frames (auto "
                          "exposure on, or the light changing) and --no-drift-correction averaged it into V; drop "
                          "that option or record with a fixed exposure")
+        if spread > SCALE_SPREAD_REFUSED or not drift:
+            lower("doubtful", f"the sheet's brightness varied by {100 * spread:.0f}% between frames (up to ~0.7 "
+                              "levels of error after the drift correction): record with a fixed exposure")
+    meta = getattr(response, "meta", {}) or {}
+    given = (meta.get("quality") or {}).get("grade") if isinstance(meta.get("quality"), dict) else None
+    if given in ("doubtful", "broken"):
+        lower(given, f"the response was graded {given} when it was calibrated (radiomap response; its summary says "
+                     "why): V is only as right as the response it was measured through"
+                     + ("; calibrate the response again" if given == "broken" else ""))
+    elif meta.get("method") in ASSUMED_RESPONSES:
+        what = f"gamma {meta.get('gamma'):g}" if meta.get("method") == "gamma" else "linear"
+        lower("doubtful", f"the response is assumed ({what}), not calibrated: V is only as right as that assumption "
+                          "and no error budget can say how wrong it is (a camera whose response is not "
+                          f"{what} gives a V off by levels); calibrate it from brackets (radiomap response)")
+    facts["quality"] = grade
+    facts["quality_reasons"] = reasons
+    lines.append(f"quality: {grade}" + ("" if not reasons else ": " + "; ".join(reasons)))
     return lines

@@ -87,8 +87,8 @@ BIAS_NOT_IN = ("the fit's bias is not in it: the prior's choice where equal expo
                "the rounding of bends and the top levels by noise on the levels, the extrapolation; on simulated "
                "stacks the bias was the larger part at most levels. Where radiomap states the response's error "
                "(the plot's band, a vignetting budget) it adds the levels' 8-bit width "
-               "(radiometry.response.relative_uncertainty), which covered most of a clean camera's error on simulated "
-               "stacks (the median level; not JPEG's or processing's): judge a curve by quality.grade and "
+               "(radiometry.response.relative_uncertainty), which covered most levels of a clean camera's error on "
+               "simulated stacks, not the bias from JPEG or later processing: judge a curve by quality.grade and "
                "quality.bends")
 _HAT = np.maximum(np.minimum(_LEVELS_F, 255.0 - _LEVELS_F), 1.0)
 

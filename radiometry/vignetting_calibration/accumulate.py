@@ -161,6 +161,7 @@ class VignettingAccumulator:
                                       skipped=dict(skipped or {}), source=source,
                                       response_table=self.response.inverse_table.copy(),
                                       response_stderr=response_log_stderr(self.response, ch),
+                                      response_method=str(self.response.meta.get("method", "")),
                                       odd=(self.odd_count.copy(), self.odd_sum.copy(), self.odd_sumsq.copy()),
                                       level_hist=self.level_hist.copy())
 
@@ -222,6 +223,9 @@ class VignettingAccumulation:
     #: how blocky the frames are (:func:`radiometry.response.levels.blockiness` of the first few used frames; above
     #: ``BLOCKY`` they are JPEG-compressed), None when not measured
     blockiness: float | None = None
+    #: the response's ``meta["method"]`` ("gamma" or "linear": assumed, not calibrated; the budget then says its part
+    #: is unknown), "" when not known
+    response_method: str = ""
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---------------------------------------------------------------- basic properties
@@ -256,6 +260,8 @@ class VignettingAccumulation:
         if self.response_table is None:
             return None
         meta = {} if self.response_stderr is None else {"inverse_stderr": np.asarray(self.response_stderr).tolist()}
+        if self.response_method:
+            meta["method"] = self.response_method
         return CameraResponse(self.response_table, meta)
 
     def coverage(self) -> np.ndarray:
@@ -379,6 +385,8 @@ class VignettingAccumulation:
         meta = {"block": self.block, "skipped": self.skipped, "source": self.source}
         if self.blockiness is not None:     # kept, so that a fit of the saved accumulation still says "JPEG"
             meta["blockiness"] = float(self.blockiness)
+        if self.response_method:
+            meta["response_method"] = self.response_method
         return save_model_file(path, ACCUMULATION_KIND, arrays, meta)
 
     @classmethod
@@ -396,7 +404,8 @@ class VignettingAccumulation:
                             arrays["odd_sumsq"].astype(np.float64))
                            if all(k in arrays for k in ("odd_count", "odd_sum", "odd_sumsq")) else None),
                       level_hist=None if "level_hist" not in arrays else arrays["level_hist"].astype(np.int64),
-                      blockiness=None if meta.get("blockiness") is None else float(meta["blockiness"]))
+                      blockiness=None if meta.get("blockiness") is None else float(meta["blockiness"]),
+                      response_method=str(meta.get("response_method", "")))
         except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationFileError(f"{path}: incomplete vignetting accumulation ({exc}); re-collect it") from None
         if acc.sum.shape != acc.count.shape or acc.sumsq.shape != acc.count.shape or acc.count.ndim != 3:

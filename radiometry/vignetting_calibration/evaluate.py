@@ -144,6 +144,8 @@ def budget_text(budget: dict, channels: int) -> str:
              ("normalisation", "normalisation (V = 1 at the centre)"),
              ("response", "response (propagated; its roughness only: a lower bound)"
               if budget.get("response_source", "roughness") == "roughness"
+              else "response (assumed, not calibrated: its error is unknown, not in the total)"
+              if budget.get("response_source") == "assumed"
               else f"response (propagated: {budget['response_source']})"), ("total", "total")]
     lines = [f"expected error, levels of a flat field at {budget.get('level', 200):g} ({names}):"]
     for key, label in parts:

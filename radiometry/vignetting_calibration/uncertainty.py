@@ -23,9 +23,11 @@ Budget (:func:`error_budget`): every standard error is turned into 8-bit levels 
   ``meta`` carries its own standard error (``"inverse_stderr"``, relative, per level and channel, as
   :func:`~radiometry.response.fit.fit_response_debevec` and
   :func:`~radiometry.response.loglog.fit_response_loglog` record it), that and the levels' 8-bit width
-  (:func:`radiometry.response.relative_uncertainty`) are propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``;
-  the bias that noise on the levels, JPEG or a sharp bend put on the fit is not in it, so this part too is a lower
-  bound: docs/calibration_pipelines.md); else its roughness, the departure of
+  (:func:`radiometry.response.relative_uncertainty`) are propagated (``dlnV = sqrt(se(z_x)^2 + se(z_centre)^2)``:
+  the errors at the pixel's level and the centre's taken as independent, an overestimate where the two are close,
+  e.g. near the centre; the bias that noise on the levels, JPEG or a sharp bend put on the fit is not in it: on
+  simulated 2x and varied brackets it was 1.1-2.3x the LUT's measured error, docs/guides/calibrate.md); else its
+  roughness, the departure of
   ``ln f^-1`` from a local quadratic over 9 levels, as one signed error pattern. Roughness is what a
   fit without a smoothness prior (Engel) leaves as level-to-level error; a smooth error of the whole curve's shape
   (a rounded knee) is invisible to it, so this part is a lower bound.
@@ -174,7 +176,8 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     normalisation = np.sqrt(np.mean((gain * norm_se[None, None, :]) ** 2, axis=(0, 1)))
     resp = np.full(ch, np.nan)
     given = None
-    if with_response:
+    assumed = with_response and response.meta.get("method") in ("gamma", "linear")  # not measured: error unknown
+    if with_response and not assumed:
         given = relative_uncertainty(response, ch)
         rough = response_log_roughness(response, ch) if given is None else given
         tables = response.channel_tables(ch).astype(np.float64)
@@ -202,9 +205,9 @@ def error_budget(lut: np.ndarray, stderr: np.ndarray, count: np.ndarray, flat: n
     total = np.sqrt(sum(np.nan_to_num(p) ** 2 for p in parts.values()))
     out: dict[str, Any] = {name: [round(float(x), 4) for x in p] for name, p in parts.items()}
     out["total"] = [round(float(x), 4) for x in total]
-    out["response_source"] = ("none" if not with_response else "roughness" if given is None
-                              else "the response's own standard error and its levels' 8-bit width (not the bias of noise "
-                              "on the levels or of a bend: a lower bound)")
+    out["response_source"] = ("none" if not with_response else "assumed" if assumed else "roughness" if given is None
+                              else "the response's own standard error and its levels' 8-bit width, independent at the "
+                              "pixel's level and the centre's (not the bias of noise on the levels or of a bend)")
     out["level"] = float(level)
     out["min_samples"] = int(min_samples)
     return out
