@@ -88,11 +88,11 @@ def _traffic_kernel():
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--width", type=int, default=640)
-    parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--seconds", type=float, default=3.0, help="timing budget per implementation")
-    parser.add_argument("--scale", type=float, default=0.8)
-    parser.add_argument("--stream", type=int, default=64, help="frames cycled for the main-memory figures")
+    parser.add_argument("--width", type=int, default=640, help="frame width (default 640; the targets are at 640x480)")
+    parser.add_argument("--height", type=int, default=480, help="frame height (default 480)")
+    parser.add_argument("--seconds", type=float, default=3.0, help="timing budget per implementation (default 3)")
+    parser.add_argument("--scale", type=float, default=0.8, help="the correction's brightness scale (default 0.8)")
+    parser.add_argument("--stream", type=int, default=64, help="frames cycled for the main-memory figures (default 64)")
     args = parser.parse_args(argv)
     pinned = pin_to_one_core()
     import numba
@@ -179,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
               f"({100 * sc_l[0] / rw_l[0]:.0f} % / {100 * sc_l[1] / rw_l[1]:.0f} % of the floor)")
     print(f"  deviation from the exact formula  : max {dev_float:.3f} levels (unrounded), max {dev_rounded} level "
           f"after rounding, {100 * frac:.3f}% of values differ")
+    if (w, h) != (640, 480):
+        print(f"  targets (2,000 frames/s; 25 % of the in-cache floor) are defined at 640x480: not judged at {w}x{h}")
+        return 0
     best = max(fast)
     print(f"  target >= {TARGET:.0f} frames/s: {'met' if best >= TARGET else 'NOT met'} (best {best:.0f})")
     lo, mid, hi = np.percentile(100 * pairs, [10, 50, 90])
