@@ -125,10 +125,13 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
 
         response.meta["quality"] = assess(images, stack_times, response, mask=options.get("mask"),
                                           method=method if quality == "full" else None,
-                                          fit_options={k: v for k, v in options.items() if k != "mask"})
+                                          fit_options={k: v for k, v in options.items() if k != "mask"},
+                                          fit_rms=rms)
         if response.meta["quality"]["grade"] != "good":
             log.warning("%s%s", where, response.meta["quality"]["summary"])
-    if not np.isfinite(rms) or rms > 10:
+    from radiometry.response.quality import FIT_RMS_WARNING
+
+    if not np.isfinite(rms) or rms > FIT_RMS_WARNING:
         log.warning("%sthe response predicts the images with an RMS error of %.1f levels: motion, misregistration, "
                     "wrong exposure times or auto exposure/white balance?", where, rms)
     return response
