@@ -103,6 +103,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set, refuse_inputs
     from radiometry.api import calibrate_response
     from radiometry.response.fit import blue_fill_mask, find_times_file, load_brackets
+    from radiometry.response.inputs import TimesOrderError
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
               "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,
@@ -163,6 +164,8 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     start = time.perf_counter()
     try:  # the fit and its prediction error, as radiometry.calibrate_response does them
         response = calibrate_response(images, times, method=method, quality=quality, **kwargs)
+    except TimesOrderError as exc:  # the times file's fault: name it and the images that disagree
+        raise DatasetError(f"{used_times}: {exc.message(names)}") from None
     except ValueError as exc:  # the images or times of this folder are unusable
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
     except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
