@@ -116,7 +116,12 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
             raise
         raise DatasetError(f"{where}{exc}") from None
     except CalibrationError as exc:
-        raise CalibrationError(f"{where}{exc}") from None
+        message = str(exc)
+        if where:  # a folder: too few levels may be the reduction of its 16-bit images to 8 bits
+            from radiometry.images import with_sixteen_bit_note
+
+            message = with_sixteen_bit_note(message, [p for p in sorted(folder.iterdir()) if p.is_file()])
+        raise CalibrationError(f"{where}{message}") from None
     response.meta["prediction_rms_levels"] = rms
     if quality not in ("full", "fast", "none"):
         raise ValueError(f"quality must be 'full', 'fast' or 'none', got {quality!r}")
