@@ -119,7 +119,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue:
             raise click.UsageError("--gamma and --linear write a standard response: they take no FOLDER, --times, "
                                    "--lambda, --samples or --mask-blue")
-        check_overwrite(output, force=force)
+        check_overwrite(output, *_companions(output), force=force)
         _write_standard(output, suffix, gamma, params)
         return
     if folder is None:
@@ -146,13 +146,13 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         kwargs["lam"] = lam
     if samples is not None:
         kwargs["samples"] = samples
-    check_overwrite(output, force=force)
+    check_overwrite(output, *_companions(output), force=force)
     ensure_dir(output.parent)  # an unwritable output fails now, not after the fit
 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     used_times = times_file if times_file is not None else find_times_file(folder)
-    refuse_inputs([output, output.with_suffix(".png"), output.with_suffix(".json")],
+    refuse_inputs([output, *_companions(output)],
                   [used_times, *(p for p in folder.iterdir() if p.is_file())])
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     if mask_blue:
@@ -223,6 +223,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "
                    "or auto exposure/white balance; check the plot", err=True)
+
+
+def _companions(output: Path) -> list[Path]:
+    """The files written beside the response: its plot and its record."""
+    return [output.with_suffix(".png"), output.with_suffix(".json")]
 
 
 def _write_standard(output: Path, suffix: str, gamma: float | None, params: dict) -> None:
