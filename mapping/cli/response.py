@@ -116,9 +116,10 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if standard:
         if gamma is not None and linear:
             raise click.UsageError("give --gamma or --linear, not both")
-        if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue:
+        if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue \
+                or channel is not None:
             raise click.UsageError("--gamma and --linear write a standard response: they take no FOLDER, --times, "
-                                   "--lambda, --samples or --mask-blue")
+                                   "--lambda, --samples, --mask-blue or --channel (every channel is the same)")
         check_overwrite(output, *_companions(output), force=force)
         _write_standard(output, suffix, gamma, params)
         return
