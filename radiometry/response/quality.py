@@ -33,7 +33,8 @@ from radiometry.response.model import LEVELS, CameraResponse
 
 #: held-out RMS over the images' own noise (x 1.2 for the merge's) up to which a response is trusted, and beyond which
 #: it is called broken. Measured: good fits 0.92-1.52 (clean, JPEG q92, noise after the response), a camera moved
-#: 1-2 px 8.4, the wrong curve 18.6; the real stacks memorial (film, reciprocity failure) 2.9 and taipei 2.1
+#: 1-2 px 8.4, the wrong curve 18.6; the real stacks memorial (film, reciprocity failure) 3.02 and taipei 2.83
+#: (2026-11-28, with refits)
 HOLDOUT_GOOD = 2.0
 HOLDOUT_BROKEN = 4.0
 #: on JPEG stacks (radiometry.response.levels.blockiness) both thresholds are this many times larger: the Laplacian
@@ -270,7 +271,8 @@ def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
     why = []  # what keeps a response whose ratio looks good from being graded good
     if holdout > HOLDOUT_ABSOLUTE:
         why.append(f"{holdout:.1f} levels RMS is more than the {HOLDOUT_ABSOLUTE:g} levels a good fit predicts to "
-                   "(the noise estimate takes texture for noise on small or textured images)")
+                   "(good fits: 1.2-2.9), whatever its ratio to the noise (whose estimate takes texture for noise on "
+                   "small or textured images)")
     if fit_rms is not None and not (fit_rms <= FIT_RMS_WARNING):
         why.append(f"the response predicts the images with an RMS error of {fit_rms:.1f} levels (above "
                    f"{FIT_RMS_WARNING:g})")
