@@ -116,7 +116,12 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
             raise
         raise DatasetError(f"{where}{exc}") from None
     except CalibrationError as exc:
-        raise CalibrationError(f"{where}{exc}") from None
+        message = str(exc)
+        if where:  # a folder: too few levels may be the reduction of its 16-bit images to 8 bits
+            from radiometry.images import with_sixteen_bit_note
+
+            message = with_sixteen_bit_note(message, [p for p in sorted(folder.iterdir()) if p.is_file()])
+        raise CalibrationError(f"{where}{message}") from None
     response.meta["prediction_rms_levels"] = rms
     if quality not in ("full", "fast", "none"):
         raise ValueError(f"quality must be 'full', 'fast' or 'none', got {quality!r}")
@@ -125,10 +130,13 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
 
         response.meta["quality"] = assess(images, stack_times, response, mask=options.get("mask"),
                                           method=method if quality == "full" else None,
-                                          fit_options={k: v for k, v in options.items() if k != "mask"})
+                                          fit_options={k: v for k, v in options.items() if k != "mask"},
+                                          fit_rms=rms)
         if response.meta["quality"]["grade"] != "good":
             log.warning("%s%s", where, response.meta["quality"]["summary"])
-    if not np.isfinite(rms) or rms > 10:
+    from radiometry.response.quality import FIT_RMS_WARNING
+
+    if not np.isfinite(rms) or rms > FIT_RMS_WARNING:
         log.warning("%sthe response predicts the images with an RMS error of %.1f levels: motion, misregistration, "
                     "wrong exposure times or auto exposure/white balance?", where, rms)
     return response

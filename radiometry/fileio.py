@@ -74,11 +74,19 @@ def ensure_dir(path: str | os.PathLike) -> Path:
     return path
 
 
-def check_overwrite(path: str | os.PathLike, *, force: bool) -> None:
-    """Refuse to replace an existing calibration unless ``force`` is given."""
+def check_overwrite(path: str | os.PathLike, *companions: str | os.PathLike, force: bool) -> None:
+    """Refuse to replace an existing calibration unless ``force`` is given; ``companions``: the files written beside
+    it (plot, record, summaries), refused the same way (a run with another suffix, e.g. ``-o crf.txt`` after
+    ``-o crf.npz``, would otherwise replace the first run's ``crf.json`` and ``crf.png`` without a word)."""
+    if force:
+        return
     path = Path(path)
-    if path.exists() and not force:
+    if path.exists():
         raise OutputError(f"{path} exists; pass --force to overwrite it or choose another name")
+    for side in map(Path, companions):
+        if side.exists():
+            raise OutputError(f"{side} exists (written beside another output by an earlier run) and {path} would "
+                              "replace it; pass --force to overwrite it or choose another name")
 
 
 def check_outputs(pairs: Sequence[tuple[str | os.PathLike, str | os.PathLike]], *, fix_input: str,

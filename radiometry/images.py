@@ -8,6 +8,7 @@ atomic (:func:`radiometry.fileio.atomic_write_bytes`).
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -15,6 +16,10 @@ import numpy as np
 
 from radiometry.errors import ImageError, OutputError
 from radiometry.fileio import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+#: folders whose 16-bit images were said to use fewer than 16 bits (said once per folder, not per frame)
+_NARROW_WARNED: set[str] = set()
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 
@@ -132,6 +137,10 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     img = _read_encoded(path, "image")
     if img.dtype == np.uint16:
+        top = int(img.max()) if img.size else 0
+        if top < 4096 and str(path.parent) not in _NARROW_WARNED:
+            _NARROW_WARNED.add(str(path.parent))
+            log.warning("%s: %s", path, _narrow_text(top))
         img = (img >> 8).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
@@ -145,6 +154,40 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
         else:
             raise ImageError(f"{path}: {img.shape[2]} channels; expected 1, 3 or 4")
     return np.ascontiguousarray(img)
+
+
+def _narrow_text(top: int) -> str:
+    bits = max(int(top).bit_length(), 1)
+    return (f"16-bit image whose values use {bits} of the 16 bits (up to {top}); it is reduced to 8 bits by keeping "
+            f"the top 8 of 16, which leaves {max(top >> 8, 0) + 1} levels: save 8-bit images, or scale the data to "
+            f"the full 16-bit range (x{2 ** (16 - bits)} for {bits}-bit data)")
+
+
+def sixteen_bit_note(paths) -> str:
+    """'' or a sentence when any of ``paths`` is a 16-bit image (which :func:`read_rgb` reduces to 8 bits), naming
+    the first and the fix; for the errors of a fit that found too few levels in such images."""
+    for path in paths:
+        path = Path(path)
+        try:
+            img = _read_encoded(path, "image")
+        except ImageError:
+            continue
+        if img.dtype == np.uint16:
+            top = int(img.max()) if img.size else 0
+            if top < 4096:
+                return f"the input {path} is a {_narrow_text(top)}"
+            return (f"the input {path} is a 16-bit image, reduced to 8 bits by keeping the top 8 of 16: save 8-bit "
+                    "images, or scale the data to the full 16-bit range")
+    return ""
+
+
+def with_sixteen_bit_note(message: str, paths) -> str:
+    """``message`` (a fit's error) with :func:`sixteen_bit_note` in place of its advice to add exposures, when any of
+    ``paths`` is 16-bit: the levels a fit lacks are then more likely lost to the reduction to 8 bits."""
+    note = sixteen_bit_note(paths)
+    if not note:
+        return message
+    return message.split("; add exposures")[0].split(": check that the times file")[0] + "; " + note
 
 
 def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:

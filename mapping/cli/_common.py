@@ -89,7 +89,12 @@ class FrameRange(click.ParamType):
         while len(nums) < 3:
             nums.append(None)
         if len(parts) == 1 and nums[0] is not None:  # a single number N means the first N frames
+            if nums[0] < 0:
+                self.fail(f"{_quote(value)}: the number of frames must be >= 0 (N: the first N frames)", param, ctx)
             nums = [0, nums[0], None]
+        if nums[0] is not None and nums[0] < 0:
+            self.fail(f"the start in {_quote(value)} must be a frame index >= 0 (A:B:S counts from the first frame, "
+                      "0)", param, ctx)
         if nums[2] is not None and nums[2] <= 0:
             self.fail(f"the step in {_quote(value)} must be positive", param, ctx)
         return slice(*nums)

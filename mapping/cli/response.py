@@ -103,6 +103,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set, refuse_inputs
     from radiometry.api import calibrate_response
     from radiometry.response.fit import blue_fill_mask, find_times_file, load_brackets
+    from radiometry.response.inputs import TimesOrderError
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
               "samples": samples, "mask_blue": mask_blue, "channel": channel, "gamma": gamma, "linear": linear,
@@ -115,10 +116,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if standard:
         if gamma is not None and linear:
             raise click.UsageError("give --gamma or --linear, not both")
-        if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue:
+        if folder is not None or times_file is not None or lam is not None or samples is not None or mask_blue \
+                or channel is not None:
             raise click.UsageError("--gamma and --linear write a standard response: they take no FOLDER, --times, "
-                                   "--lambda, --samples or --mask-blue")
-        check_overwrite(output, force=force)
+                                   "--lambda, --samples, --mask-blue or --channel (every channel is the same)")
+        check_overwrite(output, *_companions(output), force=force)
         _write_standard(output, suffix, gamma, params)
         return
     if folder is None:
@@ -145,13 +147,13 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         kwargs["lam"] = lam
     if samples is not None:
         kwargs["samples"] = samples
-    check_overwrite(output, force=force)
+    check_overwrite(output, *_companions(output), force=force)
     ensure_dir(output.parent)  # an unwritable output fails now, not after the fit
 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     used_times = times_file if times_file is not None else find_times_file(folder)
-    refuse_inputs([output, output.with_suffix(".png"), output.with_suffix(".json")],
+    refuse_inputs([output, *_companions(output)],
                   [used_times, *(p for p in folder.iterdir() if p.is_file())])
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     if mask_blue:
@@ -163,10 +165,15 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     start = time.perf_counter()
     try:  # the fit and its prediction error, as radiometry.calibrate_response does them
         response = calibrate_response(images, times, method=method, quality=quality, **kwargs)
+    except TimesOrderError as exc:  # the times file's fault: name it and the images that disagree
+        raise DatasetError(f"{used_times}: {exc.message(names)}") from None
     except ValueError as exc:  # the images or times of this folder are unusable
         raise DatasetError(f"{folder} ({used_times.name}): {exc}") from None
     except CalibrationError as exc:  # e.g. every pixel saturated: name the folder that holds such images
-        raise CalibrationError(f"{folder}: {exc}") from None
+        from radiometry.images import with_sixteen_bit_note
+
+        # too few levels may be the reduction of 16-bit images to 8 bits: then say that rather than add exposures
+        raise CalibrationError(f"{folder}: {with_sixteen_bit_note(str(exc), [folder / n for n in names])}") from None
     meta = response.meta
     fit_seconds = meta.get("fit_seconds", time.perf_counter() - start)  # the fit's own time, not the quality's
     rms = meta["prediction_rms_levels"]
@@ -217,6 +224,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if not np.isfinite(rms) or rms > 10:
         click.echo("warning: a fit RMS above 10 levels suggests motion, misregistration, wrong exposure times "
                    "or auto exposure/white balance; check the plot", err=True)
+
+
+def _companions(output: Path) -> list[Path]:
+    """The files written beside the response: its plot and its record."""
+    return [output.with_suffix(".png"), output.with_suffix(".json")]
 
 
 def _write_standard(output: Path, suffix: str, gamma: float | None, params: dict) -> None:

@@ -131,13 +131,19 @@ def parse_intrinsics(value) -> np.ndarray | None:
     if isinstance(value, (str, os.PathLike)):
         text = str(value)
         parts = [p for p in re.split(r"[\s,]+", text.strip()) if p]
-        if len(parts) == 4 and not Path(text).exists():
+        if not Path(text).exists():
             try:
                 numbers = [float(p) for p in parts]
             except ValueError:
                 numbers = None
-            if numbers is not None:
+            if numbers is not None and len(numbers) == 4:
                 return intrinsics_matrix(*numbers)
+            if numbers:  # numbers, but not four: not a file name either
+                from mapping.validation import ImplausibleValueError
+
+                raise ImplausibleValueError(f"--intrinsics {text!r}: {len(numbers)} number"
+                                            f"{'s' if len(numbers) != 1 else ''}; give 4 numbers fx,fy,cx,cy in "
+                                            "pixels (e.g. 525,525,319.5,239.5) or the path of an intrinsics file")
         return read_intrinsics_file(text)
     values = np.asarray(value, dtype=np.float64)
     if values.shape == (4,):

@@ -421,6 +421,12 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
     if len(shapes) > 1:
         first = images[0].shape
         odd, shape = next((name, im.shape) for (name, _), im in zip(entries, images) if im.shape != first)
+        if shape[:2] == first[:2]:  # the same size, grayscale among colour images (or the other way round)
+            def kind(s):
+                return "colour (3 channels)" if len(s) == 3 else "grayscale (1 channel)"
+
+            raise DatasetError(f"{folder / odd}: {kind(shape)} but {entries[0][0]} is {kind(first)}: channel "
+                               "mismatch; save every bracket in the same colour mode")
         raise DatasetError(f"{folder / odd}: shape {shape} differs from {entries[0][0]} {first}; "
                            "all brackets must have the same size")
     times = np.array([s for _, s in entries], dtype=np.float64)

@@ -231,6 +231,11 @@ def detect_levels(stack: np.ndarray, times: np.ndarray, valid: np.ndarray | None
         if levels.high - levels.low + 1 < MIN_LEVELS or seen.size < MIN_LEVELS:
             what = (f"saturates at level {levels.ceiling}" if levels.ceiling is not None and levels.ceiling < 128
                     else f"shows only {seen.size} usable levels")
+            if levels.high < levels.low:  # nothing left: every level cut as saturated, dark or stalled
+                raise CalibrationError(
+                    f"channel {names[c]} {what} (no usable levels: every observation looks saturated, dark or stops "
+                    "brightening with the exposure time): check that the times file gives each image its own "
+                    "exposure time, then add exposures that fill the range")
             raise CalibrationError(
                 f"channel {names[c]} {what} (usable {levels.low}..{levels.high}): too few levels are constrained "
                 "to fit a response; add exposures that fill the range (shorter ones if most pixels are saturated, "

@@ -33,13 +33,21 @@ from radiometry.response.model import LEVELS, CameraResponse
 
 #: held-out RMS over the images' own noise (x 1.2 for the merge's) up to which a response is trusted, and beyond which
 #: it is called broken. Measured: good fits 0.92-1.52 (clean, JPEG q92, noise after the response), a camera moved
-#: 1-2 px 8.4, the wrong curve 18.6; the real stacks memorial (film, reciprocity failure) 2.9 and taipei 2.1
+#: 1-2 px 8.4, the wrong curve 18.6; the real stacks memorial (film, reciprocity failure) 3.02 and taipei 2.83
+#: (2026-11-28, with refits)
 HOLDOUT_GOOD = 2.0
 HOLDOUT_BROKEN = 4.0
 #: on JPEG stacks (radiometry.response.levels.blockiness) both thresholds are this many times larger: the Laplacian
 #: misses JPEG's block noise (flat inside a block), which the prediction sees (EuRoC curve through JPEG q75/q92:
 #: 6.7-8.3x with a response within 0.5-2.4 %)
 JPEG_FACTOR = 2.5
+#: held-out RMS (levels) above which a response is never graded good, whatever its ratio to the noise: on small or
+#: textured images the noise estimate (the Laplacian) picks up texture, so a large error can look like noise (a JPEG
+#: q75 64x48 stack predicted at 21.96 levels, "1.48x", with a curve 9 % off); good fits measured 1.2-2.9 levels
+HOLDOUT_ABSOLUTE = 8.0
+#: the in-sample prediction RMS (levels, radiometry.api) above which a response is said to predict the images badly;
+#: a response is never graded good beside that warning
+FIT_RMS_WARNING = 10.0
 #: split-half uncertainty (% of the range) up to which a response is trusted (more makes it doubtful, not broken)
 SPLIT_GOOD = 1.5
 #: pixels per channel in the held-out and split-half fits (fewer than the fit itself: they are many)
@@ -147,8 +155,10 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
         pixels = np.sort(np.random.default_rng(seed).choice(pixels, max_pixels, replace=False))
     usable = _usable(flat, t, declared(response, n_ch))
     per, sq_all, n_all = [], 0.0, 0
+    in_sample = None  # why the prediction is in-sample (None: held out, or a response given rather than fitted)
     if refit is not None and n_img < MIN_REFIT_EXPOSURES:
         refit = None
+        in_sample = "too few exposures to hold one out"
     order = np.argsort(t)
     held = sorted(int(order[k]) for k in np.unique(np.linspace(0, n_img - 1, min(n_img, HELD_OUT)).round()
                                                    .astype(int)))
@@ -167,9 +177,11 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
         sq_all += sq
         n_all += count
     rms = math.sqrt(sq_all / n_all) if n_all else float("nan")
+    if refit is not None and refitted == 0:
+        in_sample = "no fit without an exposure succeeded"
     noise = image_noise(stack, declared(response, n_ch))
     return {"rms": rms, "compressed": compressed, "per_exposure": per, "held_out": [float(t[j]) for j in held],
-            "refit": refitted,
+            "refit": refitted, "in_sample": in_sample,
             "noise": noise,
             "ratio": rms / (MERGE_FACTOR * noise) if noise and math.isfinite(noise) else float("nan")}
 
@@ -237,10 +249,14 @@ def bend_text(found: list[dict[str, Any]], channels: str = "RGB") -> str:
 
 
 def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
-            compressed: bool = False) -> tuple[str, str]:
+            compressed: bool = False, in_sample: str | None = None,
+            fit_rms: float | None = None) -> tuple[str, str]:
     """``(grade, sentence)``: ``good``, ``doubtful`` or ``broken``, with what to do. ``ratio``: the held-out RMS
     over the noise the images themselves carry (:func:`image_noise`, times :data:`MERGE_FACTOR`); ``compressed``:
-    a JPEG stack (the thresholds times :data:`JPEG_FACTOR`)."""
+    a JPEG stack (the thresholds times :data:`JPEG_FACTOR`); ``in_sample``: why no exposure could be held out (the
+    prediction then includes the exposure it predicts: never good); ``fit_rms``: the in-sample prediction RMS of the
+    whole stack (above :data:`FIT_RMS_WARNING` never good). A held-out RMS above :data:`HOLDOUT_ABSOLUTE` levels is
+    doubtful at best."""
     scale = JPEG_FACTOR if compressed else 1.0
     worst_split = None if split is None else float(np.max(split))
     if not (math.isfinite(holdout) and math.isfinite(ratio)):
@@ -248,25 +264,39 @@ def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
                            "measure the images' noise; check the plot")
     broken = ratio > scale * HOLDOUT_BROKEN
     good = ratio <= scale * HOLDOUT_GOOD and (worst_split is None or worst_split <= SPLIT_GOOD)
-    figures = (f"held-out prediction {holdout:.2f} levels RMS, {ratio:.2f}x the images' noise" +
+    kind = "held-out prediction" if in_sample is None else f"in-sample prediction ({in_sample})"
+    figures = (f"{kind} {holdout:.2f} levels RMS, {ratio:.2f}x the images' noise" +
                ("" if worst_split is None else f", split-half uncertainty {worst_split:.2f} %"))
     limits = f"trusted up to {scale * HOLDOUT_GOOD:g}x{' for JPEG' if compressed else ''} and {SPLIT_GOOD:g} %"
-    if good:
+    why = []  # what keeps a response whose ratio looks good from being graded good
+    if holdout > HOLDOUT_ABSOLUTE:
+        why.append(f"{holdout:.1f} levels RMS is more than the {HOLDOUT_ABSOLUTE:g} levels a good fit predicts to "
+                   "(good fits: 1.2-2.9), whatever its ratio to the noise (whose estimate takes texture for noise on "
+                   "small or textured images)")
+    if fit_rms is not None and not (fit_rms <= FIT_RMS_WARNING):
+        why.append(f"the response predicts the images with an RMS error of {fit_rms:.1f} levels (above "
+                   f"{FIT_RMS_WARNING:g})")
+    if in_sample is not None:
+        why.append("an in-sample prediction cannot show a wrong curve: record 5 exposures or more for a held-out one")
+    if good and not why:
         return "good", f"quality good: {figures}"
     if broken:
-        return "broken", (f"quality BROKEN: {figures} ({limits}); do not use this response: the camera moved between "
-                          "exposures, the exposure times are wrong, auto exposure or white balance was on, or the "
-                          "curve does not fit these images")
-    return "doubtful", (f"quality doubtful: {figures} ({limits}); check the plot and the per-exposure errors (one "
-                        "bad exposure: leave it out), or record more pixels or exposures")
+        causes = ("the camera moved between exposures, the exposure times are wrong, auto exposure or white balance "
+                  "was on, " + ("JPEG compression is too strong (fit from PNG or raw brackets), " if compressed
+                                else "") + "or the curve does not fit these images")
+        return "broken", (f"quality BROKEN: {figures} ({limits}); do not use this response: {causes}")
+    reason = ("; ".join(why) + "; ") if why else ""
+    return "doubtful", (f"quality doubtful: {figures} ({limits}); {reason}check the plot and the per-exposure errors "
+                        "(one bad exposure: leave it out), or record more pixels or exposures")
 
 
 def assess(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
            method: str | None = None, fit_options: dict | None = None, mask: np.ndarray | None = None,
-           seed: int = 0) -> dict[str, Any]:
+           seed: int = 0, fit_rms: float | None = None) -> dict[str, Any]:
     """The quality record of ``response`` on the stack: held-out prediction (refitting without each exposure with
     ``method`` when given, else the response as it is), split-half agreement (when ``method`` is given) and the
-    verdict. Saved in the response's meta as ``quality``."""
+    verdict (``fit_rms``: the in-sample prediction RMS of the whole stack, see :func:`verdict`). Saved in the
+    response's meta as ``quality``."""
     from radiometry.response.fit import fit_response
 
     first = np.asarray(images[0])
@@ -292,7 +322,8 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
             except (ValueError, ArithmeticError, RadiomapError) as exc:  # a half too small to fit
                 split, split_error = None, str(exc)
     hold = holdout_rms(images, times, response, refit=refit, mask=mask, seed=seed)
-    grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"])
+    grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"],
+                              in_sample=hold["in_sample"], fit_rms=fit_rms)
     found = bends(response, levels)
     if found:       # what the figures above cannot see; on a JPEG stack such a fit was off by more than 0.8 %
         sentence += "; " + bend_text(found, "L" if n_ch == 1 else "RGB")
@@ -301,10 +332,13 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
             sentence = sentence.replace("quality good", "quality doubtful", 1)
     out = {"holdout_rms_levels": hold["rms"], "holdout_per_exposure": hold["per_exposure"],
            "image_noise_levels": hold["noise"], "holdout_over_noise": hold["ratio"], "jpeg": hold["compressed"],
-           "holdout_refit": hold["refit"], "holdout_exposures": hold["held_out"], "split_half_percent": split,
+           "holdout_refit": hold["refit"], "prediction": ("held-out" if hold["in_sample"] is None else
+                                                          f"in-sample ({hold['in_sample']})"),
+           "holdout_exposures": hold["held_out"], "split_half_percent": split,
            "grade": grade, "summary": sentence, "bends": found,
            "thresholds": {"holdout_over_noise_good": HOLDOUT_GOOD, "holdout_over_noise_broken": HOLDOUT_BROKEN,
-                          "split_good": SPLIT_GOOD}}
+                          "split_good": SPLIT_GOOD,
+                          "holdout_levels_good": HOLDOUT_ABSOLUTE}}
     if method is not None and split is None:
         out["split_half_error"] = split_error
     return out

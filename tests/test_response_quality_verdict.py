@@ -1,0 +1,81 @@
+"""The truth-free quality verdict's rules beyond the ratio to the noise (audit findings): an absolute held-out RMS
+limit, the in-sample prediction of a short stack, the in-sample RMS warning, and JPEG among a broken stack's causes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from radiometry.response import CameraResponse
+from radiometry.response.quality import assess, holdout_rms, verdict
+
+
+def test_a_large_held_out_rms_is_never_good_even_when_it_looks_like_noise():
+    """Audit: a JPEG q75 64x48 stack predicted at 21.96 levels, '1.48x the images' noise' (the noise estimate took
+    the texture of tiny images for noise), was graded good with a curve 9 % off."""
+    grade, sentence = verdict(21.96, None, 1.48)
+    assert grade == "doubtful", sentence
+    assert "21.96 levels RMS" in sentence and "8 levels" in sentence
+    assert "quality good" not in sentence
+    assert verdict(8.01, [0.2], 1.0)[0] == "doubtful"
+    assert verdict(2.9, [0.2], 1.0)[0] == "good"   # the good fits measured: 1.2-2.9 levels
+    assert verdict(21.96, None, 9.0)[0] == "broken"  # the ratio still makes it broken
+
+
+def test_never_good_beside_the_in_sample_rms_warning():
+    grade, sentence = verdict(6.0, None, 1.2, fit_rms=24.6)
+    assert grade == "doubtful" and "24.6 levels" in sentence, sentence
+    assert verdict(6.0, None, 1.2, fit_rms=3.0)[0] == "good"
+
+
+def test_an_in_sample_prediction_is_said_and_not_good():
+    grade, sentence = verdict(4.37, None, 1.5, in_sample="too few exposures to hold one out")
+    assert grade == "doubtful", sentence
+    assert "in-sample prediction (too few exposures to hold one out) 4.37 levels RMS" in sentence
+    assert "held-out" not in sentence.split(";")[0]
+
+
+def _gamma_stack(times, shape=(48, 64), seed=0):
+    rng = np.random.default_rng(seed)
+    radiance = np.exp(rng.uniform(-3.0, 0.0, shape + (3,)))
+    return [np.clip(np.round(255 * np.clip(radiance * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, radiance.shape)),
+                    0, 255).astype(np.uint8) for t in times]
+
+
+def test_a_short_stack_is_predicted_in_sample_and_says_so():
+    """With fewer than 5 exposures nothing is refitted: the record and the sentence say in-sample, never good."""
+    times = np.array([0.5, 1.0, 2.0])
+    images = _gamma_stack(times)
+    response = CameraResponse.gamma(2.2)
+    calls = []
+
+    def refit(imgs, ts):
+        calls.append(len(imgs))
+        return response
+
+    hold = holdout_rms(images, times, response, refit=refit)
+    assert hold["refit"] == 0 and not calls and hold["in_sample"] == "too few exposures to hold one out"
+    q = assess(images, times, response)            # a response given, not fitted: held out as it is
+    assert q["prediction"] == "held-out" and "held-out prediction" in q["summary"], q["summary"]
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_a_broken_jpeg_stack_names_jpeg_among_the_causes(compressed):
+    grade, sentence = verdict(40.0, None, 30.0, compressed=compressed)
+    assert grade == "broken" and "camera moved" in sentence
+    assert ("JPEG compression" in sentence) is compressed, sentence
+
+
+@pytest.mark.slow
+def test_the_audit_s_tiny_jpeg_stack_is_not_graded_good():
+    """The audit's case through the command's path (radiometry.api, --quality fast): gamma 2.2, JPEG q75, 64x48,
+    twelve 2x exposures. Measured: held-out 21.96 levels RMS, 1.48x the noise, in-sample 24.6: doubtful (was good)."""
+    from camera_pipelines import PIPELINES, render
+    from response_curves import TIMES, curves, scene
+
+    from radiometry.api import calibrate_response
+
+    images = render(curves()["gamma-2.2"], scene(48, 64, seed=1), TIMES, seed=2, **PIPELINES["jpeg75"])
+    q = calibrate_response(images, TIMES, quality="fast").meta["quality"]
+    assert q["holdout_rms_levels"] > 8 and q["grade"] != "good", q["summary"]
+    assert "quality good" not in q["summary"] and "8 levels a good fit" in q["summary"]
