@@ -55,8 +55,6 @@ def test_check_overwrite_refuses_companions_unless_forced(tmp_path):
     fileio.check_overwrite(out, *sides, force=True)
 
 
-@pytest.mark.xfail(strict=True, reason="needs mapping/cli/vignetting.py to pass its side files to check_overwrite "
-                                       "(being edited elsewhere; see the fix-response report)")
 def test_vignetting_with_another_suffix_keeps_the_first_run_s_side_files(tmp_path):
     frames = tmp_path / "frames"
     frames.mkdir()

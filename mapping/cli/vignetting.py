@@ -89,9 +89,9 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     source = Path(frames)
     inputs = [response_path] + ([p for p in source.iterdir() if p.is_file()] if source.is_dir() else [source])
     refuse_inputs(outputs, inputs)   # with or without --force: never over a frame of the sweep or the response
-    check_overwrite(out, force=force)
-    if save_accumulation:
-        check_overwrite(save_accumulation, force=force)
+    written = [p for p in outputs[1:] if not (no_plots and p.name.endswith(("_vignetting.png", "_stderr.png",
+                                                                          "_profiles.png", "_residuals.png")))]
+    check_overwrite(out, *written, force=force)   # the model and every file written beside it
     ensure_dir(out.parent)  # an unwritable output fails now, not after reading every frame
     response = load_response(response_path)
     acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
