@@ -79,3 +79,21 @@ def test_the_audit_s_tiny_jpeg_stack_is_not_graded_good():
     q = calibrate_response(images, TIMES, quality="fast").meta["quality"]
     assert q["holdout_rms_levels"] > 8 and q["grade"] != "good", q["summary"]
     assert "quality good" not in q["summary"] and "8 levels a good fit" in q["summary"]
+
+
+@pytest.mark.parametrize("share, grade", [(0.0, "good"), (0.15, "doubtful"), (0.30, "broken")])
+def test_a_fit_that_tied_many_levels_is_not_good(share, grade):
+    """Engel's fit of the real 2x stacks tied 14 % (memorial) and 27 % (taipei, 14-16 % off the default fit) of the
+    levels to keep f^-1 increasing, and was graded doubtful at best: a large tied share lowers the grade."""
+    from radiometry.response import CameraResponse
+    from radiometry.response.quality import assess, tied_share
+    from response_curves import TIMES, gamma_curve, render_brackets, scene
+
+    images = render_brackets(gamma_curve(), scene(48, 64, seed=2), TIMES, seed=2)
+    n = int(round(share * 256))
+    pooled = [[list(range(40, 40 + n))] if n else [] for _ in range(3)]
+    response = CameraResponse(np.repeat(gamma_curve()[:, None], 3, axis=1), {"pooled_levels": pooled})
+    assert tied_share(response) == pytest.approx(n / 256)
+    record = assess(images, TIMES, response)
+    assert record["grade"] == grade, record["summary"]
+    assert (f"tied {100 * n / 256:.0f} % of the levels" in record["summary"]) == (n > 0)

@@ -48,6 +48,10 @@ HOLDOUT_ABSOLUTE = 8.0
 #: the in-sample prediction RMS (levels, radiometry.api) above which a response is said to predict the images badly;
 #: a response is never graded good beside that warning
 FIT_RMS_WARNING = 10.0
+#: shares of the levels tied by a fit's monotone constraint (``meta["pooled_levels"]``) above which a response is not
+#: good, and broken: the data did not determine ``f^-1`` there (Engel's fit on the real 2x stacks: memorial 14 %,
+#: taipei 27 % and 14-16 % off the default fit; the default and Debevec tie none on them)
+TIED_DOUBTFUL, TIED_BROKEN = 0.10, 0.25
 #: split-half uncertainty (% of the range) up to which a response is trusted (more makes it doubtful, not broken)
 SPLIT_GOOD = 1.5
 #: pixels per channel in the held-out and split-half fits (fewer than the fit itself: they are many)
@@ -248,6 +252,17 @@ def bend_text(found: list[dict[str, Any]], channels: str = "RGB") -> str:
             f"not see: check the plot there, and fit from PNG or raw brackets where the bend matters")
 
 
+def tied_share(response: CameraResponse) -> float:
+    """The share of a response's levels (all channels) that its fit tied to one value to keep ``f^-1`` increasing
+    (``meta["pooled_levels"]``: lists of blocks per channel); 0 when it records none."""
+    pooled = response.meta.get("pooled_levels") or []
+    try:
+        tied = sum(len(block) for channel in pooled for block in channel)
+    except TypeError:       # another layout: nothing to count
+        return 0.0
+    return tied / float(256 * max(response.channels, 1))
+
+
 def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
             compressed: bool = False, in_sample: str | None = None,
             fit_rms: float | None = None) -> tuple[str, str]:
@@ -324,6 +339,16 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     hold = holdout_rms(images, times, response, refit=refit, mask=mask, seed=seed)
     grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"],
                               in_sample=hold["in_sample"], fit_rms=fit_rms)
+    tied = tied_share(response)
+    if tied > TIED_DOUBTFUL and grade in ("good", "doubtful", "broken"):
+        worse = "broken" if tied > TIED_BROKEN else "doubtful"
+        if ("good", "doubtful", "broken").index(worse) > ("good", "doubtful", "broken").index(grade):
+            sentence = sentence.replace(f"quality {grade}", f"quality {'BROKEN' if worse == 'broken' else worse}", 1)
+            grade = worse
+        sentence += (f"; the fit tied {100 * tied:.0f} % of the levels to keep f^-1 increasing: the data did not "
+                     "determine the curve there with this method"
+                     + ("; do not use this response" if grade == "broken" else "")
+                     + ": fit with the default method (it tied none on the real stacks measured)")
     found = bends(response, levels)
     if found:       # what the figures above cannot see; on a JPEG stack such a fit was off by more than 0.8 %
         sentence += "; " + bend_text(found, "L" if n_ch == 1 else "RGB")
