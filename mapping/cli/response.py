@@ -147,7 +147,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         kwargs["lam"] = lam
     if samples is not None:
         kwargs["samples"] = samples
-    check_overwrite(output, *_companions(output), force=force)
+    check_overwrite(output, force=force)
     ensure_dir(output.parent)  # an unwritable output fails now, not after the fit
 
     if not folder.is_dir():
@@ -155,6 +155,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     used_times = times_file if times_file is not None else find_times_file(folder)
     refuse_inputs([output, *_companions(output)],
                   [used_times, *(p for p in folder.iterdir() if p.is_file())])
+    check_overwrite(output, *_companions(output), force=force)  # the files beside it: inputs are named above
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     if mask_blue:
         mask = blue_fill_mask(images)
