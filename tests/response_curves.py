@@ -159,6 +159,15 @@ def render_brackets(table: np.ndarray, radiance: np.ndarray, times: np.ndarray =
     return images
 
 
+def gamma_stack(times, shape=(48, 64), seed=0, *, darkest: float = -4.0) -> list[np.ndarray]:
+    """A small gamma-2.2 bracket, uint8 RGB: radiance log-uniform over ``exp(darkest)..1`` per value, 0.5 levels of
+    noise after the response (the short-stack and times-order tests)."""
+    rng = np.random.default_rng(seed)
+    radiance = np.exp(rng.uniform(darkest, 0.0, tuple(shape) + (3,)))
+    return [np.clip(np.round(255 * np.clip(radiance * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, radiance.shape)),
+                    0, 255).astype(np.uint8) for t in times]
+
+
 def max_error_percent(fitted: np.ndarray, truth: np.ndarray, levels: tuple[int, int] = (5, 250)) -> np.ndarray:
     """Largest ``|f^-1 - truth|`` over ``levels`` (inclusive), % of the range, per channel (both 1 at 255)."""
     fitted = np.asarray(fitted, dtype=np.float64).reshape(256, -1)

@@ -8,6 +8,7 @@ import pytest
 
 from radiometry.response import CameraResponse
 from radiometry.response.quality import assess, holdout_rms, verdict
+from response_curves import gamma_stack
 
 
 def test_a_large_held_out_rms_is_never_good_even_when_it_looks_like_noise():
@@ -35,17 +36,10 @@ def test_an_in_sample_prediction_is_said_and_not_good():
     assert "held-out" not in sentence.split(";")[0]
 
 
-def _gamma_stack(times, shape=(48, 64), seed=0):
-    rng = np.random.default_rng(seed)
-    radiance = np.exp(rng.uniform(-3.0, 0.0, shape + (3,)))
-    return [np.clip(np.round(255 * np.clip(radiance * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, radiance.shape)),
-                    0, 255).astype(np.uint8) for t in times]
-
-
 def test_a_short_stack_is_predicted_in_sample_and_says_so():
     """With fewer than 5 exposures nothing is refitted: the record and the sentence say in-sample, never good."""
     times = np.array([0.5, 1.0, 2.0])
-    images = _gamma_stack(times)
+    images = gamma_stack(times, darkest=-3.0)
     response = CameraResponse.gamma(2.2)
     calls = []
 

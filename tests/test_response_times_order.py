@@ -12,17 +12,11 @@ from radiometry.errors import CalibrationError
 from radiometry.response import levels as levels_module
 from radiometry.response.fit import fit_response
 from radiometry.response.inputs import _check_brightness_order
-
-
-def _gamma_stack(times, shape=(48, 64), seed=0):
-    rng = np.random.default_rng(seed)
-    radiance = np.exp(rng.uniform(-4.0, 0.0, shape + (3,)))
-    return [np.clip(np.round(255 * np.clip(radiance * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, radiance.shape)),
-                    0, 255).astype(np.uint8) for t in times]
+from response_curves import gamma_stack
 
 
 def test_two_swapped_times_are_found_and_named():
-    images = _gamma_stack([8.0, 4.0, 2.0, 1.0])
+    images = gamma_stack([8.0, 4.0, 2.0, 1.0])
     with pytest.raises(ValueError, match=r"times look out of order.*given 4 s is darker than the image given 2 s"
                                               r".*1 of 6 pairs disagree.*times file") as info:
         fit_response(images, [8.0, 2.0, 4.0, 1.0])
@@ -37,7 +31,7 @@ def test_an_empty_usable_range_is_not_printed_as_a_range(monkeypatch):
     """channel_levels leaving nothing (low 4 > high -1) is said as no usable levels, with the times as a suspect."""
     monkeypatch.setattr(levels_module, "channel_levels",
                         lambda values, times, limits: levels_module.ChannelLevels(4, -1, 64, 1, None))
-    images = np.stack(_gamma_stack([1.0, 2.0]))
+    images = np.stack(gamma_stack([1.0, 2.0]))
     with pytest.raises(CalibrationError) as info:
         levels_module.detect_levels(images, np.array([1.0, 2.0]))
     message = str(info.value)

@@ -181,14 +181,14 @@ def _truth_free_lines(acc, response, model_name: str, fit_options: dict, facts: 
     import numpy as np
 
     from radiometry.response.levels import BLOCKY
+    from radiometry.response.quality import worse_grade
     from radiometry.vignetting_calibration.evaluate import split_half_levels
 
     lines, reasons, grade = [], [], "good"
 
     def lower(to: str, reason: str) -> None:
         nonlocal grade
-        if ("good", "doubtful", "broken").index(to) > ("good", "doubtful", "broken").index(grade):
-            grade = to
+        grade = worse_grade(to, grade)
         reasons.append(reason)
 
     split = split_half_levels(acc, response, model=model_name, **fit_options)

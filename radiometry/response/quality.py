@@ -252,6 +252,15 @@ def bend_text(found: list[dict[str, Any]], channels: str = "RGB") -> str:
             f"not see: check the plot there, and fit from PNG or raw brackets where the bend matters")
 
 
+#: the grades, best first
+GRADES = ("good", "doubtful", "broken")
+
+
+def worse_grade(a: str, b: str) -> str:
+    """The worse of two grades of :data:`GRADES`."""
+    return a if GRADES.index(a) > GRADES.index(b) else b
+
+
 def tied_share(response: CameraResponse) -> float:
     """The share of a response's levels (all channels) that its fit tied to one value to keep ``f^-1`` increasing
     (``meta["pooled_levels"]``: lists of blocks per channel); 0 when it records none."""
@@ -340,11 +349,10 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"],
                               in_sample=hold["in_sample"], fit_rms=fit_rms)
     tied = tied_share(response)
-    if tied > TIED_DOUBTFUL and grade in ("good", "doubtful", "broken"):
-        worse = "broken" if tied > TIED_BROKEN else "doubtful"
-        if ("good", "doubtful", "broken").index(worse) > ("good", "doubtful", "broken").index(grade):
-            sentence = sentence.replace(f"quality {grade}", f"quality {'BROKEN' if worse == 'broken' else worse}", 1)
-            grade = worse
+    if tied > TIED_DOUBTFUL and grade in GRADES:
+        worse = worse_grade("broken" if tied > TIED_BROKEN else "doubtful", grade)
+        sentence = sentence.replace(f"quality {grade}", f"quality {'BROKEN' if worse == 'broken' else worse}", 1)
+        grade = worse
         sentence += (f"; the fit tied {100 * tied:.0f} % of the levels to keep f^-1 increasing: the data did not "
                      "determine the curve there with this method"
                      + ("; do not use this response" if grade == "broken" else "")
