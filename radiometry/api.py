@@ -116,11 +116,12 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
             raise
         raise DatasetError(f"{where}{exc}") from None
     except CalibrationError as exc:
-        message = str(exc)
-        if where:  # a folder: too few levels may be the reduction of its 16-bit images to 8 bits
-            from radiometry.images import with_sixteen_bit_note
+        if not where:  # images given: the caller knows where they came from (mapping/cli/response.py)
+            raise
+        from radiometry.images import with_sixteen_bit_note
 
-            message = with_sixteen_bit_note(message, [p for p in sorted(folder.iterdir()) if p.is_file()])
+        # a folder: too few levels may be the reduction of its 16-bit images to 8 bits
+        message = with_sixteen_bit_note(exc, [p for p in sorted(folder.iterdir()) if p.is_file()])
         raise CalibrationError(f"{where}{message}") from None
     response.meta["prediction_rms_levels"] = rms
     if quality not in ("full", "fast", "none"):
@@ -131,7 +132,7 @@ def calibrate_response(brackets: PathLike | Sequence[np.ndarray], times: PathLik
         response.meta["quality"] = assess(images, stack_times, response, mask=options.get("mask"),
                                           method=method if quality == "full" else None,
                                           fit_options={k: v for k, v in options.items() if k != "mask"},
-                                          fit_rms=rms)
+                                          fit_rms=rms, fitted=True)
         if response.meta["quality"]["grade"] != "good":
             log.warning("%s%s", where, response.meta["quality"]["summary"])
     from radiometry.response.quality import FIT_RMS_WARNING

@@ -52,6 +52,16 @@ class CalibrationError(RadiomapError):
     """A calibration cannot produce a trustworthy model from the data it was given."""
 
 
+class TooFewLevelsError(CalibrationError):
+    """A response fit's data constrain too few levels: ``finding`` says what is wrong, ``advice`` the fix (kept apart
+    so that a caller who knows better, e.g. that 16-bit inputs lost their levels to the reduction to 8 bits, can
+    replace the advice: :func:`radiometry.images.with_sixteen_bit_note`)."""
+
+    def __init__(self, finding: str, advice: str, sep: str = "; ") -> None:
+        self.finding, self.advice = finding, advice
+        super().__init__(f"{finding}{sep}{advice}")
+
+
 class ModelMismatchError(RadiomapError):
     """A model does not fit the images (resolution, aspect ratio, channel count)."""
 

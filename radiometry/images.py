@@ -181,13 +181,16 @@ def sixteen_bit_note(paths) -> str:
     return ""
 
 
-def with_sixteen_bit_note(message: str, paths) -> str:
-    """``message`` (a fit's error) with :func:`sixteen_bit_note` in place of its advice to add exposures, when any of
-    ``paths`` is 16-bit: the levels a fit lacks are then more likely lost to the reduction to 8 bits."""
+def with_sixteen_bit_note(error: Exception, paths) -> str:
+    """A fit's ``error`` as one line, with :func:`sixteen_bit_note` when any of ``paths`` is 16-bit: the levels a fit
+    lacks are then more likely lost to the reduction to 8 bits, so the note replaces the advice of a
+    :class:`~radiometry.errors.TooFewLevelsError` (to add exposures) and follows any other error."""
+    from radiometry.errors import TooFewLevelsError
+
     note = sixteen_bit_note(paths)
     if not note:
-        return message
-    return message.split("; add exposures")[0].split(": check that the times file")[0] + "; " + note
+        return str(error)
+    return f"{error.finding if isinstance(error, TooFewLevelsError) else error}; {note}"
 
 
 def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:

@@ -53,3 +53,21 @@ def test_too_few_levels_in_sixteen_bit_input_names_it_and_the_fix(tmp_path):
     line = [ln for ln in result.output.splitlines() if ln.startswith("radiomap: error:")][0]
     assert "usable levels" in line and "add exposures" not in line, line
     assert "is a 16-bit image whose values use 12 of the 16 bits" in line and "scale the data" in line, line
+
+
+def test_the_sixteen_bit_note_replaces_only_the_advice_of_a_too_few_levels_error(tmp_path):
+    """The note is placed by the error's parts, not by splitting its words: a too-few-levels error keeps its finding
+    and loses its advice to add exposures; any other error keeps all of its text, the note after it."""
+    from radiometry.errors import CalibrationError, TooFewLevelsError
+    from radiometry.images import with_sixteen_bit_note
+
+    folder = _write_stack(tmp_path / "b12", 16)
+    paths = sorted(folder.glob("*.png"))
+    few = TooFewLevelsError("channel R shows only 9 usable levels (usable 3..11)", "add more exposures, reworded")
+    assert str(few) == "channel R shows only 9 usable levels (usable 3..11); add more exposures, reworded"
+    line = with_sixteen_bit_note(few, paths)
+    assert line.startswith("channel R shows only 9 usable levels (usable 3..11); the input ") and "reworded" not in line
+    assert "scale the data" in line, line
+    other = CalibrationError("the fit did not converge")
+    assert with_sixteen_bit_note(other, paths).startswith("the fit did not converge; the input ")
+    assert with_sixteen_bit_note(few, [tmp_path / "none.png"]) == str(few)  # no 16-bit input: as it was

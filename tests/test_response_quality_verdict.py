@@ -91,3 +91,21 @@ def test_a_fit_that_tied_many_levels_is_not_good(share, grade):
     record = assess(images, TIMES, response)
     assert record["grade"] == grade, record["summary"]
     assert (f"tied {100 * n / 256:.0f} % of the levels" in record["summary"]) == (n > 0)
+
+
+def test_the_fast_figure_is_not_called_held_out():
+    """``--quality fast`` predicts each exposure from the others through the response fitted on all of them: not a
+    held-out prediction (audit leftover); the full figure refits without each exposure and is one."""
+    from radiometry.api import calibrate_response
+
+    times = 2.0 ** np.arange(-6.0, 0.0)
+    images = gamma_stack(times, shape=(96, 128))
+    fast = calibrate_response(images, times, quality="fast").meta["quality"]
+    assert fast["prediction"] == "from the other exposures, response fitted on all", fast
+    assert "held-out" not in fast["summary"] and "no refits" in fast["summary"], fast["summary"]
+    full = calibrate_response(images, times, quality="full").meta["quality"]
+    assert full["prediction"] == "held-out" and full["holdout_refit"] > 0, full
+    assert full["summary"].startswith(f"quality {full['grade']}: held-out prediction"), full["summary"]
+    # a response given (not fitted on the stack) is judged by a prediction that is held out for it
+    given = assess(images, times, CameraResponse.gamma(2.2, 3))
+    assert given["prediction"] == "held-out" and "held-out prediction" in given["summary"], given

@@ -174,7 +174,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         from radiometry.images import with_sixteen_bit_note
 
         # too few levels may be the reduction of 16-bit images to 8 bits: then say that rather than add exposures
-        raise CalibrationError(f"{folder}: {with_sixteen_bit_note(str(exc), [folder / n for n in names])}") from None
+        raise CalibrationError(f"{folder}: {with_sixteen_bit_note(exc, [folder / n for n in names])}") from None
     meta = response.meta
     fit_seconds = meta.get("fit_seconds", time.perf_counter() - start)  # the fit's own time, not the quality's
     rms = meta["prediction_rms_levels"]

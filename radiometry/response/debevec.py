@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.errors import CalibrationError
+from radiometry.errors import CalibrationError, TooFewLevelsError
 from radiometry.response.model import LEVELS, CameraResponse
 
 log = logging.getLogger(__name__)
@@ -114,8 +114,8 @@ def _solve_debevec_channel(values: np.ndarray, log_t: np.ndarray, lam: float,
     per_pixel = np.bincount(pix_idx, minlength=n_pix)
     multi = per_pixel[pix_idx] >= 2
     if not multi.any() or np.unique(log_t[img_idx[multi]]).size < 2:
-        raise CalibrationError("no pixel is unsaturated in two different exposures, so the response is not "
-                               "observable; add exposures that overlap (e.g. one stop apart)")
+        raise TooFewLevelsError("no pixel is unsaturated in two different exposures, so the response is not "
+                                "observable", "add exposures that overlap (e.g. one stop apart)")
 
     gcol = n_pix + np.where(_LEVELS < GAUGE_LEVEL, _LEVELS, _LEVELS - 1)
     gcol[GAUGE_LEVEL] = -1

@@ -67,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.errors import CalibrationError
+from radiometry.errors import CalibrationError, TooFewLevelsError
 from radiometry.response.model import LEVELS, CameraResponse, repair_monotone
 from radiometry.response.inputs import _as_stack, _check_brightness_order, _check_levels, _check_mask, equal_ratios
 
@@ -123,8 +123,8 @@ def _observations(values: np.ndarray, t: np.ndarray, levels: tuple[int, int], pi
     img, pix = np.nonzero(usable[:, keep])
     z = values[img, keep[pix]].astype(np.intp)
     if np.unique(t[img]).size < 2:
-        raise CalibrationError("no pixel is unsaturated in two different exposures, so the response is not "
-                               "observable; add exposures that overlap (e.g. one stop apart)")
+        raise TooFewLevelsError("no pixel is unsaturated in two different exposures, so the response is not "
+                                "observable", "add exposures that overlap (e.g. one stop apart)")
     return pix, img, z, keep.size
 
 

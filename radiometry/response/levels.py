@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from radiometry.errors import CalibrationError
+from radiometry.errors import TooFewLevelsError
 
 if TYPE_CHECKING:
     from radiometry.response.model import CameraResponse
@@ -214,8 +214,8 @@ def detect_levels(stack: np.ndarray, times: np.ndarray, valid: np.ndarray | None
                   limits: tuple[int, int] = (1, 254), *, seed: int = 0) -> list[ChannelLevels]:
     """Per channel, the usable levels of a stack ``(P, H, W, C)`` uint8 (``valid``: flat boolean ``(H*W,)``).
 
-    Raises :class:`CalibrationError` when a channel keeps fewer than :data:`MIN_LEVELS` levels (every exposure
-    saturated or dark there), naming the channel and the fix."""
+    Raises :class:`~radiometry.errors.TooFewLevelsError` (a CalibrationError) when a channel keeps fewer than
+    :data:`MIN_LEVELS` levels (every exposure saturated or dark there), naming the channel and the fix."""
     n_img, h, w, n_ch = stack.shape
     flat = stack.reshape(n_img, h * w, n_ch)
     idx = np.arange(h * w) if valid is None else np.flatnonzero(valid)
@@ -232,13 +232,13 @@ def detect_levels(stack: np.ndarray, times: np.ndarray, valid: np.ndarray | None
             what = (f"saturates at level {levels.ceiling}" if levels.ceiling is not None and levels.ceiling < 128
                     else f"shows only {seen.size} usable levels")
             if levels.high < levels.low:  # nothing left: every level cut as saturated, dark or stalled
-                raise CalibrationError(
+                raise TooFewLevelsError(
                     f"channel {names[c]} {what} (no usable levels: every observation looks saturated, dark or stops "
-                    "brightening with the exposure time): check that the times file gives each image its own "
-                    "exposure time, then add exposures that fill the range")
-            raise CalibrationError(
+                    "brightening with the exposure time)", "check that the times file gives each image its own "
+                    "exposure time, then add exposures that fill the range", sep=": ")
+            raise TooFewLevelsError(
                 f"channel {names[c]} {what} (usable {levels.low}..{levels.high}): too few levels are constrained "
-                "to fit a response; add exposures that fill the range (shorter ones if most pixels are saturated, "
+                "to fit a response", "add exposures that fill the range (shorter ones if most pixels are saturated, "
                 "longer ones if most are dark)")
         out.append(levels)
     return out

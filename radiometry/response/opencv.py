@@ -3,6 +3,7 @@ comparison (:func:`radiometry.response.fit.fit_response` with ``method="opencv-d
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -13,6 +14,8 @@ from radiometry.errors import CalibrationError
 from radiometry.response.model import LEVELS, CameraResponse
 from radiometry.response.debevec import _LEVELS, DEFAULT_LAMBDA, _finish
 from radiometry.response.inputs import _as_stack, _check_brightness_order
+
+log = logging.getLogger(__name__)
 
 
 def _fill_log_table(ln_f: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -65,6 +68,7 @@ def fit_response_opencv_debevec(images: Sequence[np.ndarray], times: Sequence[fl
     table = _opencv_table(calib.process(src, t.astype(np.float32)), n_ch)
     response = _from_opencv(table, {"method": "opencv-debevec", "lambda": float(lam), "samples": int(samples),
                                     "random": bool(random), "images": int(len(t)), "times": t.tolist()})
+    _declare_levels(response, stack, t)
     response.meta["fit_seconds"] = time.perf_counter() - start
     return response
 
@@ -93,8 +97,32 @@ def fit_response_robertson(images: Sequence[np.ndarray], times: Sequence[float],
     table[LEVELS - 1] = np.nan  # saturated level: extrapolate instead of the clipped average
     response = _from_opencv(table, {"method": "robertson", "max_iter": int(max_iter),
                                     "threshold": float(threshold), "images": int(len(t)), "times": t.tolist()})
+    _declare_levels(response, stack, t)
     response.meta["fit_seconds"] = time.perf_counter() - start
     return response
+
+
+def _declare_levels(response: CameraResponse, stack: np.ndarray, t: np.ndarray) -> None:
+    """Record which levels the data constrain (:func:`radiometry.response.levels.detect_levels`), as radiomap's own
+    fits do: OpenCV fits every level it sees, saturated and dark ones included, so ``meta["declared_levels"]`` (what
+    the quality figures and a vignetting budget judge) is the levels found from the data, and ``levels_summary``
+    says what OpenCV did with the others."""
+    from radiometry.response.levels import describe, detect_levels
+
+    try:
+        found = detect_levels(stack, t)
+    except CalibrationError as exc:  # OpenCV fitted anyway: say that the data do not support it
+        log.warning("%s; OpenCV fitted every level anyway: this curve is not constrained by the data", exc)
+        response.meta["levels_summary"] = (f"levels found from the data: {exc}; OpenCV fitted every level anyway, "
+                                           "so this curve is not constrained by the data")
+        return
+    response.meta["level_detection"] = [lv.as_dict() for lv in found]
+    response.meta["saturation_levels"] = [lv.ceiling for lv in found]
+    response.meta["declared_levels"] = [[lv.low, lv.high] for lv in found]
+    response.meta["levels_summary"] = (describe(found).replace("levels used", "levels the data constrain")
+                                       .replace("(the others extrapolated)", "(found from the data; OpenCV "
+                                                "fitted the others too, from saturated or dark pixels: do not trust "
+                                                "them)"))
 
 
 def _from_opencv(table: np.ndarray, meta: dict[str, Any]) -> CameraResponse:

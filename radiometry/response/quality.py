@@ -274,13 +274,13 @@ def tied_share(response: CameraResponse) -> float:
 
 def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
             compressed: bool = False, in_sample: str | None = None,
-            fit_rms: float | None = None) -> tuple[str, str]:
+            fit_rms: float | None = None, kind: str = "held-out prediction") -> tuple[str, str]:
     """``(grade, sentence)``: ``good``, ``doubtful`` or ``broken``, with what to do. ``ratio``: the held-out RMS
     over the noise the images themselves carry (:func:`image_noise`, times :data:`MERGE_FACTOR`); ``compressed``:
     a JPEG stack (the thresholds times :data:`JPEG_FACTOR`); ``in_sample``: why no exposure could be held out (the
     prediction then includes the exposure it predicts: never good); ``fit_rms``: the in-sample prediction RMS of the
-    whole stack (above :data:`FIT_RMS_WARNING` never good). A held-out RMS above :data:`HOLDOUT_ABSOLUTE` levels is
-    doubtful at best."""
+    whole stack (above :data:`FIT_RMS_WARNING` never good); ``kind``: what the figure is called in the sentence. A
+    held-out RMS above :data:`HOLDOUT_ABSOLUTE` levels is doubtful at best."""
     scale = JPEG_FACTOR if compressed else 1.0
     worst_split = None if split is None else float(np.max(split))
     if not (math.isfinite(holdout) and math.isfinite(ratio)):
@@ -288,7 +288,7 @@ def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
                            "measure the images' noise; check the plot")
     broken = ratio > scale * HOLDOUT_BROKEN
     good = ratio <= scale * HOLDOUT_GOOD and (worst_split is None or worst_split <= SPLIT_GOOD)
-    kind = "held-out prediction" if in_sample is None else f"in-sample prediction ({in_sample})"
+    kind = kind if in_sample is None else f"in-sample prediction ({in_sample})"
     figures = (f"{kind} {holdout:.2f} levels RMS, {ratio:.2f}x the images' noise" +
                ("" if worst_split is None else f", split-half uncertainty {worst_split:.2f} %"))
     limits = f"trusted up to {scale * HOLDOUT_GOOD:g}x{' for JPEG' if compressed else ''} and {SPLIT_GOOD:g} %"
@@ -316,11 +316,12 @@ def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
 
 def assess(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
            method: str | None = None, fit_options: dict | None = None, mask: np.ndarray | None = None,
-           seed: int = 0, fit_rms: float | None = None) -> dict[str, Any]:
+           seed: int = 0, fit_rms: float | None = None, fitted: bool = False) -> dict[str, Any]:
     """The quality record of ``response`` on the stack: held-out prediction (refitting without each exposure with
     ``method`` when given, else the response as it is), split-half agreement (when ``method`` is given) and the
-    verdict (``fit_rms``: the in-sample prediction RMS of the whole stack, see :func:`verdict`). Saved in the
-    response's meta as ``quality``."""
+    verdict (``fit_rms``: the in-sample prediction RMS of the whole stack, see :func:`verdict`). ``fitted``: the
+    response was fitted on this stack; without ``method`` the figure is then not called held-out (each exposure is
+    left out of the merge but not of the fit: ``--quality fast``). Saved in the response's meta as ``quality``."""
     from radiometry.response.fit import fit_response
 
     first = np.asarray(images[0])
@@ -346,8 +347,11 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
             except (ValueError, ArithmeticError, RadiomapError) as exc:  # a half too small to fit
                 split, split_error = None, str(exc)
     hold = holdout_rms(images, times, response, refit=refit, mask=mask, seed=seed)
+    kind = "held-out prediction"
+    if fitted and refit is None:
+        kind = "prediction of each exposure from the others through the response fitted on all (no refits)"
     grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"],
-                              in_sample=hold["in_sample"], fit_rms=fit_rms)
+                              in_sample=hold["in_sample"], fit_rms=fit_rms, kind=kind)
     tied = tied_share(response)
     if tied > TIED_DOUBTFUL and grade in GRADES:
         worse = worse_grade("broken" if tied > TIED_BROKEN else "doubtful", grade)
@@ -365,8 +369,9 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
             sentence = sentence.replace("quality good", "quality doubtful", 1)
     out = {"holdout_rms_levels": hold["rms"], "holdout_per_exposure": hold["per_exposure"],
            "image_noise_levels": hold["noise"], "holdout_over_noise": hold["ratio"], "jpeg": hold["compressed"],
-           "holdout_refit": hold["refit"], "prediction": ("held-out" if hold["in_sample"] is None else
-                                                          f"in-sample ({hold['in_sample']})"),
+           "holdout_refit": hold["refit"], "prediction": (f"in-sample ({hold['in_sample']})" if hold["in_sample"]
+                                                          else "held-out" if kind == "held-out prediction" else
+                                                          "from the other exposures, response fitted on all"),
            "holdout_exposures": hold["held_out"], "split_half_percent": split,
            "grade": grade, "summary": sentence, "bends": found,
            "thresholds": {"holdout_over_noise_good": HOLDOUT_GOOD, "holdout_over_noise_broken": HOLDOUT_BROKEN,
