@@ -101,6 +101,25 @@ def test_vignetting_errors(sweep, tmp_path):
     assert result.exit_code == 2 and "'spline' is not one of 'lut', 'poly', 'poly-fixed-center'" in result.output
 
 
+def test_a_forced_run_removes_the_figures_it_does_not_write_again(sweep, tmp_path):
+    """--force --no-plots (or a model without a standard error) over an earlier run: the earlier run's figures,
+    which describe another model, go with the set it replaces; the coverage map and summaries are written anew."""
+    out = tmp_path / "v1.png"
+    common = ("vignetting", sweep["rgb"], "-r", sweep["response"], "-o", out, "--max-frames", "40")
+    assert invoke(*common).exit_code == 0
+    figures = [tmp_path / f"v1_{name}.png" for name in ("vignetting", "stderr", "profiles", "residuals")]
+    assert all(p.is_file() for p in figures)
+    mine = tmp_path / "v1_notes.txt"   # not a name radiomap writes: never removed
+    mine.write_text("mine")
+    result = invoke(*common, "--model", "poly", "--force", "--no-plots")
+    assert result.exit_code == 0, result.output
+    assert [p.name for p in figures if p.exists()] == []
+    assert (tmp_path / "v1_coverage.png").is_file() and (tmp_path / "v1_summary.json").is_file()
+    assert mine.read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v1.png", "v1_coverage.png", "v1_notes.txt",
+                                                          "v1_summary.json", "v1_summary.txt"]
+
+
 @pytest.fixture(scope="module")
 def model_file(sweep, tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "v.npz"

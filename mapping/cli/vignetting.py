@@ -132,6 +132,9 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
         else:
             figures = save_calibration_figures(staged, acc, model, min_samples=min_samples)
         figures = {name: files.final(path) for name, path in figures.items()}
+        for side in outputs[1:6]:  # an earlier run's figure this run does not write (--no-plots, a model without
+            if not files.path(side).exists():  # a standard error) would describe another model: removed with it
+                files.retire(side)
         atomic_write_text(staged.with_name(staged.name + "_summary.txt"), text + "\n")
         atomic_write_json(staged.with_name(staged.name + "_summary.json"),
                           {**facts, "model": model_name, "output": str(out), "figures": figures,
