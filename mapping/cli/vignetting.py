@@ -64,7 +64,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     Writes the model, a coverage map (<OUT stem>_coverage.png), figures (V per channel, radial
     profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
     """
-    from radiometry.errors import OutputError
+    from radiometry.errors import CalibrationError, OutputError
     from radiometry.fileio import (atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set,
                                    refuse_inputs)
     from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
@@ -98,8 +98,6 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
                              max_frames=max_frames, progress=not no_progress)
     spread = frame_scale_spread(acc)
     if spread > SCALE_SPREAD_REFUSED and not allow_exposure_changes:
-        from radiometry.errors import CalibrationError
-
         raise CalibrationError(f"{frames}: the sheet's brightness varied by {100 * spread:.0f}% between frames: auto "
                                "exposure (or the light) changed during the sweep; record it with a fixed exposure, "
                                "or pass --allow-exposure-changes to accept up to ~0.7 levels of error")
@@ -107,7 +105,13 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     if model_name == "lut":
         fit_options["smooth_sigma"] = smooth_sigma
         fit_options["thin_samples"] = min_samples
-    model = fit_vignetting(acc, model=model_name, **fit_options)
+    try:
+        model = fit_vignetting(acc, model=model_name, **fit_options)
+    except CalibrationError as exc:   # too little of the image seen: the response's levels may be the cause
+        blame = response_levels_excluded(acc, response, response_path)
+        if blame is None:
+            raise
+        raise CalibrationError(f"{exc.args[0].split(';')[0]}, because {blame}") from None
     rows, facts = calibration_summary(model, acc, response, min_samples)
     skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
     lines = [
@@ -170,6 +174,31 @@ def frame_scale_spread(acc) -> float:
 
     scales = acc.frame_scales() if acc.frames_used > 1 else np.ones((1, acc.channels))
     return float(np.max(scales) / np.min(scales) - 1.0)
+
+
+def response_levels_excluded(acc, response, response_path: str) -> str | None:
+    """Why the sweep gave (almost) no samples when the response, not the sweep, is the cause: most of the sheet's
+    readings in every channel are at levels the response does not declare (its ``meta["extrapolated_levels"]``, which
+    the accumulation leaves out); None when the sheet's levels are mostly within them or were not recorded."""
+    import numpy as np
+
+    from radiometry.response.levels import declared
+    from radiometry.vignetting_calibration.accumulate import extrapolated_mask
+
+    hist = getattr(acc, "level_hist", None)
+    if hist is None or not np.asarray(hist).sum(axis=1).all():
+        return None
+    hist = np.asarray(hist, dtype=np.float64)
+    kept = extrapolated_mask(response, acc.channels).T            # (C, 256)
+    outside = (hist * ~kept).sum(axis=1) / hist.sum(axis=1)
+    if float(outside.min()) <= 0.5:
+        return None
+    spans = ", ".join(f"{lo}..{hi}" for lo, hi in declared(response, acc.channels))
+    seen = [np.flatnonzero(h) for h in hist]
+    sheet = ", ".join(f"{s.min()}..{s.max()}" for s in seen)
+    return (f"the response {response_path} declares levels {spans} only (those its brackets constrained) and "
+            f"{100 * float(outside.min()):.0f}% of the sheet's readings (levels {sheet}) lie outside them; calibrate "
+            "the response from brackets that reach the sheet's levels, or record the sweep at an exposure within them")
 
 
 #: responses radiomap did not calibrate but assumed (``radiomap response --gamma`` / ``--linear``)

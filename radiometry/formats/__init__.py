@@ -9,11 +9,14 @@ Each table maps a suffix to a ``"module:function"`` imported on first use.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
 from radiometry.errors import CalibrationFileError
 from radiometry.registry import Registry
+
+log = logging.getLogger(__name__)
 
 #: response readers by suffix; any other suffix is read as radiomap's .npz (``CameraResponse.load``)
 RESPONSE_READERS = Registry("response file suffix", {".crf": "radiometry.formats.crf:read_radical_crf",
@@ -54,11 +57,33 @@ def _reader(path: Path, readers: Registry, own):
 
 
 def load_response(path: str | os.PathLike):
-    """Read a response from radiomap ``.npz``, radical ``.crf`` or DSO ``pcalib.txt`` (by suffix)."""
+    """Read a response from radiomap ``.npz``, radical ``.crf`` or DSO ``pcalib.txt`` (by suffix). A response graded
+    broken or doubtful when it was calibrated (``meta["quality"]["grade"]``, :mod:`radiometry.response.quality`) is
+    logged as one warning naming the file (once per file and process)."""
     from radiometry.response import CameraResponse
 
     path = Path(path)
-    return _reader(path, RESPONSE_READERS, CameraResponse.load)(path)
+    response = _reader(path, RESPONSE_READERS, CameraResponse.load)(path)
+    _warn_grade(path, response)
+    return response
+
+
+#: the response files whose grade has been warned about in this process (a command may load its response twice)
+_WARNED: set[str] = set()
+
+
+def _warn_grade(path: Path, response) -> None:
+    quality = (getattr(response, "meta", None) or {}).get("quality")
+    grade = quality.get("grade") if isinstance(quality, dict) else None
+    key = os.path.realpath(path)
+    if grade not in ("broken", "doubtful") or key in _WARNED:
+        return
+    _WARNED.add(key)
+    start = str(quality.get("summary") or f"quality {grade}").split("; ")[0]
+    log.warning("%s: this response was graded %s when it was calibrated (%s); what is computed through it is only "
+                "as right as it is%s", path, "BROKEN" if grade == "broken" else grade, start,
+                ": calibrate it again (radiomap response)" if grade == "broken" else
+                ": its record (radiomap response's .json) says why")
 
 
 def load_vignetting(path: str | os.PathLike):
