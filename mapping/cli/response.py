@@ -12,6 +12,9 @@ from mapping.validation import GAMMA, SMOOTHNESS
 
 FORMATS = {".npz": "radiomap", ".crf": "radical", ".txt": "DSO/TUM pcalib"}
 #: the names of radiometry.response.fit.FITTERS (listed here so that --help imports no NumPy)
+#: share of the pixels pure blue in some exposure (radiometry.response.fit.blue_fill_mask, dilated) above which a
+#: stack fitted without --mask-blue is warned about: memorial's registration fill covers 9.1 %, taipei 0.0 %
+BLUE_FILL_SHARE = 0.01
 RESPONSE_METHODS = ("auto", "debevec", "engel", "loglog", "opencv-debevec", "robertson")
 
 
@@ -157,10 +160,18 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
                   [used_times, *(p for p in folder.iterdir() if p.is_file())])
     check_overwrite(output, *_companions(output), force=force)  # the files beside it: inputs are named above
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
+    fill = None   # the share of a registration's pure-blue fill found in a stack fitted without --mask-blue
     if mask_blue:
         mask = blue_fill_mask(images)
         kwargs["mask"] = mask
         click.echo(f"masked {100 * (1 - mask.mean()):.1f}% of the pixels (pure-blue fill)")
+    elif images[0].ndim == 3 and images[0].shape[2] == 3:
+        fill = 1.0 - float(blue_fill_mask(images).mean())
+        if fill > BLUE_FILL_SHARE:
+            click.echo(f"warning: {100 * fill:.1f}% of the pixels are pure blue in some exposure (a registration's "
+                       "fill, as in memorial): they bias the B curve and its levels; fit with --mask-blue"
+                       + ("" if method in ("auto", "debevec", "engel", "loglog") else " (and --method loglog)"),
+                       err=True)
     import scipy.sparse.linalg  # noqa: F401  (imported before the clock starts: the time is the fit's)
 
     start = time.perf_counter()
@@ -176,6 +187,11 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
         # too few levels may be the reduction of 16-bit images to 8 bits: then say that rather than add exposures
         raise CalibrationError(f"{folder}: {with_sixteen_bit_note(exc, [folder / n for n in names])}") from None
     meta = response.meta
+    if fill is not None and fill > BLUE_FILL_SHARE and (meta.get("quality") or {}).get("grade") == "good":
+        meta["quality"]["grade"] = "doubtful"   # the figures judge the fill's pixels too: not good beside them
+        meta["quality"]["summary"] = (meta["quality"]["summary"].replace("quality good", "quality doubtful", 1)
+                                      + f"; {100 * fill:.1f}% of the pixels are a pure-blue fill: fit with --mask-blue")
+        click.echo(f"warning: {meta['quality']['summary']}", err=True)
     fit_seconds = meta.get("fit_seconds", time.perf_counter() - start)  # the fit's own time, not the quality's
     rms = meta["prediction_rms_levels"]
     meta.update({"folder": str(folder), "times_file": str(used_times), "images_used": names})
