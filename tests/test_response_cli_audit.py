@@ -42,3 +42,34 @@ def test_a_pure_blue_fill_without_mask_blue_is_warned_and_not_graded_good(tmp_pa
     assert masked.exit_code == 0 and "pure blue in some exposure" not in masked.stderr
     clean = response(bracket(tmp_path / "clean", gamma_stack(TIMES, shape=(48, 64), seed=3)), "-o", tmp_path / "c.npz")
     assert clean.exit_code == 0 and "pure blue" not in clean.stderr
+
+
+def test_tied_levels_under_the_default_method_name_the_times_not_the_default_method(tmp_path):
+    """Two exposures listed at one time: the default method (auto -> loglog) ties levels; the advice must not be to
+    fit with the default method, which was used, but to check the exposure times."""
+    from response_curves import gamma_curve, render_brackets, scene
+
+    true_times = np.array([1 / 1000, 1 / 250, 1 / 62.5, 1 / 15.6, 1 / 3.9])   # the auditor's times, 4x apart
+    listed = [1 / 1000, 1 / 1000, 1 / 62.5, 1 / 15.6, 1 / 3.9]                # the second one listed at the first's
+    folder = bracket(tmp_path / "eq", render_brackets(gamma_curve(), scene(60, 80), true_times), listed)
+    result = response(folder, "-o", tmp_path / "crf.npz")
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "crf.json").read_text())["response"]["quality"]["summary"]
+    assert "the fit tied" in summary, summary
+    assert "fit with the default method" not in summary and "check the exposure times" in summary
+    assert summary.count("do not use this response") <= 1
+
+
+def test_tied_levels_under_another_method_suggest_the_default_one(tmp_path):
+    from radiometry.response import CameraResponse
+    from radiometry.response.quality import assess
+
+    images = gamma_stack(TIMES, shape=(48, 64), seed=5)
+    u = np.linspace(0.0, 1.0, 256)
+    for method, advice in (("engel", True), ("loglog", False)):
+        curve = CameraResponse(np.stack([u ** 2.2] * 3, axis=1),
+                               {"method": method, "pooled_levels": [[list(range(100, 140))]] * 3})  # 16 % tied
+        summary = assess(images, TIMES, curve)["summary"]
+        assert "the fit tied 16 %" in summary, summary
+        assert ("fit with the default method" in summary) is advice
+        assert ("check the exposure times" in summary) is not advice

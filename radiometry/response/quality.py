@@ -357,10 +357,15 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
         worse = worse_grade("broken" if tied > TIED_BROKEN else "doubtful", grade)
         sentence = sentence.replace(f"quality {grade}", f"quality {'BROKEN' if worse == 'broken' else worse}", 1)
         grade = worse
+        # the default method (loglog, what "auto" fits) tied none on the real stacks: suggest it only after another
+        default = response.meta.get("method") == "loglog"
         sentence += (f"; the fit tied {100 * tied:.0f} % of the levels to keep f^-1 increasing: the data did not "
-                     "determine the curve there with this method"
-                     + ("; do not use this response" if grade == "broken" else "")
-                     + ": fit with the default method (it tied none on the real stacks measured)")
+                     "determine the curve there " + ("" if default else "with this method")
+                     + ("; do not use this response" if grade == "broken" and "do not use" not in sentence else "")
+                     + (": check the exposure times (two exposures listed at one time, or times that do not match "
+                        "the images) and that the exposures overlap; the default method, used here, tied none on "
+                        "the real stacks measured" if default else
+                        ": fit with the default method (it tied none on the real stacks measured)"))
     found = bends(response, levels)
     if found:       # what the figures above cannot see; on a JPEG stack such a fit was off by more than 0.8 %
         sentence += "; " + bend_text(found, "L" if n_ch == 1 else "RGB")
