@@ -572,6 +572,20 @@ def save_model_file(path: str | os.PathLike, kind: str, arrays: Mapping[str, np.
     return Path(path)
 
 
+def check_model_suffix(path: str | os.PathLike, model: str, writers: Mapping[str, str]) -> Path:
+    """``path`` if it names a ``.npz`` file (what a model's own ``save`` writes), else ValueError naming the writer of
+    ``writers`` (suffix -> function) for its suffix: a model saved as ``x.crf`` or ``v.png`` would otherwise be a zip
+    under a foreign format's name that no reader (radical, DSO, radiomap's by suffix) can read back."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix != ".npz":
+        writer = writers.get(suffix)
+        raise ValueError(f"path {str(path)!r}: {model}.save writes radiomap's .npz only, not "
+                         f"{suffix or 'a name without a suffix'}; "
+                         + (f"write {suffix} with {writer}" if writer else "name the file .npz"))
+    return path
+
+
 def load_model_file(path: str | os.PathLike, kind: str, *,
                     max_version: int = MODEL_FORMAT_VERSION) -> tuple[dict, dict[str, np.ndarray]]:
     """Read a model archive written by :func:`save_model_file`, checking format, kind and version."""

@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from radiometry.errors import CalibrationFileError, ModelMismatchError
-from radiometry.fileio import load_model_file, save_model_file
+from radiometry.fileio import check_model_suffix, load_model_file, save_model_file
 
 KIND = "vignetting"
 # V above this is not vignetting but corrupt data (a gain of 1/V would also be meaningless)
@@ -144,7 +144,11 @@ class VignettingModel:
         raise NotImplementedError
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the model in radiomap's format (``.npz``, JSON meta, no pickle), atomically."""
+        """Write the model in radiomap's format (``.npz``, JSON meta, no pickle), atomically; ValueError for another
+        suffix, naming its writer (``radiometry.formats.save_vignetting`` writes ``.vgn`` and ``.png``)."""
+        path = check_model_suffix(path, type(self).__name__, {
+            ".vgn": "radiometry.formats.save_vignetting(model, path) (radical)",
+            ".png": "radiometry.formats.save_vignetting(model, path) (DSO 16-bit vignette.png)"})
         return save_model_file(path, KIND, self._arrays(),
                                {"model": self.model_name, "channels": self.channels,
                                 "resolution": list(self.resolution), "channel_order": "RGB",

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from radiometry.errors import CalibrationFileError
-from radiometry.formats import load_response
+from radiometry.formats import load_response, load_vignetting
 from radiometry.formats.crf import MAGIC, read_radical_crf, write_radical_crf
 from radiometry.formats.pcalib import read_pcalib, write_pcalib
 from radiometry.response import CameraResponse
@@ -314,3 +314,27 @@ def test_fuzz_pcalib_reader(tmp_path_factory, content):
     else:
         path.write_text(content, encoding="utf-8", errors="surrogatepass")
     _read_or_reject(read_pcalib, path)
+
+
+@pytest.mark.parametrize("name, writer", [("x.crf", "write_radical_crf"), ("x.txt", "write_pcalib"),
+                                          ("x", "name the file .npz")])
+def test_a_response_saves_as_npz_only_and_names_the_writer_of_another_format(tmp_path, name, writer):
+    """CameraResponse.save once wrote a zip under any name (x.crf, pcalib.txt) that no reader could read back."""
+    with pytest.raises(ValueError, match=writer) as info:
+        rgb_response().save(tmp_path / name)
+    assert name in str(info.value) and "\n" not in str(info.value)
+    assert not (tmp_path / name).exists()
+    assert load_response(rgb_response().save(tmp_path / "x.NPZ")).channels == 3
+
+
+@pytest.mark.parametrize("name, kind", [("v.png", "DSO"), ("v.vgn", "radical")])
+def test_a_vignetting_model_saves_as_npz_only_and_names_the_writer_of_another_format(tmp_path, name, kind):
+    from radiometry.formats import save_vignetting
+    from radiometry.vignetting import LUTVignetting
+
+    model = LUTVignetting(np.ones((6, 8, 1), np.float32))
+    with pytest.raises(ValueError, match=f"save_vignetting.*{kind}"):
+        model.save(tmp_path / name)
+    assert not (tmp_path / name).exists()
+    save_vignetting(model, tmp_path / name)   # the writer it names reads back
+    assert load_vignetting(tmp_path / name).resolution == (8, 6)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from radiometry.errors import CalibrationFileError, ModelMismatchError
-from radiometry.fileio import load_model_file, save_model_file
+from radiometry.fileio import check_model_suffix, load_model_file, save_model_file
 
 LEVELS = 256
 KIND = "response"
@@ -256,7 +256,11 @@ class CameraResponse:
 
     # ---------------------------------------------------------------- persistence
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the response in radiomap's model format (``.npz``, no pickle), atomically."""
+        """Write the response in radiomap's model format (``.npz``, no pickle), atomically; ValueError for another
+        suffix, naming its writer (``radiometry.formats.crf.write_radical_crf``, ``...pcalib.write_pcalib``)."""
+        path = check_model_suffix(path, "CameraResponse", {
+            ".crf": "radiometry.formats.crf.write_radical_crf(path, response)",
+            ".txt": "radiometry.formats.pcalib.write_pcalib(path, response) (DSO pcalib)"})
         return save_model_file(path, KIND, {"inverse_table": self.inverse_table},
                                {"channels": self.channels, "levels": LEVELS, "normalisation": "f^-1(255)=1",
                                 "info": self.meta})
