@@ -73,3 +73,18 @@ def test_tied_levels_under_another_method_suggest_the_default_one(tmp_path):
         assert "the fit tied 16 %" in summary, summary
         assert ("fit with the default method" in summary) is advice
         assert ("check the exposure times" in summary) is not advice
+
+
+def test_a_response_written_into_its_bracket_folder_does_not_break_the_next_run(tmp_path):
+    """crf.png (the plot of radiomap response -o folder/crf.npz) was taken for an unlisted exposure: 'times.txt does
+    not list crf.png'. The run record crf.json lists it as an output: it is not an exposure."""
+    folder = bracket(tmp_path / "stack", gamma_stack(TIMES, shape=(48, 64), seed=6))
+    first = response(folder, "-o", folder / "crf.npz")
+    assert first.exit_code == 0, first.output
+    again = response(folder, "-o", folder / "crf.npz", "--force")
+    assert again.exit_code == 0, again.output
+    assert json.loads((folder / "crf.json").read_text())["response"]["images_used"] == [f"e{k}.png" for k in range(4)]
+    # an image no radiomap record lists is still refused as unlisted
+    write_image(folder / "stray.png", np.zeros((48, 64, 3), np.uint8))
+    refused = response(folder, "-o", tmp_path / "other.npz")
+    assert refused.exit_code == 1 and "does not list stray.png" in refused.output

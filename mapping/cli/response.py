@@ -105,7 +105,7 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     from radiometry.errors import CalibrationError, DatasetError, OutputError
     from radiometry.fileio import atomic_write_json, check_overwrite, ensure_dir, publish_set, refuse_inputs
     from radiometry.api import calibrate_response
-    from radiometry.response.fit import blue_fill_mask, find_times_file, load_brackets
+    from radiometry.response.fit import blue_fill_mask, find_times_file, load_brackets, own_outputs
     from radiometry.response.inputs import TimesOrderError
 
     params = {"folder": folder, "times": times_file, "output": output, "method": method, "lambda": lam,
@@ -156,8 +156,9 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     used_times = times_file if times_file is not None else find_times_file(folder)
+    own = own_outputs(folder)   # an earlier run's response, plot and record in the folder: not inputs
     refuse_inputs([output, *_companions(output)],
-                  [used_times, *(p for p in folder.iterdir() if p.is_file())])
+                  [used_times, *(p for p in folder.iterdir() if p.is_file() and p.name not in own)])
     check_overwrite(output, *_companions(output), force=force)  # the files beside it: inputs are named above
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
     fill = None   # the share of a registration's pure-blue fill found in a stack fitted without --mask-blue

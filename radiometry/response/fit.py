@@ -381,6 +381,32 @@ def find_times_file(folder: str | os.PathLike) -> Path:
                        "'image_name seconds' or pass --times FILE")
 
 
+def own_outputs(folder: str | os.PathLike) -> set[str]:
+    """Names of the files in ``folder`` that a radiomap run record there (``crf.json`` of ``radiomap response -o
+    folder/crf.npz``, a vignetting ``*_summary.json``) lists as its outputs: not exposures of the bracket."""
+    import json
+
+    folder = Path(folder)
+    names: set[str] = set()
+    for record in folder.glob("*.json"):
+        try:
+            if record.stat().st_size > 4_000_000:
+                continue
+            data = json.loads(record.read_text(encoding="utf-8"))
+        except (OSError, ValueError, UnicodeDecodeError):
+            continue
+        if not isinstance(data, dict) or "radiomap_version" not in (data.get("run") or data):
+            continue
+        for key in ("outputs", "figures"):
+            listed = data.get(key)
+            for value in (listed.values() if isinstance(listed, dict) else ()):
+                if isinstance(value, str):    # written beside the record (its path may be relative to another cwd)
+                    names.add(Path(value).name)
+        if names:
+            names.add(record.name)
+    return names
+
+
 def _is_file(path: Path) -> bool:
     try:
         return path.is_file()
@@ -404,7 +430,8 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     tfile = Path(times_file) if times_file is not None else find_times_file(folder)
     entries = read_times_file(tfile)
-    present = {p.name: p for p in list_images(folder)}
+    own = own_outputs(folder)   # a response plot written into the folder by an earlier run is not an exposure
+    present = {p.name: p for p in list_images(folder) if p.name not in own}
     missing = [name for name, _ in entries if name not in present and not _is_file(folder / name)]
     if missing:
         raise DatasetError(f"{tfile}: lists {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
@@ -435,4 +462,4 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
 
 __all__ = ["METHODS", "FITTERS", "DEFAULT_LAMBDA", "DEFAULT_SAMPLES", "HAT_WEIGHTS", "fit_response",
            "fit_response_debevec", "select_samples", "blue_fill_mask",
-           "merge_radiance", "prediction_rms", "read_times_file", "find_times_file", "load_brackets"]
+           "merge_radiance", "prediction_rms", "read_times_file", "find_times_file", "load_brackets", "own_outputs"]
