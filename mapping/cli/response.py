@@ -161,6 +161,9 @@ def command(folder: Path | None, times_file: Path | None, output: Path, method: 
                   [used_times, *(p for p in folder.iterdir() if p.is_file() and p.name not in own)])
     check_overwrite(output, *_companions(output), force=force)  # the files beside it: inputs are named above
     images, times, names = load_brackets(folder, used_times, progress=not no_progress)
+    if channel is not None and images[0].ndim == 2:
+        raise click.BadParameter(f"picks R, G or B of a colour stack, but the images of {folder} are grey (one "
+                                 "channel, written as it is); drop --channel", param_hint="--channel")
     fill = None   # the share of a registration's pure-blue fill found in a stack fitted without --mask-blue
     if mask_blue:
         mask = blue_fill_mask(images)

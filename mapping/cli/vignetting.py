@@ -64,7 +64,7 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     Writes the model, a coverage map (<OUT stem>_coverage.png), figures (V per channel, radial
     profiles with samples, residuals) and a summary (<OUT stem>_summary.txt/.json).
     """
-    from radiometry.errors import CalibrationError, OutputError
+    from radiometry.errors import CalibrationError, ModelMismatchError, OutputError
     from radiometry.fileio import (atomic_write_json, atomic_write_text, check_overwrite, ensure_dir, publish_set,
                                    refuse_inputs)
     from radiometry.formats import VIGNETTING_WRITERS, load_response, save_vignetting
@@ -94,8 +94,11 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
     check_overwrite(out, *written, force=force)   # the model and every file written beside it
     ensure_dir(out.parent)  # an unwritable output fails now, not after reading every frame
     response = load_response(response_path)
-    acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
-                             max_frames=max_frames, progress=not no_progress)
+    try:
+        acc = collect_vignetting(frames, response, min_samples=min_samples, stop_when_covered=stop_when_covered,
+                                 max_frames=max_frames, progress=not no_progress)
+    except ModelMismatchError as exc:   # a grey sweep through an RGB response: name both files
+        raise ModelMismatchError(f"{frames} through {response_path}: {exc}") from None
     spread = frame_scale_spread(acc)
     if spread > SCALE_SPREAD_REFUSED and not allow_exposure_changes:
         raise CalibrationError(f"{frames}: the sheet's brightness varied by {100 * spread:.0f}% between frames: auto "

@@ -51,9 +51,38 @@ def read_file(path: Path, what: str) -> bytes:
 
 
 def _reader(path: Path, readers: Registry, own):
-    """The reader of ``path``'s suffix, or ``own`` (radiomap's .npz reader) for any other suffix."""
+    """The reader of ``path``'s suffix, or ``own`` (radiomap's .npz reader) for any other suffix; a file of another
+    suffix that is no radiomap model either is refused naming its suffix (:func:`_foreign`)."""
     suffix = path.suffix.lower()
-    return readers[suffix] if suffix in readers else own
+    if suffix in readers:
+        return readers[suffix]
+    if suffix in (".npz", ".npy"):   # a bare .npy array: radiomap's reader says which command makes a model
+        return own
+
+    def read(p: Path):
+        try:
+            return own(p)
+        except CalibrationFileError as exc:
+            if not p.is_file():
+                raise
+            raise CalibrationFileError(_foreign(p, readers, exc)) from None
+    return read
+
+
+def _foreign(path: Path, readers: Registry, exc: Exception) -> str:
+    """Why ``path`` (no .npz, none of ``readers``' suffixes) cannot be read: what it looks like, and what to pass."""
+    response = readers is RESPONSE_READERS
+    what, other = ("response", VIGNETTING_READERS) if response else ("vignetting model", RESPONSE_READERS)
+    wanted = ("radiomap .npz, radical .crf or DSO pcalib.txt" if response else
+              "radiomap .npz, radical .vgn or DSO vignette.png")
+    suffix = path.suffix.lower()
+    if suffix in other:
+        return (f"{path}: a {'vignetting' if response else 'response'} file ({suffix}), not a {what}; pass the "
+                f"{what}: {wanted}")
+    if suffix == ".json":
+        return (f"{path}: a JSON file (radiomap's record of a run, written beside its model), not a {what}; pass the "
+                f"model file: {wanted}")
+    return f"{path}: unknown {what} file extension {suffix or '(none)'!r} and not a radiomap .npz model; pass {wanted}"
 
 
 def load_response(path: str | os.PathLike):

@@ -60,7 +60,9 @@ def read_dso_vignette(path: str | os.PathLike) -> LUTVignetting:
         img = img[:, :, 0]
     if img.ndim != 2:
         raise CalibrationFileError(f"{path}: has {img.shape[2]} channels; a DSO vignette is a single-channel "
-                                   "(grayscale) 16-bit PNG")
+                                   "(grayscale) 16-bit PNG: convert it to grey keeping 16 bits (ImageMagick: "
+                                   "magick IN -colorspace Gray -depth 16 OUT.png), or keep per-channel vignetting "
+                                   "in a radiomap .npz")
     if img.dtype not in (np.uint16, np.uint8):
         raise CalibrationFileError(f"{path}: pixel type {img.dtype}; a DSO vignette is 16-bit (or 8-bit)")
     peak = int(img.max())

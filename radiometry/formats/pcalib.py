@@ -105,6 +105,9 @@ def read_pcalib(path: str | os.PathLike, *, strict: bool = False) -> CameraRespo
         level = int(np.flatnonzero(steps <= 0)[0]) + 1
         if strict:
             raise _fail(path, f"not strictly increasing at level {level} (DSO rejects such files too)")
+        if table[-1] < table[0] and np.mean(steps < 0) > 0.5:   # mostly decreasing: not noise a repair could mend
+            raise _fail(path, f"the values decrease ({table[0]:g} at level 0 to {table[-1]:g} at 255): a reversed "
+                              "file, or the forward response instead of its inverse?")
         repaired = isotonic_repair(table)
         span = float(repaired[-1] - repaired[0])
         change = np.abs(repaired - table)
