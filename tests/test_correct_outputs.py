@@ -1,8 +1,13 @@
 """``radiomap correct`` publishes its outputs all together or not at all (audit 2026-11-28: a folder whose third image
 did not fit the models left the first two corrected images behind, exit 1, and SIGTERM after 20 of 150 frames left
-20 images with no marker; a rerun then said "f000.png exists; pass --force")."""
+20 images with no marker; a rerun then said "f000.png exists; pass --force"); and the same audit's small ones: a
+float format OpenCV cannot write refused before the folder is made, a resampled model said, no OpenCV warnings
+before the one-line error of a missing camera."""
 
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -71,3 +76,40 @@ def test_a_complete_run_writes_every_image_and_the_stderr_file(tmp_path):
     se = np.load(tmp_path / "se" / "se.npy")
     assert se.shape == (H, W, 3) and np.allclose(se, 0.01, atol=1e-3)
     assert not [p for p in (tmp_path / "se").iterdir() if p.name != "se.npy"]
+
+
+def test_a_float_format_opencv_cannot_write_is_refused_before_anything_is_made(tmp_path, monkeypatch):
+    from radiometry import images
+
+    def no_exr(path, img):
+        from radiometry.errors import OutputError
+
+        raise OutputError(f"{path}: OpenCV cannot write 32-bit float EXR (no encoder); use --irradiance-format npy")
+
+    monkeypatch.setattr(images, "_encode_float", no_exr)
+    models = _models(tmp_path)
+    frames = _frames(tmp_path / "in", [(H, W)])
+    result = _correct(frames, models, tmp_path / "out", "--irradiance", "--irradiance-format", "exr")
+    assert result.exit_code == 2 and "--irradiance-format" in result.output and "EXR" in result.output, result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_model_resampled_to_the_images_is_said(tmp_path):
+    models = _models(tmp_path)
+    frames = _frames(tmp_path / "in", [(2 * H, 2 * W)])
+    result = _correct(frames, models, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert f"the vignetting model ({W}x{H}) is resampled to the images' {2 * W}x{2 * H}" in result.output
+    assert "cropped sensor" in result.output
+    same = _correct(_frames(tmp_path / "same", [(H, W)]), models, tmp_path / "out2")
+    assert same.exit_code == 0 and "is resampled to" not in same.output, same.output
+
+
+def test_a_missing_camera_is_one_line_without_opencv_warnings(tmp_path):
+    """``radiomap vignetting 9`` (a camera index with no camera): OpenCV printed two ``[ WARN:0 ...]`` lines to the
+    process's stderr before radiomap's error; only the error is left."""
+    response = CameraResponse.gamma(2.2).save(tmp_path / "crf.npz")
+    done = subprocess.run([sys.executable, "-m", "mapping.cli", "vignetting", "9", "-r", str(response), "-o",
+                           str(tmp_path / "v.npz")], capture_output=True, text=True, timeout=600)
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    assert done.returncode == 1 and len(lines) == 1 and "cannot open camera 9" in lines[0], lines

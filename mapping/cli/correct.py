@@ -77,9 +77,10 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     from radiometry.api import read_vignetting
     from radiometry.correction import Corrector
+    from radiometry.errors import OutputError
     from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import load_response
-    from radiometry.images import write_float_image, write_image
+    from radiometry.images import check_float_format, write_float_image, write_image
     from radiometry.progress import progress_bar
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
@@ -99,6 +100,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                                      "radiomap vignetting into .npz does); drop --stderr or re-calibrate",
                                      param_hint="--stderr")
         check_overwrite(stderr_path, force=force)
+        check_float_format(stderr_path)  # before any image is written
     source = open_frames(input_path)
     if isinstance(source, FolderFrames):
         names = [p.stem for p in source.paths]
@@ -111,6 +113,12 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                       fix_shared="correct such images into separate output folders (or rename one)")
         for _path, target in pairs:
             check_overwrite(target, force=force)
+    if irradiance:  # an OpenCV without OpenEXR: say so before the output folder is made
+        try:
+            check_float_format(Path(outdir) / f"irradiance{ext}")
+        except OutputError:
+            raise click.BadParameter(f"this OpenCV build cannot write 32-bit float {fmt.upper()} images; use npy or "
+                                     "tiff", param_hint="--irradiance-format") from None
     out = ensure_dir(outdir)
 
     frames = iter(source)
@@ -134,6 +142,11 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
         for i, frame in enumerate(bar):
             if first_shape is None:
                 first_shape = np.asarray(frame).shape[:2]
+                model_size = tuple(getattr(vignetting, "resolution", first_shape[::-1]))
+                if model_size != first_shape[::-1]:  # same aspect (else the model refuses below): resampled
+                    click.echo(f"note: the vignetting model ({model_size[0]}x{model_size[1]}) is resampled to the "
+                               f"images' {first_shape[1]}x{first_shape[0]}: right when they cover the same sensor "
+                               "area (binned or scaled), wrong for a cropped sensor mode", err=True)
             name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
                                                        else Path(input_path).stem)
             target = out / f"{name}{ext}"
