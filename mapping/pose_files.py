@@ -165,7 +165,34 @@ def match_pose_file(dataset, path: str | os.PathLike, *, max_difference: float =
                             f"pose; {fix}")
     if matched < n:
         log.warning("%s: %d of %d frames have %s and are skipped", path, n - matched, n, how)
+    _refuse_inverted(dataset, table)
     return table
+
+
+class _FramesWithPoses:
+    """The frames of ``dataset`` with the poses of ``table`` in place of their own (for the convention check)."""
+
+    def __init__(self, dataset, table: PoseTable):
+        self.dataset, self.table = dataset, table
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def __getitem__(self, i: int):
+        from types import SimpleNamespace
+
+        frame = self.dataset[i]
+        return SimpleNamespace(depth=frame.depth, K=frame.K, pose=self.table[i])
+
+
+def _refuse_inverted(dataset, table: PoseTable) -> None:
+    """A file of world-to-camera poses is refused like such ground truth (:mod:`mapping.pose_convention`): as
+    given it fuses without an error and a good-looking ATE (the kitchen inverted, 20 frames: ATE 2 cm, L1 72.9
+    against 45.3)."""
+    from mapping.pose_convention import refuse_inverted_poses
+
+    name = getattr(dataset, "root", None) or getattr(dataset, "name", "the sequence")
+    refuse_inverted_poses(_FramesWithPoses(dataset, table), name=str(name), source=f"the poses of {table.source}")
 
 
 def resolve_poses(value, dataset, *, max_difference: float = DEFAULT_MAX_DIFFERENCE):
