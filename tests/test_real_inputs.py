@@ -151,6 +151,30 @@ def test_the_shared_recordings_are_read_as_their_layouts_say():
 # ------------------------------------------------------------------------------------------------------------
 # 2. poses from a file
 # ------------------------------------------------------------------------------------------------------------
+def test_a_pose_file_of_a_list_without_a_clock_is_matched_by_its_copied_stamps_or_refused(tmp_path):
+    """associations.txt's stamps do not increase (intervals): the frames are dated N / 30 s, so a trajectory that
+    copies the listed stamps (ORB-SLAM2's CameraTrajectory.txt) was matched by the nearest time to other frames'
+    poses (the office: frame 0 took frame 13's, exit 0). It is matched by the copied stamps; radiomap's own
+    trajectory (N / 30 s) likewise; anything else is refused, whatever --poses-max-difference says."""
+    broken = [0.0058, 0.0070, 0.0154, 0.0148, 0.0163, 0.0120]
+    ds = _tum_folder(tmp_path / "rec", stamps=broken, scale=1000.0)
+    opened = open_dataset(tmp_path / "rec", intrinsics="128,128,79.5,59.5")
+    truth = np.stack([f.pose for f in ds.frames])
+    for stamps in (np.array(broken), np.arange(6) / 30.0):
+        tum = tmp_path / "traj.txt"
+        tum.write_text(format_tum_trajectory(stamps, truth))
+        table = match_pose_file(opened, tum)
+        np.testing.assert_allclose(np.stack(table.poses), truth, atol=1e-6)
+    # ORB-SLAM2 leaves out lost frames: the others keep their own poses
+    tum.write_text(format_tum_trajectory(np.array(broken)[[0, 1, 3, 4, 5]], truth[[0, 1, 3, 4, 5]]))
+    table = match_pose_file(opened, tum)
+    assert table[2] is None and table.matched == 5
+    np.testing.assert_allclose(table[3], truth[3], atol=1e-6)
+    tum.write_text(format_tum_trajectory(np.array(broken) + 0.002, truth))
+    with pytest.raises(PoseFileError, match=r"traj.txt: cannot be matched.*do not increase.*Redwood .log"):
+        match_pose_file(opened, tum, max_difference=10.0)
+
+
 @pytest.mark.slow
 def test_each_kind_of_pose_file_is_matched_to_the_frames(tmp_path):
     ds = _redwood_folder(tmp_path / "seq", 6)

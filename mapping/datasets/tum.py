@@ -128,6 +128,8 @@ class TUMDataset(FileSequence):
     """A TUM RGB-D sequence folder (see the module documentation for the layout)."""
 
     format_name = "tum"
+    #: the colour timestamps as listed (by frame number) when they cannot date the frames, else None
+    listed_timestamps = None
 
     @classmethod
     def detect(cls, path: Path) -> bool:
@@ -151,6 +153,7 @@ class TUMDataset(FileSequence):
             if late:
                 log.warning("%s: %d of %d colour timestamps do not increase (not times); frames kept in the file's "
                             "order, frame N dated N / %g s", associations, late, len(rows), FRAME_RATE)
+                self.listed_timestamps = rgb_t   # what a trajectory writer (ORB-SLAM2) copies: --poses FILE
                 rgb_t = np.arange(len(rows)) / FRAME_RATE
             self.pairing = {"associations": str(associations), "paired": len(rows),
                             "timestamps": "as listed" if not late else f"frame / {FRAME_RATE:g} s (listed ones "
