@@ -66,6 +66,24 @@ def test_the_intrinsics_file_of_the_layout_is_read_and_named(tmp_path, name):
     assert given.K[0, 0] == 300 and "(given)" in intrinsics_text(given)
 
 
+def test_a_camera_json_of_another_image_size_is_refused(tmp_path):
+    """Open3D's camera JSON declares its image size: a file of another stream (848x480 beside 640x480 frames;
+    the lampshade with such a file fused with 421,421,424,240, exit 0) is refused naming the file, both sizes and
+    the fix; the explicit option still opens the folder."""
+    _redwood_folder(tmp_path / "seq", 1, trajectory=False)
+    camera = tmp_path / "seq" / "camera_intrinsic.json"
+    camera.write_text(json.dumps({"width": 2 * W + 10, "height": H, "intrinsic_matrix": [100, 0, 0, 0, 100, 0,
+                                                                                        W / 2 + 5, H / 2, 1]}))
+    result = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "seq"), "-o", str(tmp_path / "out"),
+                                      "--no-progress"])
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    line = result.stderr.strip().splitlines()[-1]
+    for fragment in (str(camera), f"{2 * W + 10}x{H}", f"{W}x{H}", "--intrinsics fx,fy,cx,cy"):
+        assert fragment in line, line
+    assert not (tmp_path / "out").exists()
+    assert open_dataset(tmp_path / "seq", intrinsics="100,100,80,60").K[0, 2] == 80
+
+
 @pytest.mark.slow
 def test_a_default_intrinsics_is_said_with_a_warning(tmp_path, caplog):
     _redwood_folder(tmp_path / "seq", 1, camera_file=None, trajectory=False, size=(640, 480))
