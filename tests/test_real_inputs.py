@@ -145,6 +145,23 @@ def test_tum_depth_at_5000_per_metre_is_kept_and_the_folder_name_gives_the_kinec
     assert opened.K[0, 0] == pytest.approx(520.9)
 
 
+def test_millimetre_depth_is_detected_without_associations_and_simulated_tum_depth_is_kept(tmp_path, caplog):
+    """rgb.txt / depth.txt without associations.txt: the multiples-of-5 detector used to run only with
+    associations.txt, so millimetres were read at 5000 per metre (the office in this layout: depth 5x too small,
+    L1 50.3 against 24). Now detected, warned and said; depth simulated at 5000 per metre (not multiples of 5,
+    but a room's median) stays at 5000, and the settings line says so."""
+    ds = _tum_folder(tmp_path / "mm", associations=False, scale=1000.0)
+    with caplog.at_level(logging.WARNING):
+        opened = open_dataset(tmp_path / "mm", intrinsics="128,128,79.5,59.5")
+    assert opened.depth_scale == 1000.0
+    assert any("read as millimetres" in r.getMessage() for r in caplog.records)
+    assert "depth scale 1000 per metre (detected: depth in millimetres)" in intrinsics_text(opened)
+    np.testing.assert_allclose(opened[2].depth, ds.frames[2].depth, atol=6e-4)
+    _tum_folder(tmp_path / "sim", associations=False, scale=5000.0)
+    kept = open_dataset(tmp_path / "sim", intrinsics="128,128,79.5,59.5")
+    assert kept.depth_scale == 5000.0 and "depth scale 5000 per metre (TUM's" in intrinsics_text(kept)
+
+
 def test_a_malformed_associations_line_names_the_file_and_line(tmp_path):
     _tum_folder(tmp_path / "rec", 2)
     (tmp_path / "rec" / "associations.txt").write_text("0.0 rgb/00000.png depth/00000.png\n")
