@@ -139,8 +139,12 @@ LISTED_STAMP_TOLERANCE = 1e-6
 
 
 def _exact_rows(clock: np.ndarray, keys: np.ndarray) -> dict[int, int] | None:
-    """``{frame number: row}`` when every row's timestamp equals exactly one of ``clock`` (by frame number) and
-    the rows follow its order, else None."""
+    """``{frame number: row}`` when the rows' timestamps equal ``clock`` (by frame number) row by row from frame
+    0 (a trajectory of every frame, or of the first ones: listed stamps may repeat, the office's frames 22 and 23
+    are 2.4e-7 s apart), or when each equals exactly one of ``clock`` and the rows follow its order (lost frames
+    left out); else None."""
+    if len(keys) <= len(clock) and np.all(np.abs(clock[:len(keys)] - keys) <= LISTED_STAMP_TOLERANCE):
+        return {i: i for i in range(len(keys))}
     rows = {}
     for row, key in enumerate(keys):
         hits = np.flatnonzero(np.abs(clock - key) <= LISTED_STAMP_TOLERANCE)

@@ -208,6 +208,16 @@ def test_a_pose_file_of_a_list_without_a_clock_is_matched_by_its_copied_stamps_o
     tum.write_text(format_tum_trajectory(np.array(broken) + 0.002, truth))
     with pytest.raises(PoseFileError, match=r"traj.txt: cannot be matched.*do not increase.*Redwood .log"):
         match_pose_file(opened, tum, max_difference=10.0)
+    # listed stamps that repeat (the office's frames 22 and 23: 2.4e-7 s apart): a row per frame is matched row by
+    # row; with a frame left out the rows are ambiguous and refused
+    repeated = [0.0058, 0.0070, 0.0154, 0.0148, 0.0058, 0.0120]
+    _tum_folder(tmp_path / "rep", stamps=repeated, scale=1000.0)
+    opened = open_dataset(tmp_path / "rep", intrinsics="128,128,79.5,59.5")
+    tum.write_text(format_tum_trajectory(np.array(repeated), truth))
+    np.testing.assert_allclose(np.stack(match_pose_file(opened, tum).poses), truth, atol=1e-6)
+    tum.write_text(format_tum_trajectory(np.array(repeated)[[0, 1, 2, 3, 5]], truth[[0, 1, 2, 3, 5]]))
+    with pytest.raises(PoseFileError, match="cannot be matched"):
+        match_pose_file(opened, tum)
 
 
 @pytest.mark.slow
