@@ -234,6 +234,12 @@ def write_float_image(path: str | os.PathLike, data: np.ndarray) -> Path:
             with open(tmp, "wb") as fh:
                 np.save(fh, img)
         return path
+    return atomic_write_bytes(path, _encode_float(path, img))
+
+
+def _encode_float(path: Path, img: np.ndarray) -> bytes:
+    """``img`` (float32) encoded by OpenCV in the format ``path``'s suffix names; OutputError naming ``path`` when
+    this OpenCV build cannot (no OpenEXR)."""
     os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     cv2 = _cv2()
     if img.ndim == 3 and img.shape[2] == 3:
@@ -248,7 +254,15 @@ def write_float_image(path: str | os.PathLike, data: np.ndarray) -> Path:
     if not ok:
         raise OutputError(f"{path}: OpenCV cannot write 32-bit float {path.suffix.lstrip('.').upper()} ({reason}); "
                           "use --irradiance-format npy")
-    return atomic_write_bytes(path, buf.tobytes())
+    return buf.tobytes()
+
+
+def check_float_format(path: str | os.PathLike) -> None:
+    """Refuse, before anything is written, a float image format this OpenCV build cannot write (as
+    :func:`write_float_image` would on the first image)."""
+    path = Path(path)
+    if path.suffix.lower() != ".npy":
+        _encode_float(path, np.zeros((2, 2, 3), np.float32))
 
 
 def write_depth(path: str | os.PathLike, depth_m: np.ndarray, scale: float) -> Path:

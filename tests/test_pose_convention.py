@@ -84,3 +84,39 @@ def test_icp_needs_no_convention_check(tmp_path, room):  # noqa: F811
     out = tmp_path / "out"
     res = run("reconstruct", seq, "-o", out, "--poses", "icp", "--depth-max", "5", "--no-progress")
     assert res.exit_code == 0, res.output
+
+
+def kitchen_pose_file(dest: Path, kind: str, *, invert: bool, frames: int = 20) -> Path:
+    """The shared kitchen's first ``frames`` poses as a TUM trajectory (stamped with the frames' own timestamps)
+    or a Redwood .log, inverted with ``invert``."""
+    from mapping.datasets.redwood import write_log_trajectory
+    from mapping.metrics import write_tum_trajectory
+
+    ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, frames))
+    frames_ = [ds[i] for i in range(len(ds))]
+    poses = np.array([np.linalg.inv(f.pose) if invert else f.pose for f in frames_])
+    if kind == "log":
+        return write_log_trajectory(dest / "poses.log", list(poses))
+    return write_tum_trajectory(dest / "poses.txt", np.array([f.timestamp for f in frames_]), poses)
+
+
+@pytest.mark.parametrize("kind", ["tum", "log"])
+def test_inverted_pose_file_is_refused_by_reconstruct(tmp_path, kind):
+    """A pose file in world-to-camera form (20 kitchen frames: ATE 0.14 cm, L1 42.9 against 20.1, exit 0 before)
+    is refused like such ground truth, naming the file and the fix."""
+    path = kitchen_pose_file(tmp_path, kind, invert=True)
+    out = tmp_path / "out"
+    error_line(run("reconstruct", shared_path("rgbd", "redkitchen_7scenes_000-099"), "--frames", "0:20",
+                   "--poses", path, "-o", out, "--no-progress"),
+               str(path), "look like world-to-camera", "numpy.linalg.inv")
+    assert not out.exists()
+
+
+def test_correct_pose_file_passes_the_convention_check(tmp_path):
+    from mapping.pose_files import match_pose_file
+
+    ds = open_dataset(shared_path("rgbd", "redkitchen_7scenes_000-099"), frames=slice(0, 20))
+    table = match_pose_file(ds, kitchen_pose_file(tmp_path, "tum", invert=False))
+    assert table.matched == 20
+    for i in (0, 19):
+        np.testing.assert_allclose(table[i], ds[i].pose, atol=2e-3)   # the TUM file rounds

@@ -66,6 +66,24 @@ def test_the_intrinsics_file_of_the_layout_is_read_and_named(tmp_path, name):
     assert given.K[0, 0] == 300 and "(given)" in intrinsics_text(given)
 
 
+def test_a_camera_json_of_another_image_size_is_refused(tmp_path):
+    """Open3D's camera JSON declares its image size: a file of another stream (848x480 beside 640x480 frames;
+    the lampshade with such a file fused with 421,421,424,240, exit 0) is refused naming the file, both sizes and
+    the fix; the explicit option still opens the folder."""
+    _redwood_folder(tmp_path / "seq", 1, trajectory=False)
+    camera = tmp_path / "seq" / "camera_intrinsic.json"
+    camera.write_text(json.dumps({"width": 2 * W + 10, "height": H, "intrinsic_matrix": [100, 0, 0, 0, 100, 0,
+                                                                                        W / 2 + 5, H / 2, 1]}))
+    result = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "seq"), "-o", str(tmp_path / "out"),
+                                      "--no-progress"])
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    line = result.stderr.strip().splitlines()[-1]
+    for fragment in (str(camera), f"{2 * W + 10}x{H}", f"{W}x{H}", "--intrinsics fx,fy,cx,cy"):
+        assert fragment in line, line
+    assert not (tmp_path / "out").exists()
+    assert open_dataset(tmp_path / "seq", intrinsics="100,100,80,60").K[0, 2] == 80
+
+
 @pytest.mark.slow
 def test_a_default_intrinsics_is_said_with_a_warning(tmp_path, caplog):
     _redwood_folder(tmp_path / "seq", 1, camera_file=None, trajectory=False, size=(640, 480))
@@ -127,6 +145,23 @@ def test_tum_depth_at_5000_per_metre_is_kept_and_the_folder_name_gives_the_kinec
     assert opened.K[0, 0] == pytest.approx(520.9)
 
 
+def test_millimetre_depth_is_detected_without_associations_and_simulated_tum_depth_is_kept(tmp_path, caplog):
+    """rgb.txt / depth.txt without associations.txt: the multiples-of-5 detector used to run only with
+    associations.txt, so millimetres were read at 5000 per metre (the office in this layout: depth 5x too small,
+    L1 50.3 against 24). Now detected, warned and said; depth simulated at 5000 per metre (not multiples of 5,
+    but a room's median) stays at 5000, and the settings line says so."""
+    ds = _tum_folder(tmp_path / "mm", associations=False, scale=1000.0)
+    with caplog.at_level(logging.WARNING):
+        opened = open_dataset(tmp_path / "mm", intrinsics="128,128,79.5,59.5")
+    assert opened.depth_scale == 1000.0
+    assert any("read as millimetres" in r.getMessage() for r in caplog.records)
+    assert "depth scale 1000 per metre (detected: depth in millimetres)" in intrinsics_text(opened)
+    np.testing.assert_allclose(opened[2].depth, ds.frames[2].depth, atol=6e-4)
+    _tum_folder(tmp_path / "sim", associations=False, scale=5000.0)
+    kept = open_dataset(tmp_path / "sim", intrinsics="128,128,79.5,59.5")
+    assert kept.depth_scale == 5000.0 and "depth scale 5000 per metre (TUM's" in intrinsics_text(kept)
+
+
 def test_a_malformed_associations_line_names_the_file_and_line(tmp_path):
     _tum_folder(tmp_path / "rec", 2)
     (tmp_path / "rec" / "associations.txt").write_text("0.0 rgb/00000.png depth/00000.png\n")
@@ -151,6 +186,40 @@ def test_the_shared_recordings_are_read_as_their_layouts_say():
 # ------------------------------------------------------------------------------------------------------------
 # 2. poses from a file
 # ------------------------------------------------------------------------------------------------------------
+def test_a_pose_file_of_a_list_without_a_clock_is_matched_by_its_copied_stamps_or_refused(tmp_path):
+    """associations.txt's stamps do not increase (intervals): the frames are dated N / 30 s, so a trajectory that
+    copies the listed stamps (ORB-SLAM2's CameraTrajectory.txt) was matched by the nearest time to other frames'
+    poses (the office: frame 0 took frame 13's, exit 0). It is matched by the copied stamps; radiomap's own
+    trajectory (N / 30 s) likewise; anything else is refused, whatever --poses-max-difference says."""
+    broken = [0.0058, 0.0070, 0.0154, 0.0148, 0.0163, 0.0120]
+    ds = _tum_folder(tmp_path / "rec", stamps=broken, scale=1000.0)
+    opened = open_dataset(tmp_path / "rec", intrinsics="128,128,79.5,59.5")
+    truth = np.stack([f.pose for f in ds.frames])
+    for stamps in (np.array(broken), np.arange(6) / 30.0):
+        tum = tmp_path / "traj.txt"
+        tum.write_text(format_tum_trajectory(stamps, truth))
+        table = match_pose_file(opened, tum)
+        np.testing.assert_allclose(np.stack(table.poses), truth, atol=1e-6)
+    # ORB-SLAM2 leaves out lost frames: the others keep their own poses
+    tum.write_text(format_tum_trajectory(np.array(broken)[[0, 1, 3, 4, 5]], truth[[0, 1, 3, 4, 5]]))
+    table = match_pose_file(opened, tum)
+    assert table[2] is None and table.matched == 5
+    np.testing.assert_allclose(table[3], truth[3], atol=1e-6)
+    tum.write_text(format_tum_trajectory(np.array(broken) + 0.002, truth))
+    with pytest.raises(PoseFileError, match=r"traj.txt: cannot be matched.*do not increase.*Redwood .log"):
+        match_pose_file(opened, tum, max_difference=10.0)
+    # listed stamps that repeat (the office's frames 22 and 23: 2.4e-7 s apart): a row per frame is matched row by
+    # row; with a frame left out the rows are ambiguous and refused
+    repeated = [0.0058, 0.0070, 0.0154, 0.0148, 0.0058, 0.0120]
+    _tum_folder(tmp_path / "rep", stamps=repeated, scale=1000.0)
+    opened = open_dataset(tmp_path / "rep", intrinsics="128,128,79.5,59.5")
+    tum.write_text(format_tum_trajectory(np.array(repeated), truth))
+    np.testing.assert_allclose(np.stack(match_pose_file(opened, tum).poses), truth, atol=1e-6)
+    tum.write_text(format_tum_trajectory(np.array(repeated)[[0, 1, 2, 3, 5]], truth[[0, 1, 2, 3, 5]]))
+    with pytest.raises(PoseFileError, match="cannot be matched"):
+        match_pose_file(opened, tum)
+
+
 @pytest.mark.slow
 def test_each_kind_of_pose_file_is_matched_to_the_frames(tmp_path):
     ds = _redwood_folder(tmp_path / "seq", 6)

@@ -77,9 +77,10 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
 
     from radiometry.api import read_vignetting
     from radiometry.correction import Corrector
-    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir
+    from radiometry.errors import OutputError
+    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import load_response
-    from radiometry.images import write_float_image, write_image
+    from radiometry.images import check_float_format, write_float_image, write_image
     from radiometry.progress import progress_bar
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
@@ -99,6 +100,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                                      "radiomap vignetting into .npz does); drop --stderr or re-calibrate",
                                      param_hint="--stderr")
         check_overwrite(stderr_path, force=force)
+        check_float_format(stderr_path)  # before any image is written
     source = open_frames(input_path)
     if isinstance(source, FolderFrames):
         names = [p.stem for p in source.paths]
@@ -111,6 +113,12 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                       fix_shared="correct such images into separate output folders (or rename one)")
         for _path, target in pairs:
             check_overwrite(target, force=force)
+    if irradiance:  # an OpenCV without OpenEXR: say so before the output folder is made
+        try:
+            check_float_format(Path(outdir) / f"irradiance{ext}")
+        except OutputError:
+            raise click.BadParameter(f"this OpenCV build cannot write 32-bit float {fmt.upper()} images; use npy or "
+                                     "tiff", param_hint="--irradiance-format") from None
     out = ensure_dir(outdir)
 
     frames = iter(source)
@@ -127,31 +135,41 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     total = 0
     bar = progress_bar(frames, total=source.length, desc="correct", enabled=not no_progress, leave=False)
     first_shape = None
-    for i, frame in enumerate(bar):
-        if first_shape is None:
-            first_shape = np.asarray(frame).shape[:2]
-        name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
-                                                   else Path(input_path).stem)
-        target = out / f"{name}{ext}"
-        check_overwrite(target, force=force)
-        source_name = source.paths[i] if names is not None else f"{input_path} ({name})"
-        if irradiance:
-            with _models_must_fit(source_name, response_path, vignetting_path):
-                irr = corrector.irradiance(frame)
-            write_float_image(target, irr)
-        else:
-            with _models_must_fit(source_name, response_path, vignetting_path):
-                result = corrector.correct(frame, scale=float(scale_value))
-            clipped += int(np.count_nonzero((result == 255) & (np.asarray(frame) < 255)))
-            total += result.size
-            write_image(target, result)
-        written += 1
-    if stderr_path is not None and first_shape is not None:
-        from radiometry.correction import corrected_relative_stderr
+    se = None
+    # all outputs or none: written to a staging folder and renamed into place once every frame is done, so an error
+    # or Ctrl-C/SIGTERM half-way leaves the folder as it was (no partial set, no earlier output half-replaced)
+    with publish_set() as files:
+        for i, frame in enumerate(bar):
+            if first_shape is None:
+                first_shape = np.asarray(frame).shape[:2]
+                model_size = tuple(getattr(vignetting, "resolution", first_shape[::-1]))
+                if model_size != first_shape[::-1]:  # same aspect (else the model refuses below): resampled
+                    click.echo(f"note: the vignetting model ({model_size[0]}x{model_size[1]}) is resampled to the "
+                               f"images' {first_shape[1]}x{first_shape[0]}: right when they cover the same sensor "
+                               "area (binned or scaled), wrong for a cropped sensor mode", err=True)
+            name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
+                                                       else Path(input_path).stem)
+            target = out / f"{name}{ext}"
+            check_overwrite(target, force=force)
+            source_name = source.paths[i] if names is not None else f"{input_path} ({name})"
+            if irradiance:
+                with _models_must_fit(source_name, response_path, vignetting_path):
+                    irr = corrector.irradiance(frame)
+                write_float_image(files.path(target), irr)
+            else:
+                with _models_must_fit(source_name, response_path, vignetting_path):
+                    result = corrector.correct(frame, scale=float(scale_value))
+                clipped += int(np.count_nonzero((result == 255) & (np.asarray(frame) < 255)))
+                total += result.size
+                write_image(files.path(target), result)
+            written += 1
+        if stderr_path is not None and first_shape is not None:
+            from radiometry.correction import corrected_relative_stderr
 
-        with _models_must_fit(input_path, response_path, vignetting_path):
-            se = corrected_relative_stderr(vignetting, first_shape[0], first_shape[1])
-        write_float_image(ensure_dir(Path(stderr_path).parent) / Path(stderr_path).name, se)
+            with _models_must_fit(input_path, response_path, vignetting_path):
+                se = corrected_relative_stderr(vignetting, first_shape[0], first_shape[1])
+            write_float_image(files.path(ensure_dir(Path(stderr_path).parent) / Path(stderr_path).name), se)
+    if se is not None:
         click.echo(f"wrote the relative standard error of the corrected irradiance to {stderr_path} (median "
                    f"{100 * float(np.median(se)):.2f}%, 99th percentile {100 * float(np.percentile(se, 99)):.2f}%)")
     kind = "irradiance maps" if irradiance else "corrected images"

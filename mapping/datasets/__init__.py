@@ -82,7 +82,7 @@ def intrinsics_text(dataset: RGBDDataset) -> str:
     values = ",".join(f"{v:.6g}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     text = f"intrinsics {values} ({source})"
     scale_source = getattr(dataset, "depth_scale_source", None)
-    if scale_source is not None and scale_source != "given" and "detected" in scale_source:
+    if scale_source is not None and scale_source != "given":   # TUM: the scale and why (detected or TUM's)
         text += f", depth scale {scale_source}"
     return text
 

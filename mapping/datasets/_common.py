@@ -100,6 +100,21 @@ def read_intrinsics_file(path: str | os.PathLike) -> np.ndarray:
                        f"got {len(flat)} numbers")
 
 
+def declared_image_size(path) -> tuple[int, int] | None:
+    """The ``(width, height)`` an Open3D camera JSON declares its intrinsics for, or None (not such a file, or no
+    size in it): intrinsics of another stream (a 848x480 camera file beside 640x480 frames) are otherwise used
+    without a word."""
+    path = Path(path)
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return None
+    try:
+        doc = json.loads(read_text(path, "the intrinsics"))
+        size = int(doc["width"]), int(doc["height"])
+    except (ValueError, TypeError, KeyError, OverflowError, RecursionError):
+        return None     # the matrix is read (and its faults reported) by read_intrinsics_file
+    return size if size[0] > 0 and size[1] > 0 else None
+
+
 def _numbers(value, source: str) -> np.ndarray:
     """A file's list of numbers as a flat float64 array, or DatasetError naming the file (not ValueError)."""
     try:
@@ -386,6 +401,12 @@ class FileSequence:
         """The principal point at opening (the field of view is checked before a run: mapping.validation)."""
         from mapping.validation import principal_point_problem
 
+        source = getattr(self, "intrinsics_source", None)
+        declared = declared_image_size(source) if source not in (None, "option") else None
+        if declared is not None and declared != (self.width, self.height):
+            raise DatasetError(f"{source}: its intrinsics are for {declared[0]}x{declared[1]} images, the frames "
+                               f"are {self.width}x{self.height}; pass --intrinsics fx,fy,cx,cy of the "
+                               f"{self.width}x{self.height} stream, or put that stream's camera file there")
         problem = principal_point_problem(self.K, self.width, self.height)
         if problem:
             raise DatasetError(f"{self.root}: {problem}")

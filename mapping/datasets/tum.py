@@ -3,7 +3,8 @@
 ::
 
     SEQ/rgb.txt            timestamp rgb/<timestamp>.png      ('#' comments)
-    SEQ/depth.txt          timestamp depth/<timestamp>.png    (uint16, 5000 units per metre)
+    SEQ/depth.txt          timestamp depth/<timestamp>.png    (uint16, 5000 units per metre; 1000 detected:
+                           :func:`recorder_depth_scale`)
     SEQ/groundtruth.txt    timestamp tx ty tz qx qy qz qw     (camera-to-world, optional)
     SEQ/associations.txt   optional (ORB-SLAM2's convention): 't_rgb rgb/X.png t_depth depth/X.png' per line;
                            when present it pairs the frames, in its order (see below)
@@ -45,6 +46,9 @@ TUM_INTRINSICS = {
     "freiburg3": (535.4, 539.2, 320.1, 247.6),
 }
 DEFAULT_DEPTH_SCALE = 5000.0
+#: the median depth (metres) of a recording read as millimetres for :func:`recorder_depth_scale` to detect it: a
+#: camera's near range to 4 m (beyond, TUM's 5000 per metre gives a median over 0.8 m, as a room's)
+MILLIMETRE_MEDIAN = (0.3, 4.0)
 #: the frame rate assumed when a list's timestamps cannot date the frames
 FRAME_RATE = 30.0
 
@@ -79,22 +83,32 @@ INTRINSICS_FILES = ("camera_intrinsic.json", "intrinsics.K.txt", "camera-intrins
 
 
 def recorder_depth_scale(depth_file: Path) -> tuple[float | None, str]:
-    """The depth scale of an ORB-SLAM2-style recording (a TUM layout with ``associations.txt``, what RealSense and
-    Azure Kinect recorders write): TUM's own depth images hold the Kinect's millimetres times 5 (5000 per metre),
-    so nearly all their values are multiples of 5; a recorder that writes millimetres (1000 per metre) does not.
-    Returns ``(1000, why)`` with a warning when fewer than half of the first frame's valid values are multiples of 5,
-    else ``(None, ...)`` (TUM's 5000)."""
+    """The depth scale of a TUM-layout folder that does not say it (ORB-SLAM2-style recordings, what RealSense and
+    Azure Kinect recorders write, with or without ``associations.txt``): TUM's own depth images hold the Kinect's
+    millimetres times 5 (5000 per metre), so nearly all their values are multiples of 5 (the shared TUM frame:
+    99.95 %); a recorder that writes millimetres (1000 per metre) does not (the RealSense office: 20 %).
+    Returns ``(1000, why)`` with a warning when fewer than half of the first frame's valid values are multiples of
+    5 and, read as millimetres, their median lies in :data:`MILLIMETRE_MEDIAN` (the office: 1.2 m); else
+    ``(None, why)`` (TUM's 5000): depth simulated at 5000 per metre is not in multiples of 5 either, but its median
+    is then a room's (the box room: 2.5 m at 5000, 12 m as millimetres)."""
     try:
         raw = read_depth(depth_file, 1.0)   # the raw values (units per metre 1)
     except (ImageError, ValueError):   # an unreadable image is reported when the frame is read
-        return None, "TUM's 5000 per metre"
+        return None, "5000 per metre (TUM's)"
     values = raw[raw > 0]
-    if values.size < 1000 or np.mean(values % 5 == 0) >= 0.5:
-        return None, "TUM's 5000 per metre"
+    if values.size < 1000:
+        return None, "5000 per metre (TUM's; too little depth to check)"
     share = float(np.mean(values % 5 == 0))
+    median_mm = float(np.median(values)) / 1000.0
+    if share >= 0.5:
+        return None, f"5000 per metre (TUM's: {100 * share:.0f} % of the values multiples of 5)"
+    if not MILLIMETRE_MEDIAN[0] <= median_mm <= MILLIMETRE_MEDIAN[1]:
+        return None, (f"5000 per metre (TUM's; {100 * share:.0f} % multiples of 5, but a median of "
+                      f"{median_mm:.2g} m as millimetres)")
     log.warning("%s: %.0f %% of the depth values are multiples of 5 (TUM's Kinect data at 5000 per metre: ~100 %%); "
-                "read as millimetres, 1000 per metre, as RealSense / ORB-SLAM2 recordings write them; pass "
-                "--depth-scale to override", depth_file, 100 * share)
+                "read as millimetres, 1000 per metre, as RealSense / ORB-SLAM2 recordings write them (median depth "
+                "%.2f m; %.2f m at TUM's 5000); pass --depth-scale to override", depth_file, 100 * share, median_mm,
+                median_mm / 5)
     return 1000.0, "1000 per metre (detected: depth in millimetres)"
 
 
@@ -128,6 +142,8 @@ class TUMDataset(FileSequence):
     """A TUM RGB-D sequence folder (see the module documentation for the layout)."""
 
     format_name = "tum"
+    #: the colour timestamps as listed (by frame number) when they cannot date the frames, else None
+    listed_timestamps = None
 
     @classmethod
     def detect(cls, path: Path) -> bool:
@@ -151,6 +167,7 @@ class TUMDataset(FileSequence):
             if late:
                 log.warning("%s: %d of %d colour timestamps do not increase (not times); frames kept in the file's "
                             "order, frame N dated N / %g s", associations, late, len(rows), FRAME_RATE)
+                self.listed_timestamps = rgb_t   # what a trajectory writer (ORB-SLAM2) copies: --poses FILE
                 rgb_t = np.arange(len(rows)) / FRAME_RATE
             self.pairing = {"associations": str(associations), "paired": len(rows),
                             "timestamps": "as listed" if not late else f"frame / {FRAME_RATE:g} s (listed ones "
@@ -192,8 +209,8 @@ class TUMDataset(FileSequence):
         K, self.intrinsics_source = resolve_intrinsics(
             intrinsics, intrinsics_candidates(root, ("intrinsics.txt",) + INTRINSICS_FILES),
             lambda: tum_default_intrinsics(root))
-        self.depth_scale_source = "given" if depth_scale is not None else "TUM's 5000 per metre"
-        if depth_scale is None and associations is not None and files:
+        self.depth_scale_source = "given" if depth_scale is not None else "5000 per metre (TUM's)"
+        if depth_scale is None and files:
             depth_scale, self.depth_scale_source = recorder_depth_scale(files[0].depth)
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,
                          frames=frames)

@@ -40,6 +40,7 @@ import logging
 import math
 import os
 import time
+import unicodedata
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -349,14 +350,16 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str, float]]:
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
-        parts = line.split()
+        parts = _name_and_columns(line)
         if len(parts) < 2:
             raise DatasetError(f"{path}:{lineno}: expected 'image_name seconds', got {raw.strip()!r}")
-        name, token = parts[0], parts[1]
+        name, token = unicodedata.normalize("NFC", parts[0]), parts[1]
         try:
             seconds = _parse_seconds(token)
         except (ValueError, ZeroDivisionError):
-            raise DatasetError(f"{path}:{lineno}: exposure time {token!r} is not a number of seconds; "
+            spaced = " a file name with spaces must be quoted ('\"my image.png\" 0.004') or end with a tab;" \
+                if any(_is_number(t) for t in parts[2:]) else ""
+            raise DatasetError(f"{path}:{lineno}: exposure time {token!r} is not a number of seconds;{spaced} "
                                "write e.g. 'img.png 0.004' or 'img.png 1/250' (comment headers with #)") from None
         if not (math.isfinite(seconds) and seconds > 0):
             raise DatasetError(f"{path}:{lineno}: exposure time must be positive seconds, got {token!r}; write "
@@ -369,6 +372,28 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str, float]]:
     if not entries:
         raise DatasetError(f"{path}: no 'image_name seconds' lines; list every bracket image with its exposure")
     return entries
+
+
+def _name_and_columns(line: str) -> list[str]:
+    """A times file line's name and columns: ``"my image.png" 0.004`` (quoted, double or single), ``my image.png<TAB>
+    0.004`` (the name ends at the first tab), else whitespace-separated."""
+    if line[0] in "\"'":
+        end = line.find(line[0], 1)
+        if end > 1:
+            return [line[1:end], *line[end + 1:].split()]
+    if "\t" in line:
+        name, rest = line.split("\t", 1)
+        if name.strip() and rest.split() and _is_number(rest.split()[0]):
+            return [name.strip(), *rest.split()]
+    return line.split()
+
+
+def _is_number(token: str) -> bool:
+    try:
+        _parse_seconds(token)
+    except (ValueError, ZeroDivisionError):
+        return False
+    return True
 
 
 def find_times_file(folder: str | os.PathLike) -> Path:
@@ -430,8 +455,10 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
         raise DatasetError(f"{folder}: no such folder; pass the folder that holds the bracketed images")
     tfile = Path(times_file) if times_file is not None else find_times_file(folder)
     entries = read_times_file(tfile)
-    own = own_outputs(folder)   # a response plot written into the folder by an earlier run is not an exposure
-    present = {p.name: p for p in list_images(folder) if p.name not in own}
+    # names compared in Unicode's composed form (NFC): a times file typed on one system and images named on another
+    # spell an accented letter differently, and print the same
+    own = {unicodedata.normalize("NFC", n) for n in own_outputs(folder)}   # an earlier run's plot is not an exposure
+    present = {name: p for p in list_images(folder) if (name := unicodedata.normalize("NFC", p.name)) not in own}
     missing = [name for name, _ in entries if name not in present and not _is_file(folder / name)]
     if missing:
         raise DatasetError(f"{tfile}: lists {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
@@ -442,8 +469,9 @@ def load_brackets(folder: str | os.PathLike, times_file: str | os.PathLike | Non
         more = " ..." if len(unlisted) > 3 else ""
         raise DatasetError(f"{tfile}: does not list {', '.join(unlisted[:3])}{more} found in {folder}; "
                            "add a line 'name seconds' for each or move them out")
-    images = [read_rgb(folder / name) for name, _ in progress_bar(entries, desc="reading brackets", unit="image",
-                                                                  enabled=progress, leave=False)]
+    images = [read_rgb(present.get(name, folder / name))
+              for name, _ in progress_bar(entries, desc="reading brackets", unit="image", enabled=progress,
+                                          leave=False)]
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         first = images[0].shape

@@ -183,6 +183,60 @@ def fit_vignetting_polynomial(accumulation: VignettingAccumulation, *, fixed_cen
                                "not covered: sweep the sheet into the corners, or use --model lut") from None
 
 
+#: the band of observed pixels held out to measure how the radial fit extrapolates (a share of the image diagonal)
+EXTRAPOLATION_BAND = 0.1
+
+
+def extrapolation_slope(flat: np.ndarray, weights: np.ndarray, resolution: tuple[int, int], *, free: bool,
+                        band: float = EXTRAPOLATION_BAND, max_points: int = 200_000) -> np.ndarray:
+    """Per channel, how fast the radial fit's error grows away from the data it was fitted on (relative error of
+    ``V`` per pixel of distance; 0 for a channel observed everywhere, NaN where it cannot be measured). The observed
+    pixels within ``band`` of the image diagonal of the unobserved ones are held out, the polynomial (free or fixed
+    centre, as the LUT's base) fitted on the rest predicts them, and ``|ln flat - ln prediction|`` (less its median
+    over the fitted pixels: a scale) is taken as growing in proportion to the distance from the fitted pixels
+    (least squares through 0). Measured on a sweep that never covered the right 40 % of a vignette centred in the
+    top-left corner: 1.6 / 4.3 / 8.8 / 17 % predicted at 0-10 / 10-20 / 20-40 / 40-80 px from the data against
+    3.9 / 6.2 / 9.2 / 16 % true; the filled pixels' standard error before was 2.5 % everywhere."""
+    import cv2
+
+    h, w, ch = flat.shape
+    reach = max(4.0, band * float(np.hypot(h, w)))
+    radius = half_diagonal(resolution)
+    slopes = np.zeros(ch)
+    for c in range(ch):
+        obs = weights[:, :, c] > 0
+        if obs.all():
+            continue
+        inside = cv2.distanceTransform(obs.astype(np.uint8), cv2.DIST_L2, 5)  # distance to the unobserved
+        keep, held = obs & (inside >= reach), obs & (inside < reach)
+        if np.count_nonzero(keep) < 50 or np.count_nonzero(held) < 50:
+            slopes[c] = np.nan
+            continue
+        ky, kx = np.nonzero(keep)
+        step = max(1, int(np.ceil(kx.size / max_points)))
+        args = (kx[::step].astype(np.float64), ky[::step].astype(np.float64), flat[:, :, c][keep][::step],
+                weights[:, :, c][keep][::step], resolution)
+        try:
+            s, b, centre, _ = _fit_channel_poly(*args, free=free)
+        except CalibrationError:
+            try:
+                s, b, centre, _ = _fit_channel_poly(*args, free=False)
+            except CalibrationError:
+                slopes[c] = np.nan
+                continue
+
+        def log_model(x, y):
+            r2 = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / radius ** 2
+            return np.log(np.maximum(s * (1.0 + r2 * (b[0] + r2 * (b[1] + r2 * b[2]))), 1e-12))
+
+        hy, hx = np.nonzero(held)
+        offset = float(np.median(np.log(flat[:, :, c][keep]) - log_model(kx, ky)))
+        err = np.log(flat[:, :, c][held]) - log_model(hx, hy) - offset
+        dist = reach - inside[held]
+        slopes[c] = float(np.sqrt(np.sum(err ** 2 * dist ** 2) / max(np.sum(dist ** 4), 1e-12)))
+    return slopes
+
+
 def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: bool = True, min_samples: int = 1,
                        smooth_sigma: float = 1.0, thin_samples: int = 20) -> LUTVignetting:
     """Per-pixel, per-channel LUT: the session's (drift-corrected) mean flat, normalised and denoised.
@@ -251,14 +305,16 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
     lut = np.maximum(lut, 1e-3)
     norm_se = np.asarray(centre_info["stderr"], dtype=np.float64)
     rel_var = relative_sample_variance(acc.count, acc.sum, acc.sumsq)
+    slopes = extrapolation_slope(flat, weights, acc.resolution, free=poly.info["method"] == "poly")
     stderr = lut_stderr(rel_var, weights, ratio, fine, observed, q_coarse, smooth_sigma=smooth_sigma, shrink=shrink,
-                        normaliser_stderr=norm_se)
+                        normaliser_stderr=norm_se, extrapolation=slopes)
     budget = error_budget(lut, stderr, acc.count, flat, norm, norm_se, rel_var, acc.response,
                           min_samples=max(min_samples, thin_samples))
     info = {"method": "lut", "joint_scale": bool(joint_scale), "smooth_sigma": float(smooth_sigma),
             "filled_fraction": float(1.0 - observed.all(axis=2).mean()), "frames_used": acc.frames_used,
             "frames_skipped": acc.skipped, "source": acc.source, "base": poly.info["method"],
-            "normalisation": centre_info, "error_budget": budget}
+            "normalisation": centre_info, "error_budget": budget,
+            "extrapolation_per_pixel": [None if not np.isfinite(v) else round(float(v), 6) for v in slopes]}
     return LUTVignetting(lut.astype(np.float32), info=info, stderr=stderr)
 
 

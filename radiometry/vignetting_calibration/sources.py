@@ -82,6 +82,20 @@ class VideoFrames(FrameSource):
             cap.release()
 
 
+def _quiet_capture(cv2, index: int):
+    """``cv2.VideoCapture(index)`` without OpenCV's own ``[ WARN:0 ...]`` lines on stderr when no camera is there
+    (the one-line error below says it; the audit of 2026-11-28 saw two warning lines before it)."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:
+        return cv2.VideoCapture(index)
+    level = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    try:
+        return cv2.VideoCapture(index)
+    finally:
+        logging.setLogLevel(level)
+
+
 class CameraFrames(FrameSource):
     """A live camera (OpenCV capture index). Fix exposure and white balance in the camera first:
     radiomap cannot verify that through OpenCV. ``max_frames`` bounds the recording."""
@@ -100,7 +114,7 @@ class CameraFrames(FrameSource):
     def __iter__(self) -> Iterator[np.ndarray]:
         import cv2
 
-        cap = cv2.VideoCapture(self.index)
+        cap = _quiet_capture(cv2, self.index)
         try:
             if not cap.isOpened():
                 raise ImageError(f"cannot open camera {self.index}; check that it is connected and not in use, "

@@ -8,7 +8,10 @@ Standard error (:func:`lut_stderr`), relative (``se(V) / V``): a pixel's samples
 :func:`~radiometry.vignetting_calibration.fit.fit_vignetting_lut`), whose variance is the same average with the
 squared kernel; the normaliser's own standard error is added in quadrature (a uniform part). Pixels no sheet
 covered (filled from the radial fit) get the observed pixels' median standard error combined with the spread of
-what the radial fit does not explain (the non-radial part they may miss), so they are never reported as exact.
+what the radial fit does not explain (the non-radial part they may miss) and with the fit's extrapolation error,
+measured by holding out the observed pixels next to the uncovered ones and growing in proportion to a pixel's
+distance from the data (:func:`~radiometry.vignetting_calibration.fit.extrapolation_slope`), so they are never
+reported as exact, nor as known far from any sheet.
 
 Budget (:func:`error_budget`): every standard error is turned into 8-bit levels of a flat field imaged at
 ``level`` where ``V = 1`` (the measure of :func:`~radiometry.vignetting_calibration.evaluate.vignetting_error_levels`):
@@ -77,12 +80,14 @@ def relative_sample_variance(count: np.ndarray, total: np.ndarray, total_sq: np.
 
 def lut_stderr(rel_var: np.ndarray, weights: np.ndarray, ratio: np.ndarray, fine: np.ndarray, observed: np.ndarray,
                q_coarse: np.ndarray, *, smooth_sigma: float, shrink: float,
-               normaliser_stderr: np.ndarray) -> np.ndarray:
+               normaliser_stderr: np.ndarray, extrapolation: np.ndarray | None = None) -> np.ndarray:
     """Relative standard error of the LUT, float32 ``(H, W, C)`` (see the module doc). ``rel_var``: each pixel's
     :func:`relative_sample_variance`; the others are the LUT fit's intermediates: ``weights`` the counts used,
     ``ratio`` the flat over the radial fit, ``fine`` the denoised ratio, ``observed`` the pixels with data,
     ``q_coarse`` the ratio smoothed coarsely; ``normaliser_stderr`` ``(C,)`` the relative standard error of each
-    channel's normaliser (NaN: unknown, taken as 0)."""
+    channel's normaliser (NaN: unknown, taken as 0); ``extrapolation`` ``(C,)`` how fast the fill's error grows per
+    pixel of distance from the observed pixels (:func:`~radiometry.vignetting_calibration.fit.extrapolation_slope`;
+    NaN or None: not measured), added in quadrature at each filled pixel times its distance."""
     w = np.where(observed, weights, 0.0)
     numerator = _blur(w * rel_var * np.where(observed, ratio, 0.0) ** 2, smooth_sigma, squared=True)
     denominator = _blur(w, smooth_sigma) + shrink
@@ -96,7 +101,14 @@ def lut_stderr(rel_var: np.ndarray, weights: np.ndarray, ratio: np.ndarray, fine
             continue
         typical = float(np.median(se[:, :, c][obs])) if obs.any() else 0.1
         nonradial = float(np.std(q_coarse[:, :, c][obs])) if obs.any() else 0.1
-        se[:, :, c] = np.where(obs, se[:, :, c], np.hypot(typical, nonradial))
+        filled = np.hypot(typical, nonradial)
+        slope = np.nan if extrapolation is None else float(extrapolation[c])
+        if np.isfinite(slope) and obs.any():
+            import cv2
+
+            distance = cv2.distanceTransform((~obs).astype(np.uint8), cv2.DIST_L2, 5)  # to the nearest observed
+            filled = np.hypot(filled, slope * distance)
+        se[:, :, c] = np.where(obs, se[:, :, c], filled)
     return se.astype(np.float32)
 
 
