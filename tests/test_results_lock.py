@@ -276,6 +276,37 @@ def test_results_folder_refusals_release_the_lock(tmp_path):
     assert not (tmp_path / "r" / LOCK_NAME).exists()
 
 
+def test_a_folder_of_the_users_files_named_like_results_is_refused_without_force(room, tmp_path):
+    """No run of radiomap marked it (no metrics.json, RUNNING or MANIFEST): its mesh.ply and trajectory.txt are the
+    user's; without --force nothing is deleted or replaced, and the error names a file and the fix."""
+    out = tmp_path / "userdir"
+    out.mkdir()
+    (out / "mesh.ply").write_text("x")
+    (out / "trajectory.txt").write_text("y")
+    with pytest.raises(OutputError, match=r"holds mesh\.ply, which no run of radiomap wrote.*--force"):
+        ResultsFolder(out)
+    assert not (out / LOCK_NAME).exists()
+    seq = tum_copy(room, tmp_path / "seq", indices=range(3))
+    error_line(reconstruct(seq, out), "userdir holds mesh.ply", "--force", "another output folder")
+    assert (out / "mesh.ply").read_text() == "x" and (out / "trajectory.txt").read_text() == "y"
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "trajectory.txt"]
+    # the user's other files are no obstacle; --force writes over the result-named ones
+    (out / "mesh.ply").unlink()
+    (out / "trajectory.txt").rename(out / "notes.txt")
+    with ResultsFolder(out) as folder:
+        folder.complete()
+    assert (out / "notes.txt").read_text() == "y"
+
+
+def test_force_writes_over_the_users_files_named_like_results(tmp_path):
+    out = tmp_path / "userdir"
+    out.mkdir()
+    (out / "mesh.ply").write_text("x")
+    with ResultsFolder(out, force=True) as folder:
+        folder.complete()
+    assert not (out / "mesh.ply").exists()
+
+
 # ==================================================================================================
 # correct: never an input, never two inputs into one output
 # ==================================================================================================
