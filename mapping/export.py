@@ -260,6 +260,10 @@ class ResultsFolder:
         self.lock = FolderLock(self.path, what=self.what)
         try:
             marked = any((self.path / n).exists() for n in self.markers)
+            if not force and marked and (self.path / RUNNING_MARKER).exists():   # no result: an unfinished run
+                raise OutputError(f"{self.path} holds an unfinished {self.what} (interrupted or failed: {RUNNING_MARKER} "
+                                  "is there, no complete result); pass --force to replace it or choose another output "
+                                  "folder")
             if not force and marked:
                 raise OutputError(f"{self.path} {self.refusal}")
             if not force and self.refusal_other is not None and self._holds_anything():

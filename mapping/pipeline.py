@@ -371,7 +371,7 @@ class _Loop:
                          histogram=self.histogram, records=self.records, seconds=time.perf_counter() - self.started,
                          stage_seconds=dict(self.stage_seconds), ate=None, map_stats={}, peak_rss_mb=peak_rss_mb(),
                          status=status, depth_beyond_range=self.depth_far / max(self.depth_valid, 1),
-                         held_out_poses=dict(self.held_out))
+                         held_out_poses=dict(self.held_out), requested=len(self.dataset))
 
 
 class _Frames:

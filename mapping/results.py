@@ -59,6 +59,7 @@ class RunResult:
     holdout: HoldoutResult | None = None  # the final map judged by the withheld frames (mapping.holdout)
     colour_map: Any = None              # mapping.colour_map.ColourMapOutcome of the colour-map stage, if it ran
     partial_reason: str = ""            # status "partial": why the run stopped early (tracking lost)
+    requested: int | None = None        # the frames the run was asked for (None: those it processed, ``frames``)
 
     @property
     def frames(self) -> int:
@@ -95,7 +96,9 @@ class RunResult:
         return {
             "status": self.status,
             **({"partial_reason": self.partial_reason} if self.partial_reason else {}),
-            "frames": {"total": self.frames, "fused": self.fused, "skipped": self.skipped,
+            # total: the run's frames; processed = fused + skipped (+ held_out): fewer when it stopped early
+            "frames": {"total": self.frames if self.requested is None else self.requested, "processed": self.frames,
+                       "fused": self.fused, "skipped": self.skipped,
                        **({"held_out": self.held_out} if self.held_out_poses else {}),
                        "skip_reasons": self.skip_reasons(),
                        "skipped_frames": [{"index": r.index, "timestamp": r.timestamp, "reason": r.reason}
