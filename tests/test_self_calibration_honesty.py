@@ -269,6 +269,27 @@ def test_exposure_files_of_every_layout(tmp_path, text, per_channel, kind):
     assert np.allclose(ratio[:, 0], (1 + np.arange(10) / 10) / 1.0)
 
 
+def test_a_short_exposure_list_for_a_command_that_fits_none_is_one_error_without_a_fitted_warning(tmp_path, caplog):
+    """reconstruct with 10 of 20 frames listed: it said WARNING "... theirs are fitted", then the error that it needs
+    one per frame. Now the error alone; self-calibrate (which fits them) still warns and goes on."""
+    from mapping.exposure_files import ExposureFileError, match_exposure_file
+    from mapping.factory import _given_exposures
+
+    path = tmp_path / "exp.txt"
+    path.write_text("".join(f"{i / 30:.6f} {1 + i / 10}\n" for i in range(10)))
+    with caplog.at_level(logging.WARNING), pytest.raises(
+            ExposureFileError, match=r"exp\.txt: 10 of 20 frames have no exposure \(by timestamp.*; reconstruct needs one "
+                                     r"per frame \(radiomap self-calibrate fits the missing ones"):
+        _given_exposures(path, _dataset(20), None, None, 0.02)
+    assert "fitted" not in caplog.text
+    with pytest.raises(ExposureFileError, match="; compare needs one per frame"):
+        match_exposure_file(_dataset(20), path, every_frame="compare")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert match_exposure_file(_dataset(20), path).matched == 10
+    assert "10 of 20 frames have no exposure in the file; theirs are fitted" in caplog.text
+
+
 def test_exposures_by_order_when_the_clock_differs(tmp_path, caplog):
     from mapping.exposure_files import match_exposure_file
 

@@ -118,7 +118,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     if exposures is not None:       # the +ec methods take the camera's recorded exposures instead of estimates
         from mapping.factory import _given_exposures
 
-        given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference)
+        given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference,
+                                 "compare")
 
     def summary(result) -> str:
         lines = [result.table_text()]
