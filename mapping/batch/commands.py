@@ -58,7 +58,7 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
             run = reconstruct(**kwargs, output=folder)
         except TrackingLostError as exc:   # the map of the frames before the loss is written: summarise it, then fail
             run, lost = exc.run, exc
-        summary = format_table([run.summary_row()]) + "\n" + settings
+        summary = "\n".join([format_table([run.summary_row()]), *run.notes(), settings])
         if run.colour_map is not None:
             summary += "\n" + run.colour_map.summary_line()
         if lost is not None:
