@@ -126,7 +126,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
         if result.ate is not None:
             lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
         if scene is None:
-            lines.append("(no ground truth: colour error not measured)")
+            lines.append("(no true radiance: colour error not measured; only a simulated sequence knows it)")
         lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
         if holdout_every is not None:
             lines.append(f"holdout: 1 frame in {holdout_every} withheld from fusion; PSNR (dB) and L1 (levels, summed "
