@@ -211,7 +211,8 @@ class ResultsFolder:
     """A run's output folder: locked while the run writes it (:class:`FolderLock`), marked incomplete
     (``RUNNING``, and ``"status": "running"`` in ``metrics.json``) until :meth:`complete` is called.
 
-    An existing folder holding results (``metrics.json``, ``RUNNING`` or a MANIFEST) is refused unless ``force``; with
+    An existing folder holding results (``metrics.json``, ``RUNNING`` or a MANIFEST) is refused unless ``force``, and so
+    is one holding files named like results without any of those (the user's own: nothing is removed); with
     ``force`` the previous run's files (:data:`RESULT_NAMES` and those its ``.radiomap-files.json`` lists) are
     removed before the new run starts, so that no file of the previous run (a TSDF mesh beside new surfels, an
     old ``metrics.json`` saying "complete") outlives it; other files in the folder are left alone. When the run
@@ -259,10 +260,19 @@ class ResultsFolder:
         self.lock = FolderLock(self.path, what=self.what)
         try:
             marked = any((self.path / n).exists() for n in self.markers)
+            if not force and marked and (self.path / RUNNING_MARKER).exists():   # no result: an unfinished run
+                raise OutputError(f"{self.path} holds an unfinished {self.what} (interrupted or failed: {RUNNING_MARKER} "
+                                  "is there, no complete result); pass --force to replace it or choose another output "
+                                  "folder")
             if not force and marked:
                 raise OutputError(f"{self.path} {self.refusal}")
             if not force and self.refusal_other is not None and self._holds_anything():
                 raise OutputError(f"{self.path} {self.refusal_other}")
+            foreign = [] if force or marked or not self.clean_unmarked else self._unmarked_results()
+            if foreign:
+                raise OutputError(f"{self.path} holds {foreign[0]}, which no {self.what} of radiomap wrote there (no "
+                                  f"{self.markers[0]}); move it away, choose another output folder, or pass --force to "
+                                  "overwrite it")
             remove_strays(self.path)
             if marked or self.clean_unmarked:
                 self._remove_previous_run()
@@ -288,6 +298,14 @@ class ResultsFolder:
 
     def _holds_anything(self) -> bool:
         return any(entry.name != LOCK_NAME for entry in os.scandir(self.path))
+
+    def _unmarked_results(self) -> list[str]:
+        """The entries of the folder named like this kind's results (that ``force`` would remove or replace), sorted;
+        in a folder no run marked they are the user's own."""
+        names = {n for n in self.result_names if not _is_pattern(n) and (self.path / n).is_file()}
+        names |= {m.name for n in self.result_names if _is_pattern(n) for m in self.path.glob(n) if m.is_file()}
+        names |= {n + "/" for n in self.result_folders | self.owned_folders if (self.path / n).is_dir()}
+        return sorted(names)
 
     def _remove_previous_run(self) -> None:
         removed = _remove_results(self.path, self.result_names, self.result_folders, self.owned_folders,

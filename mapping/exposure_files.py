@@ -15,7 +15,8 @@ channel (white balance fixed), three are per channel (exposure x white-balance g
 takes, for each frame, the row nearest in time, one-to-one, within ``max_difference`` seconds (as ``--poses
 FILE``); when no row is that near but the file has exactly one row per frame of the sequence (counted from its
 first frame, before ``--frames``), the rows are taken in order (a warning says so). Frames without a value are
-fitted (counted, with a warning); when too few have one (``radiometry.quorum``), the run stops naming the file.
+fitted (counted, with a warning); when too few have one (``radiometry.quorum``), the run stops naming the file. A
+command that fits none (``reconstruct``, ``compare``: ``every_frame``) stops, in one message, when any frame lacks one.
 """
 
 from __future__ import annotations
@@ -114,9 +115,10 @@ def read_exposure_file(path: str | os.PathLike) -> tuple[str, np.ndarray, np.nda
     return kind, None, a[:, 0], (a[:, 1:4] if per_channel else np.repeat(a[:, 1:2], 3, axis=1)), per_channel
 
 
-def match_exposure_file(dataset, path: str | os.PathLike, *, max_difference: float = 0.02) -> KnownExposures:
+def match_exposure_file(dataset, path: str | os.PathLike, *, max_difference: float = 0.02,
+                        every_frame: str | None = None) -> KnownExposures:
     """The exposures ``path`` gives the frames of ``dataset`` (module doc); :class:`ExposureFileError` when too few
-    frames get one."""
+    frames get one, or, with ``every_frame`` (the command that fits none, e.g. ``"reconstruct"``), when any lacks one."""
     from mapping.metrics import associate_timestamps
     from mapping.pose_files import _frame_keys
 
@@ -143,9 +145,13 @@ def match_exposure_file(dataset, path: str | os.PathLike, *, max_difference: flo
                         "per frame", path, max_difference, len(values))
     table = KnownExposures(path, kind, out, per_channel, how)
     matched = table.matched
+    count = f" (the file has {len(values)} rows, the sequence {total} frames)" if kind != "radiomap" and (
+        total := getattr(dataset, "total_frames", None)) is not None else ""
+    if every_frame is not None and matched < n:
+        raise ExposureFileError(f"{path}: {n - matched} of {n} frames have no exposure ({how}){count}; {every_frame} "
+                                "needs one per frame (radiomap self-calibrate fits the missing ones and writes them all "
+                                "to its exposures.txt)")
     if too_little(matched, n):
-        count = f" (the file has {len(values)} rows, the sequence {total} frames)" if kind != "radiomap" and (
-            total := getattr(dataset, "total_frames", None)) is not None else ""
         raise ExposureFileError(f"{path}: {n - matched} of {n} frames have no exposure ({how}){count}; a run needs "
                                 f"{rule_text()} with one; check that the list belongs to this sequence and uses its "
                                 "clock, or give one row per frame")

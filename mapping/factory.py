@@ -108,18 +108,15 @@ def make_tracker(name: str = "auto", *, depth_max: float = 3.0, motion_model: st
     return TRACKERS[name](depth_max=depth_max, motion_model=motion_model, **kwargs)
 
 
-def _given_exposures(path, dataset, response, vignetting, max_difference: float):
+def _given_exposures(path, dataset, response, vignetting, max_difference: float, command: str = "reconstruct"):
     """A :class:`mapping.exposure_compensation.given.GivenExposures` of ``path`` matched to ``dataset``; every
-    frame must have a value (:class:`mapping.exposure_files.ExposureFileError` naming the file otherwise)."""
+    frame must have a value (:class:`mapping.exposure_files.ExposureFileError` naming the file and ``command``
+    otherwise, and no warning before it that the missing ones are fitted)."""
     from mapping.exposure_compensation.given import GivenExposures
-    from mapping.exposure_files import ExposureFileError, match_exposure_file
+    from mapping.exposure_files import match_exposure_file
     from mapping.pose_files import _frame_keys
 
-    table = match_exposure_file(dataset, path, max_difference=max_difference)
-    if table.matched < len(table.values):
-        raise ExposureFileError(f"{path}: {len(table.values) - table.matched} of {len(table.values)} frames have no "
-                                "exposure; reconstruct needs one per frame (radiomap self-calibrate fits the missing "
-                                "ones and writes them all to its exposures.txt)")
+    table = match_exposure_file(dataset, path, max_difference=max_difference, every_frame=command)
     numbers = _frame_keys(dataset)[1]
     return GivenExposures(response, vignetting, known=dict(zip(numbers.tolist(), table.values)),
                           source=table.describe())

@@ -371,7 +371,7 @@ class _Loop:
                          histogram=self.histogram, records=self.records, seconds=time.perf_counter() - self.started,
                          stage_seconds=dict(self.stage_seconds), ate=None, map_stats={}, peak_rss_mb=peak_rss_mb(),
                          status=status, depth_beyond_range=self.depth_far / max(self.depth_valid, 1),
-                         held_out_poses=dict(self.held_out))
+                         held_out_poses=dict(self.held_out), requested=len(self.dataset))
 
 
 class _Frames:
@@ -408,10 +408,13 @@ def _progress_bar(n: int, enabled: bool, name: str):
 
 
 def _ate(run: RunResult, dataset, poses) -> ATEResult | None:
-    if poses == "gt" or len(run.stamps) < 3:   # tracked or from a file: judged against the ground truth
+    if poses == "gt":   # tracked or from a file: judged against the ground truth
         return None
     gt = dataset.ground_truth()
     if gt is None:
+        return None
+    if len(run.stamps) < 3:
+        run.ate_note = f"{len(run.stamps)} pose(s) in the trajectory; the alignment to the ground truth needs 3"
         return None
     try:
         return absolute_trajectory_error(run.stamps, run.poses, gt[0], gt[1])

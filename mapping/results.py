@@ -59,6 +59,8 @@ class RunResult:
     holdout: HoldoutResult | None = None  # the final map judged by the withheld frames (mapping.holdout)
     colour_map: Any = None              # mapping.colour_map.ColourMapOutcome of the colour-map stage, if it ran
     partial_reason: str = ""            # status "partial": why the run stopped early (tracking lost)
+    requested: int | None = None        # the frames the run was asked for (None: those it processed, ``frames``)
+    ate_note: str = ""                  # why there is no ATE though the sequence has ground truth (too few poses)
 
     @property
     def frames(self) -> int:
@@ -95,7 +97,9 @@ class RunResult:
         return {
             "status": self.status,
             **({"partial_reason": self.partial_reason} if self.partial_reason else {}),
-            "frames": {"total": self.frames, "fused": self.fused, "skipped": self.skipped,
+            # total: the run's frames; processed = fused + skipped (+ held_out): fewer when it stopped early
+            "frames": {"total": self.frames if self.requested is None else self.requested, "processed": self.frames,
+                       "fused": self.fused, "skipped": self.skipped,
                        **({"held_out": self.held_out} if self.held_out_poses else {}),
                        "skip_reasons": self.skip_reasons(),
                        "skipped_frames": [{"index": r.index, "timestamp": r.timestamp, "reason": r.reason}
@@ -111,6 +115,16 @@ class RunResult:
             "memory": {"peak_rss_mb": self.peak_rss_mb},
             **({} if self.holdout is None else {"holdout": self.holdout.to_dict()}),
         }
+
+    def notes(self) -> list[str]:
+        """Lines saying why a figure of the summary is missing (L1 ``nan``, ATE ``-``) when the run itself says why."""
+        out = []
+        if self.histogram.total == 0 and self.fused < 2:
+            out.append(f"note: no L1: {self.fused} frame fused (L1 compares each frame with the map the frames before "
+                       "it made: it needs at least 2)")
+        if self.ate_note:
+            out.append(f"note: no ATE: {self.ate_note}")
+        return out
 
     def summary_row(self) -> dict:
         s = self.histogram.stats()
@@ -210,7 +224,7 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     if hasattr(tracker, "stats"):   # the auto tracker: frames tracked by each method
         metrics["tracking"] = tracker.stats()
     metrics["files"] = {k: Path(v).name for k, v in files.items()}
-    summary = format_table([run.summary_row()]) + "\n"
+    summary = format_table([run.summary_row()]) + "\n" + "".join(line + "\n" for line in run.notes())
     if run.colour_map is not None:
         summary += run.colour_map.summary_line() + "\n"
     if run.status == "partial":

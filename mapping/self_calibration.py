@@ -384,7 +384,7 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     exposures: known exposures (a file, :mod:`mapping.exposure_files`, or a :class:`KnownExposures`): only the
     frames without one get a fitted exposure; holdout: the frames withheld for the validation
     (:mod:`radiometry.self_calibration_validation`: ``every:N``, ``last:P%``, ``none``); strict: refuse (write
-    nothing) when V does not predict the withheld frames better than no V.
+    nothing) unless the validation's verdict is that V helps (not when it does not help, nor when it is mixed).
     """
     from radiometry.api import as_response
     from radiometry.fileio import atomic_write_json, atomic_write_text
@@ -515,8 +515,11 @@ def _solve_and_check(obs: Observations, held: np.ndarray, response: CameraRespon
             fill = np.isnan(result.exposures) & np.isfinite(found.exposures)
             result.exposures[fill] = found.exposures[fill]          # withheld frames: k predicted with V
             if not found.helps:
-                refuse = ("V does not predict withheld frames better than no V "
-                          f"(L1 {np.mean(found.l1_without):.2f} -> {np.mean(found.l1_with):.2f} levels)")
+                figures = (f"L1 {np.mean(found.l1_without):.2f} -> {np.mean(found.l1_with):.2f} levels, PSNR "
+                           f"{np.mean(found.psnr_without):.2f} -> {np.mean(found.psnr_with):.2f} dB")
+                refuse = (f"V's held-out figures disagree ({found.verdict_text()}; {figures})"
+                          if found.verdict == "mixed" else
+                          f"V does not predict withheld frames better than no V ({figures})")
                 warnings.append(f"{refuse}: do not use this vignetting.npz (usual causes: too little motion, a wrong "
                                 "response, surfaces that are not matte, poses or depth that do not fit the colour)")
                 lines.append(f"WARNING: {warnings[-1]}")

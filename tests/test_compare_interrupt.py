@@ -35,7 +35,7 @@ def test_ctrl_c_during_compare_leaves_it_marked_unfinished(tmp_path):
     assert (out / "none" / "RUNNING").is_file()
     metrics = json.loads((out / "none" / "metrics.json").read_text())
     assert metrics["status"] == "interrupted"
-    assert metrics["frames"]["total"] == STOP and metrics["frames"]["fused"] == STOP
+    assert metrics["frames"]["processed"] == STOP and metrics["frames"]["fused"] == STOP
     poses = [line for line in (out / "none" / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
     assert len(poses) == STOP
     assert not (out / "none" / "mesh.ply").exists() and not (out / "response").exists()
@@ -46,4 +46,4 @@ def test_ctrl_c_during_compare_leaves_it_marked_unfinished(tmp_path):
 
     res = CliRunner().invoke(cli, ["compare", str(room), "--response", str(room / "truth" / "response.npz"),
                                    "--methods", "none", "-o", str(out), "--no-progress"])
-    assert res.exit_code == 1 and "already holds a comparison" in res.stderr and "--force" in res.stderr
+    assert res.exit_code == 1 and "holds an unfinished comparison" in res.stderr and "--force" in res.stderr

@@ -256,7 +256,7 @@ def test_demo_replaces_only_its_own_earlier_outputs(tmp_path):
     DemoFolder(out, force=True).release()
     (out / "sequence" / "rgb").mkdir(parents=True)
     assert sorted(p.name for p in out.iterdir()) == [RUNNING_MARKER, "notes.txt", "sequence"]
-    with pytest.raises(OutputError, match="holds an earlier demo"):
+    with pytest.raises(OutputError, match="holds an unfinished demo \\(interrupted or failed"):
         prepare(out, force=False)
     prepare(out, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]

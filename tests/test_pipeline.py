@@ -382,7 +382,7 @@ def test_a_frame_cut_short_by_ctrl_c_is_not_counted_as_skipped(tmp_path):
     metrics = json.loads((out.path / "metrics.json").read_text())
     assert metrics["status"] == "interrupted"
     assert metrics["frames"] | {"skip_reasons": None, "skipped_frames": None} == {
-        "total": 3, "fused": 3, "skipped": 0, "skip_reasons": None, "skipped_frames": None}
+        "total": 6, "processed": 3, "fused": 3, "skipped": 0, "skip_reasons": None, "skipped_frames": None}
     assert metrics["frames"]["skip_reasons"] == {} and metrics["frames"]["skipped_frames"] == []
 
 

@@ -364,7 +364,8 @@ def test_a_tracking_loss_keeps_the_map_marks_it_partial_and_fails(tmp_path):
     assert info.value.run.fused == 6 and info.value.run.status == "partial"
     metrics = json.loads((out.path / "metrics.json").read_text())
     assert metrics["status"] == "partial" and "3 consecutive frames" in metrics["partial_reason"]
-    assert metrics["frames"]["fused"] == 6 and metrics["frames"]["total"] == 9   # stopped at the loss
+    assert metrics["frames"]["fused"] == 6 and metrics["frames"]["processed"] == 9   # stopped at the loss
+    assert metrics["frames"]["total"] == 12
     assert (out.path / "mesh.ply").stat().st_size > 1000 and not (out.path / RUNNING_MARKER).exists()
     assert len(read_tum_trajectory(out.path / "trajectory.txt")[0]) == 6
     assert not is_complete(out.path)   # a batch runs it again

@@ -276,6 +276,56 @@ def test_results_folder_refusals_release_the_lock(tmp_path):
     assert not (tmp_path / "r" / LOCK_NAME).exists()
 
 
+def test_a_failed_run_counts_its_frames_and_the_next_run_is_told_it_is_unfinished(room, tmp_path):
+    """A frame that cannot be read stops the run at frame 4 of 6: metrics.json says 6 frames in all, 4 processed
+    (it said total 4, as if the run had 4 frames); the next run without --force hears that the folder holds an
+    unfinished run (it was told the folder already holds the results of a run: it holds none)."""
+    seq = tum_copy(room, tmp_path / "seq", indices=range(6))
+    data = (seq / "rgb" / "00004.png").read_bytes()
+    (seq / "rgb" / "00004.png").write_bytes(data[:len(data) // 2])      # truncated
+    out = tmp_path / "run"
+    error_line(reconstruct(seq, out, "--depth-max", "5"), "00004.png")
+    frames = json.loads((out / "metrics.json").read_text())["frames"]
+    assert frames["total"] == 6 and frames["processed"] == 4 and frames["fused"] + frames["skipped"] == 4, frames
+    assert (out / "RUNNING").is_file() and not is_complete(out)
+    line = error_line(reconstruct(seq, out), out, "holds an unfinished run (interrupted or failed", "--force",
+                      "another output folder")
+    assert "already holds the results" not in line
+    with pytest.raises(OutputError, match="holds an unfinished run .* pass --force to replace it"):
+        ResultsFolder(out)
+
+
+def test_a_folder_of_the_users_files_named_like_results_is_refused_without_force(room, tmp_path):
+    """No run of radiomap marked it (no metrics.json, RUNNING or MANIFEST): its mesh.ply and trajectory.txt are the
+    user's; without --force nothing is deleted or replaced, and the error names a file and the fix."""
+    out = tmp_path / "userdir"
+    out.mkdir()
+    (out / "mesh.ply").write_text("x")
+    (out / "trajectory.txt").write_text("y")
+    with pytest.raises(OutputError, match=r"holds mesh\.ply, which no run of radiomap wrote.*--force"):
+        ResultsFolder(out)
+    assert not (out / LOCK_NAME).exists()
+    seq = tum_copy(room, tmp_path / "seq", indices=range(3))
+    error_line(reconstruct(seq, out), "userdir holds mesh.ply", "--force", "another output folder")
+    assert (out / "mesh.ply").read_text() == "x" and (out / "trajectory.txt").read_text() == "y"
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "trajectory.txt"]
+    # the user's other files are no obstacle; --force writes over the result-named ones
+    (out / "mesh.ply").unlink()
+    (out / "trajectory.txt").rename(out / "notes.txt")
+    with ResultsFolder(out) as folder:
+        folder.complete()
+    assert (out / "notes.txt").read_text() == "y"
+
+
+def test_force_writes_over_the_users_files_named_like_results(tmp_path):
+    out = tmp_path / "userdir"
+    out.mkdir()
+    (out / "mesh.ply").write_text("x")
+    with ResultsFolder(out, force=True) as folder:
+        folder.complete()
+    assert not (out / "mesh.ply").exists()
+
+
 # ==================================================================================================
 # correct: never an input, never two inputs into one output
 # ==================================================================================================

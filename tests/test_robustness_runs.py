@@ -315,7 +315,7 @@ def test_tracking_lost_for_good(room, tmp_path):
 @pytest.mark.slow
 def test_ctrl_c_marks_the_results_incomplete(room, tmp_path):
     """SIGINT to 'radiomap reconstruct' while it fuses frames (paused after frame 3 of 14): exit 130, one line, no
-    traceback; the folder keeps its RUNNING marker and metrics.json says 'interrupted' with the 3 frames done, whose
+    traceback; the folder keeps its RUNNING marker and metrics.json says 'interrupted' with the 3 frames done of 14, whose
     poses are in trajectory.txt; no mesh."""
     out = tmp_path / "run"
     code, stdout, stderr = interrupt_at_frame(3, "reconstruct", room, "-o", out, "--poses", "gt", "--no-progress")
@@ -324,7 +324,8 @@ def test_ctrl_c_marks_the_results_incomplete(room, tmp_path):
     assert (out / "RUNNING").is_file()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "interrupted"
-    assert metrics["frames"]["total"] == 3 and metrics["frames"]["fused"] == 3
+    assert metrics["frames"]["processed"] == 3 and metrics["frames"]["fused"] == 3
+    assert metrics["frames"]["total"] == 14          # the run's frames, not those done before the interruption
     poses = [line for line in (out / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
     assert len(poses) == 3
     assert not (out / "mesh.ply").exists()

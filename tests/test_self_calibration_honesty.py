@@ -171,6 +171,49 @@ def test_validation_prefers_the_true_v_and_rejects_a_wrong_one():
     assert not bad.helps and "does NOT help" in bad.text()
 
 
+def _made_up(l1, psnr, l1_noise=0.1, psnr_noise=0.2):
+    """A validation with the channels' figures ``l1 = (without, with)`` and ``psnr = (without, with)``."""
+    from radiometry.self_calibration_validation import Validation
+
+    return Validation(10, 5000, (l1[0],) * 3, (l1[1],) * 3, (psnr[0],) * 3, (psnr[1],) * 3, "every:5",
+                      np.full((50, 3), np.nan), l1_noise, psnr_noise)
+
+
+def test_verdict_is_mixed_when_psnr_gets_worse_beyond_its_noise_while_l1_improves():
+    # the kitchen's figures (audit): L1 2.57 -> 2.43, PSNR 31.89 -> 31.06 dB was printed as "V helps"
+    found = _made_up((2.57, 2.43), (31.89, 31.06))
+    assert found.verdict == "mixed" and not found.helps
+    assert "mixed: L1 better, PSNR worse by 0.83 dB" in found.text() and "V helps" not in found.text()
+    assert found.as_dict()["verdict"] == "mixed" and found.as_dict()["v_helps"] is False
+    # the other way round
+    other = _made_up((2.43, 2.57), (31.06, 31.89), l1_noise=0.05)
+    assert other.verdict == "mixed" and "mixed: PSNR better, L1 worse by 0.14 levels" in other.text()
+
+
+@pytest.mark.parametrize("l1, psnr, verdict", [
+    ((2.57, 2.43), (31.89, 31.80), "helps"),           # PSNR worse, but within its noise (0.2 dB)
+    ((2.57, 2.43), (31.06, 31.89), "helps"),           # both better
+    ((2.43, 2.47), (31.06, 31.89), "helps"),           # L1 worse within its noise (0.1 levels)
+    ((2.43, 2.57), (31.89, 31.06), "does not help"),   # both worse
+    ((2.50, 2.50), (31.00, 31.00), "does not help"),   # no change
+])
+def test_verdict_helps_only_when_neither_figure_gets_worse_beyond_its_noise(l1, psnr, verdict):
+    found = _made_up(l1, psnr)
+    assert found.verdict == verdict and found.helps == (verdict == "helps")
+    assert ("V helps" in found.text()) == (verdict == "helps")
+
+
+def test_validation_noise_is_the_standard_error_over_withheld_frames():
+    from radiometry.self_calibration_validation import _clustered_stderr
+
+    # one value per frame, 40 sightings each: the standard error of the mean of the frames' values
+    per_frame = np.array([0.3, -0.1, 0.5, 0.2, 0.0])
+    frame = np.repeat(np.arange(5), 40)
+    got = _clustered_stderr(per_frame[frame], frame)
+    assert got == pytest.approx(np.std(per_frame, ddof=1) / np.sqrt(5))
+    assert _clustered_stderr(np.ones(30), np.zeros(30, int)) == 0.0       # one frame: no spread to measure
+
+
 # --------------------------------------------------------------------------------------------------
 # plausibility
 # --------------------------------------------------------------------------------------------------
@@ -224,6 +267,27 @@ def test_exposure_files_of_every_layout(tmp_path, text, per_channel, kind):
     assert table.kind == kind and table.per_channel == per_channel and table.matched == 10
     ratio = table.values / table.values[0]
     assert np.allclose(ratio[:, 0], (1 + np.arange(10) / 10) / 1.0)
+
+
+def test_a_short_exposure_list_for_a_command_that_fits_none_is_one_error_without_a_fitted_warning(tmp_path, caplog):
+    """reconstruct with 10 of 20 frames listed: it said WARNING "... theirs are fitted", then the error that it needs
+    one per frame. Now the error alone; self-calibrate (which fits them) still warns and goes on."""
+    from mapping.exposure_files import ExposureFileError, match_exposure_file
+    from mapping.factory import _given_exposures
+
+    path = tmp_path / "exp.txt"
+    path.write_text("".join(f"{i / 30:.6f} {1 + i / 10}\n" for i in range(10)))
+    with caplog.at_level(logging.WARNING), pytest.raises(
+            ExposureFileError, match=r"exp\.txt: 10 of 20 frames have no exposure \(by timestamp.*; reconstruct needs one "
+                                     r"per frame \(radiomap self-calibrate fits the missing ones"):
+        _given_exposures(path, _dataset(20), None, None, 0.02)
+    assert "fitted" not in caplog.text
+    with pytest.raises(ExposureFileError, match="; compare needs one per frame"):
+        match_exposure_file(_dataset(20), path, every_frame="compare")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert match_exposure_file(_dataset(20), path).matched == 10
+    assert "10 of 20 frames have no exposure in the file; theirs are fitted" in caplog.text
 
 
 def test_exposures_by_order_when_the_clock_differs(tmp_path, caplog):

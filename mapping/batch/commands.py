@@ -58,7 +58,7 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
             run = reconstruct(**kwargs, output=folder)
         except TrackingLostError as exc:   # the map of the frames before the loss is written: summarise it, then fail
             run, lost = exc.run, exc
-        summary = format_table([run.summary_row()]) + "\n" + settings
+        summary = "\n".join([format_table([run.summary_row()]), *run.notes(), settings])
         if run.colour_map is not None:
             summary += "\n" + run.colour_map.summary_line()
         if lost is not None:
@@ -118,14 +118,15 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     if exposures is not None:       # the +ec methods take the camera's recorded exposures instead of estimates
         from mapping.factory import _given_exposures
 
-        given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference)
+        given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference,
+                                 "compare")
 
     def summary(result) -> str:
         lines = [result.table_text()]
         if result.ate is not None:
             lines.append(f"ATE of the shared trajectory: {100 * result.ate.rmse:.2f} cm RMSE")
         if scene is None:
-            lines.append("(no ground truth: colour error not measured)")
+            lines.append("(no true radiance: colour error not measured; only a simulated sequence knows it)")
         lines.append(f"ranking by L1 mean (best first): {', '.join(result.ranking())}")
         if holdout_every is not None:
             lines.append(f"holdout: 1 frame in {holdout_every} withheld from fusion; PSNR (dB) and L1 (levels, summed "

@@ -366,6 +366,8 @@ def settings_line(ctx: click.Context, settings: list[tuple]) -> str:
     command's default is named. A parameter None: no source (a fixed behaviour)."""
     parts = []
     for label, name, shown, *default_name in settings:
+        if isinstance(shown, os.PathLike):      # a file (--poses FILE): absolute, as config.json records it
+            shown = os.path.abspath(os.fspath(shown))
         if name is None:
             parts.append(f"{label} {shown}")
             continue

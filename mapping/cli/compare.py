@@ -145,6 +145,15 @@ def task_arguments(ctx: click.Context) -> dict:
         method_list = compare_methods(**models, exposure_compensation=p["exposure_compensation"], methods=methods)
     except MethodChoiceError as exc:
         raise click.UsageError(str(exc)) from None
+    names = [m.name for m in method_list]
+    for base in ("lut", "poly", "self"):     # a model no listed method uses would be ignored without a word
+        option = f"vignetting_{base}"
+        if models[option] is not None and not any(n.removesuffix("+ec") == base for n in names) and \
+                not drop_replayed(ctx, option, None, f"--methods lists no {base} method"):
+            raise click.BadParameter(f"applies to the {base} methods ({base}, {base}+ec) only and the methods "
+                                     f"compared ({','.join(names)}) include neither; drop --vignetting-{base} or add "
+                                     f"{base} to --methods", param_hint=f"--vignetting-{base}")
+        models[option] = p[option]     # None when a replayed value was dropped
     if p["tracker"] != "auto" and p["poses"] != "icp" and \
             not drop_replayed(ctx, "tracker", "auto", f"--poses {p['poses']}"):
         raise click.BadParameter(f"applies with --poses icp only (got --poses {p['poses']}: no frame is tracked); "

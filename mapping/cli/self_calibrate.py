@@ -37,8 +37,8 @@ Examples:
                    "'timestamp k_r k_g k_b' lines, or TUM monoVO times.txt; only frames without one are fitted.")
 @click.option("--holdout", default="every:5", show_default=True, metavar="every:N|last:P%|none",
               help="Frames withheld from the fit to validate V on (held-out L1 and PSNR with and without V).")
-@click.option("--strict", is_flag=True, help="Refuse (write nothing) when V does not predict withheld frames better "
-                                             "than no V.")
+@click.option("--strict", is_flag=True, help="Refuse (write nothing) unless V predicts withheld frames better than "
+                                             "no V (a mixed verdict, L1 and PSNR disagreeing, is refused too).")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite an earlier self-calibration in OUTPUT.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")

@@ -60,7 +60,10 @@ def open_dataset(path: str | os.PathLike, *, format: str | None = None, depth_sc
     frames:      a slice (range and stride, e.g. ``slice(0, 100, 2)``) or explicit frame positions.
     """
     cls = FORMATS[detect_format(path) if format is None else format]
-    return cls(path, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames)
+    dataset = cls(path, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames)
+    if depth_scale is not None:        # every format: the settings line names a given scale (intrinsics_text)
+        dataset.depth_scale_source = "given"
+    return dataset
 
 
 def describe_dataset(dataset: RGBDDataset) -> dict:
@@ -75,14 +78,17 @@ def describe_dataset(dataset: RGBDDataset) -> dict:
 
 def intrinsics_text(dataset: RGBDDataset) -> str:
     """``intrinsics 615,615,320,240 (given)``: the intrinsics a run uses and where they came from (the option, a
-    file of the sequence, the folder name, an assumed default), for the printed settings line."""
+    file of the sequence, the folder name, an assumed default), for the printed settings line; then the depth scale
+    when it was given (``depth scale 1000 per metre (given)``) or detected."""
     K = np.asarray(dataset.K, dtype=np.float64)
     source = getattr(dataset, "intrinsics_source", None)
     source = "given" if source in (None, "option") else str(source)
     values = ",".join(f"{v:.6g}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     text = f"intrinsics {values} ({source})"
     scale_source = getattr(dataset, "depth_scale_source", None)
-    if scale_source is not None and scale_source != "given":   # TUM: the scale and why (detected or TUM's)
+    if scale_source == "given":
+        text += f", depth scale {dataset.depth_scale:g} per metre (given)"
+    elif scale_source is not None:   # TUM: the scale and why (detected or TUM's)
         text += f", depth scale {scale_source}"
     return text
 

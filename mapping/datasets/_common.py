@@ -290,6 +290,9 @@ class FileSequence:
         if not picked:
             raise DatasetError(f"{self.root}: the frame selection {_frames_text(frames)} leaves no frames out of "
                                f"{len(files)}; widen --frames")
+        if isinstance(frames, slice) and frames.stop is not None and frames.stop > len(files):
+            log.warning("%s: --frames %s reaches past the sequence's %d frames; cut to %s", self.root,
+                        _frames_text(frames), len(files), _frames_text(slice(frames.start, len(files), frames.step)))
         self._files = [files[i] for i in picked]
         self.K = np.asarray(K, dtype=np.float64)
         first = self._read(self._files[0])

@@ -92,11 +92,14 @@ class SimulatedDataset(TUMDataset):
         source = "option" if intrinsics is not None else None
         if intrinsics is None and "K" in manifest:
             intrinsics = _check_matrix(_manifest_value(manifest, "K", root / MANIFEST, _matrix3), str(root / MANIFEST))
+        given = depth_scale is not None
         if depth_scale is None:
             depth_scale = _manifest_value(manifest, "depth_scale", root / MANIFEST, _positive) \
                 if "depth_scale" in manifest else 5000.0
         super().__init__(root, depth_scale=depth_scale, intrinsics=intrinsics, frames=frames,
                          max_difference=max_difference)
+        if not given:    # the TUM loader took the manifest's scale for a given one
+            self.depth_scale_source = "the simulator's manifest"
         if intrinsics is not None:
             self.intrinsics_source = source or "manifest"
         w, h = self.manifest.get("width"), self.manifest.get("height")
