@@ -20,10 +20,11 @@ def test_the_settings_line_names_the_pose_file_absolute_and_a_given_depth_scale(
     assert f"poses {absolute} (given)" in settings, settings
     assert json.loads((tmp_path / "out" / "config.json").read_text())["parameters"]["poses"] == absolute
     assert "depth scale 5000 per metre (given)" in settings, settings
-    # not given: the TUM default is not named as given
+    # not given: the TUM default is not named as given, but with the reason it was chosen (mapping/datasets/tum.py)
     res = run("reconstruct", "seq", "-o", "out2", "--poses", "gt", "--depth-max", "5", "--no-progress")
     settings = next(line for line in res.output.splitlines() if line.startswith("settings: "))
-    assert res.exit_code == 0 and "depth scale" not in settings, settings
+    assert res.exit_code == 0 and "depth scale 5000 per metre (TUM's" in settings, settings
+    assert "per metre (given)" not in settings, settings
 
 
 def test_compare_on_a_real_sequence_says_no_true_radiance_not_no_ground_truth(room, tmp_path):
