@@ -57,3 +57,25 @@ def test_a_fully_covered_sweep_has_nothing_to_extrapolate():
     model = fit_vignetting(collect_vignetting(frames, CameraResponse.gamma(2.2), progress=False), model="lut")
     assert model.info["extrapolation_per_pixel"] == [0.0, 0.0, 0.0]
     assert model.info["error_budget"]["coverage"][0] < 0.1
+
+
+def test_a_sheet_just_below_the_clip_is_said_not_blamed_on_the_sweep(caplog):
+    """Audit 2026-11-28: a full-frame sheet at levels 233-249 (not clipped) lost its brightest part to the cut at
+    250 - 6 and the refusal that followed said the sheet was seen at only 22 % of the image, 'sweep it across the
+    whole image'; the help said 'below 250'. The sweep is now warned about with the level to stay under."""
+    import logging
+
+    from radiometry.vignetting_calibration import collect_vignetting
+
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    v = 1.0 - 0.08 * ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) / (W ** 2 + H ** 2) * 4
+    bright = [np.repeat(np.clip(np.rint(249.0 * v), 0, 255).astype(np.uint8)[:, :, None], 3, axis=2)] * 6
+    with caplog.at_level(logging.WARNING):
+        collect_vignetting(bright, CameraResponse.gamma(2.2), progress=False)
+    line = next((r.getMessage() for r in caplog.records if "left out" in r.getMessage()), "")
+    assert "within 6 levels of 250" in line and "stays below 244" in line, caplog.text
+    caplog.clear()
+    dim = [np.repeat(np.clip(np.rint(225.0 * v), 0, 255).astype(np.uint8)[:, :, None], 3, axis=2)] * 6
+    with caplog.at_level(logging.WARNING):
+        collect_vignetting(dim, CameraResponse.gamma(2.2), progress=False)
+    assert not any("left out" in r.getMessage() for r in caplog.records), caplog.text

@@ -13,7 +13,8 @@ from radiometry.vignetting_calibration import MODELS
 EPILOG = """\b
 Record the sweep with exposure and white balance FIXED: move the camera over an evenly lit
 white sheet (on a darker background) so that every part of the image sees the sheet many times,
-corners included. The sheet must not be clipped (keep its brightest part below 250).
+corners included. The sheet must not be clipped: keep its brightest part below 244 (levels
+within 6 of 250 count as clipped).
 
 \b
 Examples:

@@ -58,6 +58,7 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
     first_size = ""
     seed: tuple[int, int] | None = None
     n_seen = 0
+    sheet_pixels = near_ceiling = 0  # the sheet's pixels, and those left out as near the ceiling
     blocky: list[float] = []
     total = frames.length if max_frames is None or frames.length is None else min(frames.length, max_frames)
     bar = progress_bar(frames, total=total, desc="vignetting frames", enabled=progress, leave=False)
@@ -86,7 +87,10 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
                 skipped[det.status] += 1
                 log.debug("frame %d skipped: %s", n_seen - 1, det.status)
                 continue
-            acc.add(frame, _away_from_ceiling(frame, det.mask, saturation), index=n_seen - 1, sheet=det.mask)
+            kept = _away_from_ceiling(frame, det.mask, saturation)
+            sheet_pixels += int(np.count_nonzero(det.mask))
+            near_ceiling += int(np.count_nonzero(det.mask & ~kept))
+            acc.add(frame, kept, index=n_seen - 1, sheet=det.mask)
             if len(blocky) < BLOCKY_FRAMES:
                 blocky.append(blockiness(frame[None] if frame.ndim == 3 else frame[None, :, :, None]))
             seed = det.centre
@@ -97,6 +101,11 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
         bar.close()
     if acc is None:
         raise CalibrationError(f"{frames.name}: no frames; record a sweep over a white sheet")
+    if sheet_pixels and near_ceiling > NEAR_CEILING_WARN * sheet_pixels:  # a sheet not clipped, but nearly: say so
+        log.warning("%s: %.0f%% of the sheet's pixels were within %d levels of %d and left out (with %d px around "
+                    "them) as possibly clipped; lower the exposure so that the sheet's brightest part stays below %d",
+                    frames.name, 100.0 * near_ceiling / sheet_pixels, NEAR_CEILING, saturation, CEILING_RADIUS,
+                    saturation - NEAR_CEILING)
     if len(sizes) > 1:
         _check_sizes(frames.name, sizes, first_size)
     if acc.frames == 0:
@@ -130,6 +139,9 @@ def collect_vignetting(source: Any, response: CameraResponse, *, min_samples: in
 #: which biases the bright part of the sheet low (0.8 levels with auto exposure left on, measured)
 NEAR_CEILING = 6
 CEILING_RADIUS = 3
+#: share of the sheet's pixels left out near the ceiling from which the sweep is warned about it (audit 2026-11-28: a
+#: sheet at levels 233-249 lost 78 % of itself this way, and the coverage refusal that followed blamed the sweep)
+NEAR_CEILING_WARN = 0.2
 
 
 def _away_from_ceiling(frame: np.ndarray, mask: np.ndarray, saturation: int) -> np.ndarray:
@@ -166,7 +178,7 @@ def _no_frames_message(name: str, n_seen: int, skipped: Counter, saturation: int
     if reason == "saturated":
         return (f"{name}: the frames are saturated: the sheet is clipped (>= {saturation}) in {count} of {n_seen} "
                 "frames, so they cannot measure vignetting; lower the exposure time (or the light) until the "
-                "brightest part of the sheet stays below 250, and record again")
+                f"brightest part of the sheet stays below {saturation - NEAR_CEILING}, and record again")
     if reason == "too dark":
         return (f"{name}: the sheet is too dark in {count} of {n_seen} frames; raise the exposure or the light "
                 "(the sheet's centre should be around 150-220) and record again")
