@@ -15,15 +15,9 @@ from radiometry.errors import CalibrationFileError
 from radiometry.formats import load_response, load_vignetting
 from radiometry.images import write_image
 from radiometry.response import CameraResponse
+from cli_helpers import error_line
 
 U = np.linspace(0.0, 1.0, 256)
-
-
-def error_line(result) -> str:
-    assert result.exit_code == 1, result.output
-    lines = [line for line in result.output.splitlines() if line.startswith("radiomap: error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 def test_a_grey_sweep_through_an_rgb_response_names_both(tmp_path):
@@ -43,18 +37,12 @@ def test_a_run_record_or_a_vignetting_file_given_as_a_response_says_what_it_is(t
     record.write_text(json.dumps({"command": "response", "radiomap_version": "0"}))
     with pytest.raises(CalibrationFileError, match="crf.json: a JSON file .*record of a run.*not a response"):
         load_response(record)
-    vgn = tmp_path / "x.vgn"
-    vgn.write_bytes(b"\x00" * 64)
-    with pytest.raises(CalibrationFileError, match=r"x.vgn: a vignetting file \(.vgn\), not a response"):
-        load_response(vgn)
-    other = tmp_path / "x.dat"
-    other.write_bytes(b"\x00" * 64)
-    with pytest.raises(CalibrationFileError, match="x.dat: unknown response file extension '.dat'"):
-        load_response(other)
-    crf = tmp_path / "r.crf"
-    crf.write_bytes(b"\x00" * 64)
-    with pytest.raises(CalibrationFileError, match=r"r.crf: a response file \(.crf\), not a vignetting model"):
-        load_vignetting(crf)
+    for name, load, message in (("x.vgn", load_response, r"x.vgn: a vignetting file \(.vgn\), not a response"),
+                                ("x.dat", load_response, "x.dat: unknown response file extension '.dat'"),
+                                ("r.crf", load_vignetting, r"r.crf: a response file \(.crf\), not a vignetting model")):
+        (tmp_path / name).write_bytes(b"\x00" * 64)
+        with pytest.raises(CalibrationFileError, match=message):
+            load(tmp_path / name)
 
 
 def test_a_response_saved_under_another_suffix_still_loads(tmp_path):

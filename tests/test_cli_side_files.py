@@ -11,19 +11,13 @@ from click.testing import CliRunner
 from mapping.cli import cli
 from radiometry import fileio
 from radiometry.errors import OutputError
+from cli_helpers import error_line
 
 REPO_SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "brackets"
 
 
 def invoke(*args):
     return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def error_line(result) -> str:
-    assert result.exit_code == 1, result.output
-    lines = [ln for ln in result.output.splitlines() if ln.startswith("radiomap: error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 def test_a_standard_response_with_another_suffix_keeps_the_first_run_s_side_files(tmp_path):
