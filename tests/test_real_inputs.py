@@ -84,6 +84,29 @@ def test_a_camera_json_of_another_image_size_is_refused(tmp_path):
     assert open_dataset(tmp_path / "seq", intrinsics="100,100,80,60").K[0, 2] == 80
 
 
+def test_a_camera_json_of_another_image_size_given_by_option_is_refused(tmp_path):
+    """The same file given as ``--intrinsics FILE`` was used without a word (the size was checked only on files
+    found beside the frames): now refused naming the option, the file, both sizes and the fix, nothing written; the
+    file of the frames' size given the same way is read."""
+    ds = _redwood_folder(tmp_path / "seq", 2, camera_file=None)
+    other = tmp_path / "d455_848x480.json"
+    other.write_text(json.dumps({"width": 2 * W + 10, "height": H, "intrinsic_matrix": [100, 0, 0, 0, 100, 0,
+                                                                                       W / 2 + 5, H / 2, 1]}))
+    result = CliRunner().invoke(cli, ["reconstruct", str(tmp_path / "seq"), "-o", str(tmp_path / "out"),
+                                      "--no-progress", "--intrinsics", str(other)])
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    line = result.stderr.strip().splitlines()[-1]
+    for fragment in (f"--intrinsics {other}", f"{2 * W + 10}x{H}", f"{W}x{H}", "--intrinsics fx,fy,cx,cy"):
+        assert fragment in line, line
+    assert not (tmp_path / "out").exists()
+    right = tmp_path / "right.json"
+    K = ds.frames[0].K
+    right.write_text(json.dumps({"width": W, "height": H, "intrinsic_matrix": K.T.ravel().tolist()}))
+    opened = open_dataset(tmp_path / "seq", intrinsics=str(right))
+    opened[0]
+    np.testing.assert_allclose(opened.K, K)
+
+
 @pytest.mark.slow
 def test_a_default_intrinsics_is_said_with_a_warning(tmp_path, caplog):
     _redwood_folder(tmp_path / "seq", 1, camera_file=None, trajectory=False, size=(640, 480))

@@ -405,11 +405,19 @@ class FileSequence:
         from mapping.validation import principal_point_problem
 
         source = getattr(self, "intrinsics_source", None)
-        declared = declared_image_size(source) if source not in (None, "option") else None
+        option = getattr(self, "intrinsics_option", None)
+        if source == "option":   # --intrinsics FILE: a camera JSON of another stream is as wrong given as found
+            source = f"--intrinsics {option}" if isinstance(option, (str, os.PathLike)) else None
+            path = option if source is not None else None
+        else:
+            path = source
+        declared = declared_image_size(path) if path is not None else None
         if declared is not None and declared != (self.width, self.height):
             raise DatasetError(f"{source}: its intrinsics are for {declared[0]}x{declared[1]} images, the frames "
                                f"are {self.width}x{self.height}; pass --intrinsics fx,fy,cx,cy of the "
-                               f"{self.width}x{self.height} stream, or put that stream's camera file there")
+                               f"{self.width}x{self.height} stream, or "
+                               + ("that stream's camera file" if source.startswith("--") else
+                                  "put that stream's camera file there"))
         problem = principal_point_problem(self.K, self.width, self.height)
         if problem:
             raise DatasetError(f"{self.root}: {problem}")

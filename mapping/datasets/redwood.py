@@ -146,6 +146,7 @@ class RedwoodDataset(FileSequence):
         self.trajectory_file = traj if traj.is_file() else None
         files = [FrameFiles(index=i, timestamp=i / FRAME_RATE, rgb=c, depth=d, pose=gt.get(i))
                  for i, (c, d) in enumerate(pairs)]
+        self.intrinsics_option = intrinsics  # a file given by --intrinsics has its image size checked
         K, self.intrinsics_source = resolve_intrinsics(
             intrinsics, intrinsics_candidates(root, CAMERA_FILES, parent=True), lambda: _default_intrinsics(root))
         super().__init__(root, files, K, depth_scale=DEFAULT_DEPTH_SCALE if depth_scale is None else depth_scale,

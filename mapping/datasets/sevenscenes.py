@@ -82,6 +82,7 @@ class SevenScenesDataset(FileSequence):
         numbers = [f.index for f in files]
         if len(set(numbers)) != len(numbers):
             raise DatasetError(f"{folder}: two colour images share a frame number; keep one format per frame")
+        self.intrinsics_option = intrinsics  # a file given by --intrinsics has its image size checked
         K, self.intrinsics_source = resolve_intrinsics(
             intrinsics, [base / name for name in INTRINSICS_FILES for base in (root, folder, root.parent)],
             lambda: _default_intrinsics(root))

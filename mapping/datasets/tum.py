@@ -206,6 +206,7 @@ class TUMDataset(FileSequence):
         for k, (rgb_name, depth_name) in enumerate(pairs):
             files.append(FrameFiles(index=k, timestamp=float(rgb_t[k]), rgb=root / rgb_name, depth=root / depth_name,
                                     pose=None if gt_poses is None else gt_poses[k]))
+        self.intrinsics_option = intrinsics  # a file given by --intrinsics has its image size checked
         K, self.intrinsics_source = resolve_intrinsics(
             intrinsics, intrinsics_candidates(root, ("intrinsics.txt",) + INTRINSICS_FILES),
             lambda: tum_default_intrinsics(root))
