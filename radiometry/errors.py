@@ -52,14 +52,19 @@ class CalibrationError(RadiomapError):
     """A calibration cannot produce a trustworthy model from the data it was given."""
 
 
-class TooFewLevelsError(CalibrationError):
-    """A response fit's data constrain too few levels: ``finding`` says what is wrong, ``advice`` the fix (kept apart
-    so that a caller who knows better, e.g. that 16-bit inputs lost their levels to the reduction to 8 bits, can
-    replace the advice: :func:`radiometry.images.with_sixteen_bit_note`)."""
+class AdvisedCalibrationError(CalibrationError):
+    """A calibration that cannot be made: ``finding`` says what is wrong, ``advice`` the fix, kept apart so that a
+    caller who knows the cause better can replace the advice without cutting the finding's text (which may hold any
+    character, e.g. a folder's name)."""
 
     def __init__(self, finding: str, advice: str, sep: str = "; ") -> None:
         self.finding, self.advice = finding, advice
         super().__init__(f"{finding}{sep}{advice}")
+
+
+class TooFewLevelsError(AdvisedCalibrationError):
+    """A response fit's data constrain too few levels (e.g. 16-bit inputs that lost their levels to the reduction to
+    8 bits get their own advice: :func:`radiometry.images.with_sixteen_bit_note`)."""
 
 
 class ModelMismatchError(RadiomapError):

@@ -62,22 +62,27 @@ def test_correct_through_a_broken_response_warns(tmp_path, caplog):
 
 def test_vignetting_names_the_response_levels_that_exclude_the_sheet(tmp_path):
     """A response that declares levels up to 64 only (a BROKEN stack) leaves the sweep no samples: the refusal says
-    so, not that the sheet was not swept over the image."""
+    so, not that the sheet was not swept over the image. The sweep's folder name holds a ';', which the refusal
+    once cut the finding at (the finding and the advice are kept apart now: AdvisedCalibrationError)."""
     from mapping.simulation.sequences import simulate_paper
 
     out = simulate_paper(tmp_path / "paper", camera="xtion", seed=5, n_frames=12, width=48, height=36,
                          progress=False, write_depth_images=False)
+    sweep = out / "sheet; take 2"
+    (out / "rgb").rename(sweep)
     truth = CameraResponse.load(out / "truth" / "response.npz")
     low = CameraResponse(truth.inverse_table, {"method": "loglog", "declared_levels": [[4, 64]] * 3,
                                                "extrapolated_levels": [list(range(65, 256))] * 3})
     low.save(tmp_path / "low.npz")
-    result = CliRunner().invoke(cli, ["vignetting", str(out / "rgb"), "-r", str(tmp_path / "low.npz"), "-o",
+    result = CliRunner().invoke(cli, ["vignetting", str(sweep), "-r", str(tmp_path / "low.npz"), "-o",
                                       str(tmp_path / "v.npz"), "--no-plots", "--no-progress"])
     assert result.exit_code == 1, result.output
     line = result.stderr.strip().splitlines()[-1]
     assert "low.npz declares levels 4..64, 4..64, 4..64 only" in line and "of the sheet's readings" in line, line
+    assert f"{sweep.name}: the sheet was seen at only" in line and "of the image in" in line, line
+    assert "(the rest would be guessed)" not in line, line   # the fit's own advice gave way to the cause
     assert not (tmp_path / "v.npz").exists()
     # the sweep through its own response is accepted: the levels were the cause
-    assert CliRunner().invoke(cli, ["vignetting", str(out / "rgb"), "-r", str(out / "truth" / "response.npz"), "-o",
+    assert CliRunner().invoke(cli, ["vignetting", str(sweep), "-r", str(out / "truth" / "response.npz"), "-o",
                                     str(tmp_path / "v.npz"), "--no-plots", "--no-progress",
                                     "--min-samples", "2"]).exit_code == 0

@@ -115,7 +115,8 @@ def command(frames: str, response_path: str, output: str, model_name: str, min_s
         blame = response_levels_excluded(acc, response, response_path)
         if blame is None:
             raise
-        raise CalibrationError(f"{exc.args[0].split(';')[0]}, because {blame}") from None
+        finding = getattr(exc, "finding", None)   # the fit's advice gives way to the cause found here
+        raise CalibrationError(f"{finding}, because {blame}" if finding else f"{exc}; the cause: {blame}") from None
     rows, facts = calibration_summary(model, acc, response, min_samples)
     skipped = ", ".join(f"{k}: {v}" for k, v in sorted(acc.skipped.items())) or "none"
     lines = [

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from radiometry.errors import CalibrationError
+from radiometry.errors import AdvisedCalibrationError, CalibrationError
 from radiometry.registry import Registry
 from radiometry.vignetting import LUTVignetting, PolynomialVignetting, VignettingModel, half_diagonal
 from radiometry.vignetting_calibration.accumulate import VignettingAccumulation
@@ -166,7 +166,8 @@ def fit_vignetting_polynomial(accumulation: VignettingAccumulation, *, fixed_cen
         wt = weights[::step, ::step, c]
         sel = (wt > 0) & np.isfinite(d)
         if np.count_nonzero(sel) < 50:
-            raise CalibrationError(f"channel {c}: only {np.count_nonzero(sel)} observed pixels; record a longer sweep")
+            raise AdvisedCalibrationError(f"channel {c}: only {np.count_nonzero(sel)} observed pixels",
+                                          "record a longer sweep")
         s, b, centre, err = _fit_channel_poly(xx[sel].astype(np.float64), yy[sel].astype(np.float64), d[sel],
                                               wt[sel], acc.resolution, free=not fixed_centre)
         coeffs.append(b)
@@ -271,8 +272,8 @@ def fit_vignetting_lut(accumulation: VignettingAccumulation, *, joint_scale: boo
     h, w, ch = acc.shape
     observed = weights > 0
     if observed.mean() < 0.05:
-        raise CalibrationError(f"only {100 * observed.mean():.1f}% of the image was observed; sweep the sheet over "
-                               "the whole image")
+        raise AdvisedCalibrationError(f"only {100 * observed.mean():.1f}% of the image was observed",
+                                      "sweep the sheet over the whole image")
     try:
         poly = fit_vignetting_polynomial(acc, joint_scale=joint_scale, min_samples=min_samples)
     except CalibrationError:
@@ -331,8 +332,9 @@ def fit_vignetting(accumulation: VignettingAccumulation, *, model: str = "lut", 
     method = MODELS[model]  # ValueError listing the models on a wrong name
     observed = float(np.mean(accumulation.count.max(axis=2) > 0))
     if observed < MIN_OBSERVED_FRACTION:  # the rest of V would be extrapolated from a corner of the image
-        raise CalibrationError(
+        raise AdvisedCalibrationError(
             f"{accumulation.source or 'the sweep'}: the sheet was seen at only {observed:.0%} of the image in "
-            f"{accumulation.frames_used} frames; a model needs it swept over at least {MIN_OBSERVED_FRACTION:.0%} "
-            f"(the rest would be guessed); {SWEEP_FIX}")
+            f"{accumulation.frames_used} frames",
+            f"a model needs it swept over at least {MIN_OBSERVED_FRACTION:.0%} (the rest would be guessed); "
+            f"{SWEEP_FIX}")
     return method(accumulation, **options)
