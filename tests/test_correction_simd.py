@@ -365,3 +365,24 @@ def test_a_new_model_on_a_used_corrector_is_checked_and_used():
     fast.response = s_curve(1)
     expected = Corrector(s_curve(1), mild, simd=False).correct(gray, scale=0.8)
     np.testing.assert_array_equal(fast.correct(gray, scale=0.8), expected)
+
+
+@pytest.mark.slow
+def test_the_alternatives_benchmark_times_prototypes_that_give_the_same_bytes():
+    """``scripts/bench_correction_alternatives.py`` (the designs issue 33 suggested for CPUs without AVX-512 VBMI,
+    docs/performance.md): its bit-identical prototypes must give the scalar gather's bytes, or their speed says
+    nothing; the folded-table bound is marked as a bound."""
+    import shutil
+    import subprocess
+    import sys
+
+    if not (shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
+        pytest.skip("no C compiler on PATH: the script compiles its prototypes")
+    script = SCRIPT.parent / "bench_correction_alternatives.py"
+    done = subprocess.run([sys.executable, str(script), "--calls", "2", "--repeats", "1"], capture_output=True,
+                          text=True, cwd=SCRIPT.parents[1], timeout=600)
+    assert done.returncode == 0, done.stderr
+    rows = {line.split()[0]: line for line in done.stdout.splitlines() if line.startswith("  ")}
+    assert "same output" in rows["no-check"], done.stdout
+    assert "a speed bound only" in rows["small-table"], done.stdout
+    assert "avx2-gather" not in rows or "same output" in rows["avx2-gather"], done.stdout
