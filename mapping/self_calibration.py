@@ -330,7 +330,8 @@ def _poses(dataset, frames: list, source, *, depth_max: float, progress: bool, t
         if source == "gt" and have.any():
             from mapping.pose_convention import refuse_inverted_poses
 
-            refuse_inverted_poses(frames, name=str(dataset.name))    # camera-to-world expected
+            refuse_inverted_poses(frames, name=str(dataset.name),      # camera-to-world expected
+                                  quaternion_file=getattr(dataset, "ground_truth_file", None))
         return [p if p is not None else np.eye(4) for p in poses], have
     if source != "icp":
         raise ValueError(f"poses must be 'gt', 'icp' or a PoseTable, got {source!r}")

@@ -484,7 +484,7 @@ def check_run(dataset, *, poses: str = "icp", **fusion) -> MemoryEstimate:
     if poses == "gt":   # camera-to-world expected; world-to-camera given is refused with the fix
         from mapping.pose_convention import refuse_inverted_poses
 
-        refuse_inverted_poses(dataset, name=str(name))
+        refuse_inverted_poses(dataset, name=str(name), quaternion_file=getattr(dataset, "ground_truth_file", None))
     estimate = estimate_memory(K=dataset.K, width=dataset.width, height=dataset.height, frames=len(dataset),
                                scene_depth=scene_depth(dataset), **{"backend": "tsdf", **fusion})
     check_memory(estimate)

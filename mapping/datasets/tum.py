@@ -196,6 +196,7 @@ class TUMDataset(FileSequence):
 
         gt_poses = None
         gt_file = optional_file(root / "groundtruth.txt", "ground truth")
+        self.ground_truth_file = gt_file   # its quaternions: mapping.pose_convention checks their order
         if gt_file is not None:
             gt_t, gt_p = read_tum_trajectory(gt_file)
             if len(gt_t):
