@@ -136,6 +136,14 @@ def test_a_recorded_value_the_command_line_contradicts_is_dropped_with_a_note(fi
     res = invoke("reconstruct", "--config", recorded, "-o", tmp_path / "typed", "--no-exposure-compensation",
                  "--mesh-exposure", "first")
     assert res.exit_code == 2 and "applies with exposure compensation only" in res.output
+    # a TSDF run's recorded --formats glb replayed with --backend surfel (which writes PLY only) is dropped too
+    recorded = rewrite(first_run / "config.json", tmp_path,
+                       lambda d: d["parameters"].update(formats=["ply", "glb"], frames="0:3"))
+    res = invoke("reconstruct", "--config", recorded, "-o", tmp_path / "surfel", "--backend", "surfel",
+                 "--no-progress")
+    assert res.exit_code == 0, res.output
+    assert f"note: {recorded}: formats ('ply', 'glb') is not used (--backend surfel)" in res.stderr, res.stderr
+    assert json.loads((tmp_path / "surfel" / "config.json").read_text())["parameters"]["formats"] == ["ply"]
 
 
 @pytest.mark.slow

@@ -158,3 +158,46 @@ def test_make_backend_threads_the_surfel_mesh_option():
     assert make_backend("surfel").mesh is False
     with pytest.raises(ValueError, match="surfel_mesh applies to the surfel backend only"):
         make_backend("tsdf", surfel_mesh=True)
+
+
+def test_cli_surfel_backend_refuses_mesh_formats_it_does_not_write(tmp_path):
+    """``--backend surfel --formats glb`` wrote surfels.ply only, exit 0, and the settings line left the formats
+    out (outside audit, 2026-11-28): a usage error now, before anything is written, for reconstruct and compare;
+    ``--formats ply`` (what it writes) is accepted."""
+    from click.testing import CliRunner
+
+    from mapping.cli import cli
+    from mapping.simulation import sample_sequence
+
+    seq = sample_sequence("room")
+    runner = CliRunner()
+    for command in ("reconstruct", "compare"):
+        extra = ["-r", str(seq / "truth" / "response.npz")] if command == "compare" else []
+        out = tmp_path / command
+        res = runner.invoke(cli, [command, str(seq), "--poses", "gt", "--frames", "0:2", "--no-progress", *extra,
+                                  "--backend", "surfel", "--formats", "ply,glb", "-o", str(out)])
+        assert res.exit_code == 2, res.output
+        assert "--formats" in res.output and "glb" in res.output and "PLY files only" in res.output, res.output
+        assert not out.exists()
+    res = runner.invoke(cli, ["reconstruct", str(seq), "--poses", "gt", "--frames", "0:2", "--no-progress",
+                              "--backend", "surfel", "--formats", "ply", "-o", str(tmp_path / "ply")])
+    assert res.exit_code == 0, res.output
+
+
+def test_an_export_with_no_stable_surfel_says_so(tmp_path, caplog):
+    """Four frames leave every surfel below the confidence that makes it stable: surfels.ply was written with 0
+    vertices, exit 0, no word (outside audit: 60,720 surfels, 0 stable); now a warning names the file, the counts
+    and the fix."""
+    import logging
+
+    from mapping.api import reconstruct_sequence
+    from mapping.simulation import sample_sequence
+
+    with caplog.at_level(logging.WARNING):
+        reconstruct_sequence(sample_sequence("room"), tmp_path / "run", poses="gt", frames=slice(0, 2),
+                             depth_max=4.0, backend="surfel", progress=False)
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and "stable" in r.getMessage()]
+    assert len(lines) == 1, [r.getMessage() for r in caplog.records]
+    assert "no surfel became stable in 2 frames" in lines[0] and "surfels.ply" in lines[0], lines[0]
+    assert "--backend tsdf" in lines[0]
+    assert len(_read_ply(tmp_path / "run" / "surfels.ply")[1]) == 0

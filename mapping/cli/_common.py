@@ -504,7 +504,20 @@ def formats_option(f):
         "--formats", type=MeshFormats(), default="ply", show_default=True,
         help="Mesh files to write, comma-separated: ply (sRGB-encoded display colours: MeshLab, Blender, Open3D, "
              "trimesh), glb (binary glTF, linear COLOR_0: three.js and other glTF viewers), obj, npz "
-             "(mesh_colours.npz: map-unit colours, for evaluation). docs/outputs.md: which file for which tool.")(f)
+             "(mesh_colours.npz: map-unit colours, for evaluation). docs/outputs.md: which file for which tool. "
+             "The surfel backend writes PLY only.")(f)
+
+
+def check_formats(ctx: click.Context, formats: tuple[str, ...], backend: str) -> tuple[str, ...]:
+    """``--formats`` checked against ``--backend``: the surfel backend writes PLY files only (surfels.ply, and
+    surfels_mesh. py with --surfel-mesh), so other formats asked for are a usage error rather than silently not
+    written (a replayed value is dropped with a note: :func:`drop_replayed`)."""
+    extra = [f for f in formats if f != "ply"]
+    if backend == "surfel" and extra and not drop_replayed(ctx, "formats", ("ply",), "--backend surfel"):
+        raise click.BadParameter(f"{','.join(extra)}: the surfel backend writes PLY files only (surfels.ply, and "
+                                 "surfels_mesh.ply with --surfel-mesh); drop --formats or use --backend tsdf",
+                                 param_hint="--formats")
+    return ("ply",) if backend == "surfel" else formats
 
 
 def _size_text(n: int) -> str:

@@ -132,7 +132,9 @@ def task_arguments(ctx: click.Context) -> dict:
         new = ",".join(formats or ("ply",))
         click.echo(f"warning: --{'' if p['glb'] else 'no-'}glb is deprecated, use --formats {new}", err=True)
         formats = formats or ("ply",)
-    from mapping.cli._common import refuse_sequence_as_output
+    from mapping.cli._common import check_formats, refuse_sequence_as_output
+
+    formats = check_formats(ctx, formats, p["backend"])
 
     refuse_sequence_as_output(p["sequence"], p["output"])
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import click
 
-from mapping.cli._common import (RadiomapCommand, config_option, deprecated_alias, drop_replayed, evaluation_options,
-                                 formats_option, fusion_options, Number, pose_arguments, pose_options, replay_manifest,
-                                 sequence_options, settings_line, warn_far_depth, written_text)
+from mapping.cli._common import (RadiomapCommand, check_formats, config_option, deprecated_alias, drop_replayed,
+                                 evaluation_options, formats_option, fusion_options, Number, pose_arguments,
+                                 pose_options, replay_manifest, sequence_options, settings_line, warn_far_depth,
+                                 written_text)
 from mapping.validation import EXPOSURE_FACTOR
 from mapping.factory import TRACKERS
 
@@ -158,6 +159,7 @@ def task_arguments(ctx: click.Context) -> dict:
         check_colour_map(p["colour_map"], backend)
     except ValueError as exc:
         raise click.BadParameter(str(exc).removeprefix("--colour-map "), param_hint="--colour-map") from None
+    formats = check_formats(ctx, p["formats"], backend)
     options = dict(sequence=p["sequence"], output=p["output"], response=response, vignetting=p["vignetting"],
                    poses=p["poses"], poses_max_difference=max_difference, tracker=p["tracker"],
                    voxel_size=p["voxel_size"],
@@ -166,12 +168,12 @@ def task_arguments(ctx: click.Context) -> dict:
                    reference_exposure=p["display_exposure"], exposure_compensation=p["exposure_compensation"],
                    exposure_reference=p["mesh_exposure"] or "median", holdout_every=p["holdout_every"],
                    exposures=None if p["exposures"] is None else str(p["exposures"]),
-                   colour_map=p["colour_map"], mesh_formats=p["formats"], force=p["force"],
+                   colour_map=p["colour_map"], mesh_formats=formats, force=p["force"],
                    progress=not p["no_progress"])
     settings = [("poses", "poses", p["poses"]), ("tracker", "tracker", p["tracker"]),
                 ("exposure compensation", "exposure_compensation", "on" if compensate else "off",
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
-        settings.append(("formats", "formats", ",".join(p["formats"])))
+        settings.append(("formats", "formats", ",".join(formats)))
     return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
             "settings": settings_line(ctx, settings)}

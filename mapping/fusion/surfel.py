@@ -330,6 +330,12 @@ class SurfelBackend:
         folder = ensure_dir(folder)
         s = self.surfels(stable_only=True)
         n = s["position"].shape[0]
+        if n == 0:   # a short run: every surfel still below the confidence that makes it part of the map
+            live = int(np.count_nonzero(self.map.live_mask()))
+            log.warning("no surfel became stable in %d frames (%d surfels, none at confidence %g): %s holds no "
+                        "surfel; fuse more frames of the same surfaces (a surfel is kept once seen about %g times) "
+                        "or use --backend tsdf", self._tick, live, self.confidence_threshold,
+                        Path(folder) / "surfels.ply", self.confidence_threshold)
         rgb = np.zeros((n, 3), np.uint8)
         if n:
             disp = np.asarray(to_display(s["colour"]), dtype=np.float64)
