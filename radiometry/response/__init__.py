@@ -18,6 +18,7 @@ package's ``__init__``; ``tests/test_architecture.py`` fails on an import cycle)
   the other methods.
 - :mod:`~radiometry.response.fit`: ``fit_response_debevec``, the ``method=`` dispatcher, merging and checking a
   response against the images, reading brackets and their times file.
+- :mod:`~radiometry.response.noise`: the images' noise, in one image (the Laplacian) and between exposures.
 - :mod:`~radiometry.response.quality`: the truth-free quality figure (held-out prediction, split halves).
 """
 

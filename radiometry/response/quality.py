@@ -14,6 +14,11 @@ A user with a real camera has no true curve to compare with. Two figures need no
   difference has twice its standard deviation) estimates what the pixels leave uncertain in the full fit;
   scene-dependent errors (a region that does not follow the model) make the halves disagree more.
 
+The noise is the Laplacian's in one image, or, when texture at the pixel scale inflates that, the noise measured
+between exposures (:mod:`radiometry.response.noise`); the sentence then says the images' noise could not be measured in
+one image, and a response is good only within :data:`TEXTURE_GOOD_LEVELS` levels RMS and broken above
+:data:`TEXTURE_BROKEN` times that noise.
+
 Both are computed over the levels the fit declares constrained and without the observations it found saturated
 (:mod:`radiometry.response.levels`). :func:`verdict` turns them into a sentence with the thresholds that
 separated good from broken fits in ``scripts/bench_calibration.py --quality`` (docs/calibration_pipelines.md).
@@ -30,6 +35,7 @@ import numpy as np
 from radiometry.errors import RadiomapError
 from radiometry.response.levels import declared
 from radiometry.response.model import LEVELS, CameraResponse
+from radiometry.response.noise import image_noise, stack_noise
 
 #: held-out RMS over the images' own noise (x 1.2 for the merge's) up to which a response is trusted, and beyond which
 #: it is called broken. Measured: good fits 0.92-1.52 (clean, JPEG q92, noise after the response), a camera moved
@@ -45,6 +51,17 @@ JPEG_FACTOR = 2.5
 #: textured images the noise estimate (the Laplacian) picks up texture, so a large error can look like noise (a JPEG
 #: q75 64x48 stack predicted at 21.96 levels, "1.48x", with a curve 9 % off); good fits measured 1.2-2.9 levels
 HOLDOUT_ABSOLUTE = 8.0
+#: held-out RMS (levels) up to which a response is good when texture at the pixel scale kept the images' noise from
+#: being measured in one image (radiometry.response.noise): the noise between exposures cannot tell noise from a
+#: camera that moved, so the error itself must be small too (good fits measured 1.2-2.9 levels; on a random-pixel
+#: stack with 0.5 levels of noise the right curve 0.66, gamma 2.0 given for 2.2 3.58)
+TEXTURE_GOOD_LEVELS = 3.0
+#: held-out RMS over the noise between exposures above which such a response is broken: that figure misses errors
+#: that neighbouring exposures share (JPEG's on random pixels, which the blockiness test misses: the right curve read
+#: 2.0-4.6x there), so the JPEG stacks' limit (JPEG_FACTOR x HOLDOUT_BROKEN) applies. Measured on random pixels
+#: (320x240): the right curves 0.98-3.45x; gamma 2.0 given for 2.2 3.2-10.7x (doubtful or broken, never good); the
+#: kink curve 18-64x (broken)
+TEXTURE_BROKEN = 10.0
 #: the in-sample prediction RMS (levels, radiometry.api) above which a response is said to predict the images badly;
 #: a response is never graded good beside that warning
 FIT_RMS_WARNING = 10.0
@@ -116,32 +133,14 @@ def _predict_rms(stack: np.ndarray, times: np.ndarray, usable: np.ndarray, respo
     return sq, count
 
 
-def image_noise(stack: np.ndarray, levels: list[tuple[int, int]]) -> float:
-    """The images' own noise in levels (RMS over exposures): per exposure and channel a robust standard deviation of
-    the 3x3 Laplacian (``1.4826 MAD / sqrt 20``, exact for white noise on a locally flat or linear image) over the
-    declared levels, at least 0.29 (8-bit rounding)."""
-    import cv2
-
-    values = []
-    for img in stack:
-        per = []
-        for c in range(stack.shape[3]):
-            z = np.ascontiguousarray(img[:, :, c]).astype(np.float32)
-            lap = np.abs(cv2.Laplacian(z, cv2.CV_32F, ksize=1))
-            sel = (z >= levels[c][0]) & (z <= levels[c][1])
-            if sel.sum() >= 100:
-                per.append(1.4826 * float(np.median(lap[sel])) / math.sqrt(20.0))
-        if per:
-            values.append(max(float(np.mean(per)), 0.29))
-    return math.sqrt(float(np.mean(np.square(values)))) if values else float("nan")
-
-
 def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: CameraResponse, *,
                 refit: Callable[[list[np.ndarray], np.ndarray], CameraResponse] | None = None,
                 mask: np.ndarray | None = None, max_pixels: int = 200_000, seed: int = 0) -> dict[str, Any]:
     """Each exposure predicted from the others (``refit``: a function ``(images, times) -> response`` that fits
     without it; None: ``response`` for every exposure). Returns ``{"rms": overall, "per_exposure": [...]}``,
-    levels."""
+    levels, and the noise it is compared with (:func:`radiometry.response.noise.stack_noise`): ``"noise"`` (the one
+    used), ``"noise_in_images"`` (the Laplacian's), ``"noise_between"`` and ``"texture"``; ``"ratio"`` is ``rms`` over
+    :data:`MERGE_FACTOR` times ``"noise"``."""
     from radiometry.response.inputs import _as_stack
 
     from radiometry.response.levels import BLOCKY, blockiness, edge_mask
@@ -183,11 +182,13 @@ def holdout_rms(images: Sequence[np.ndarray], times: Sequence[float], response: 
     rms = math.sqrt(sq_all / n_all) if n_all else float("nan")
     if refit is not None and refitted == 0:
         in_sample = "no fit without an exposure succeeded"
-    noise = image_noise(stack, declared(response, n_ch))
+    noise = stack_noise(stack, flat[:, pixels], t, usable[:, pixels], declared(response, n_ch), compressed=compressed)
+    used = noise["noise"]
     return {"rms": rms, "compressed": compressed, "per_exposure": per, "held_out": [float(t[j]) for j in held],
             "refit": refitted, "in_sample": in_sample,
-            "noise": noise,
-            "ratio": rms / (MERGE_FACTOR * noise) if noise and math.isfinite(noise) else float("nan")}
+            "noise": used, "noise_in_images": noise["in_images"], "noise_between": noise["between_exposures"],
+            "texture": noise["texture"],
+            "ratio": rms / (MERGE_FACTOR * used) if used and math.isfinite(used) else float("nan")}
 
 
 def _aligned_difference(a: np.ndarray, b: np.ndarray, levels: list[tuple[int, int]]) -> np.ndarray:
@@ -274,29 +275,45 @@ def tied_share(response: CameraResponse) -> float:
 
 def verdict(holdout: float, split: Sequence[float] | None, ratio: float, *,
             compressed: bool = False, in_sample: str | None = None,
-            fit_rms: float | None = None, kind: str = "held-out prediction") -> tuple[str, str]:
+            fit_rms: float | None = None, kind: str = "held-out prediction",
+            texture: tuple[float, float] | None = None) -> tuple[str, str]:
     """``(grade, sentence)``: ``good``, ``doubtful`` or ``broken``, with what to do. ``ratio``: the held-out RMS
     over the noise the images themselves carry (:func:`image_noise`, times :data:`MERGE_FACTOR`); ``compressed``:
     a JPEG stack (the thresholds times :data:`JPEG_FACTOR`); ``in_sample``: why no exposure could be held out (the
     prediction then includes the exposure it predicts: never good); ``fit_rms``: the in-sample prediction RMS of the
     whole stack (above :data:`FIT_RMS_WARNING` never good); ``kind``: what the figure is called in the sentence. A
-    held-out RMS above :data:`HOLDOUT_ABSOLUTE` levels is doubtful at best."""
+    held-out RMS above :data:`HOLDOUT_ABSOLUTE` levels is doubtful at best. ``texture``: ``(Laplacian, between
+    exposures)`` when texture at the pixel scale kept the images' noise from being measured in one image
+    (:func:`radiometry.response.noise.stack_noise`): ``ratio`` is then over the noise between exposures (which a
+    camera that moved would inflate too), the sentence says so, a response is good only up to
+    :data:`TEXTURE_GOOD_LEVELS` levels RMS and broken above :data:`TEXTURE_BROKEN` times that noise."""
     scale = JPEG_FACTOR if compressed else 1.0
     worst_split = None if split is None else float(np.max(split))
     if not (math.isfinite(holdout) and math.isfinite(ratio)):
         return "unknown", ("quality not computed: too few pixels within the declared levels to predict an exposure or "
                            "measure the images' noise; check the plot")
-    broken = ratio > scale * HOLDOUT_BROKEN
+    broken = ratio > (TEXTURE_BROKEN if texture is not None else scale * HOLDOUT_BROKEN)
     good = ratio <= scale * HOLDOUT_GOOD and (worst_split is None or worst_split <= SPLIT_GOOD)
     kind = kind if in_sample is None else f"in-sample prediction ({in_sample})"
-    figures = (f"{kind} {holdout:.2f} levels RMS, {ratio:.2f}x the images' noise" +
+    noise = "the images' noise" if texture is None else "the noise measured between exposures"
+    figures = (f"{kind} {holdout:.2f} levels RMS, {ratio:.2f}x {noise}" +
                ("" if worst_split is None else f", split-half uncertainty {worst_split:.2f} %"))
+    if texture is not None:
+        figures += (f" (the images' noise could not be measured in one image: texture at the pixel scale, whose "
+                    f"Laplacian reads {texture[0]:.2f} levels against {texture[1]:.2f} between exposures; a camera or "
+                    "scene that moved between exposures would count as noise there)")
     limits = f"trusted up to {scale * HOLDOUT_GOOD:g}x{' for JPEG' if compressed else ''} and {SPLIT_GOOD:g} %"
+    if texture is not None:
+        limits = (f"trusted up to {HOLDOUT_GOOD:g}x, {TEXTURE_GOOD_LEVELS:g} levels RMS and {SPLIT_GOOD:g} %, "
+                  f"broken above {TEXTURE_BROKEN:g}x")
     why = []  # what keeps a response whose ratio looks good from being graded good
     if holdout > HOLDOUT_ABSOLUTE:
         why.append(f"{holdout:.1f} levels RMS is more than the {HOLDOUT_ABSOLUTE:g} levels a good fit predicts to "
                    "(good fits: 1.2-2.9), whatever its ratio to the noise (whose estimate takes texture for noise on "
                    "small or textured images)")
+    if texture is not None and holdout > TEXTURE_GOOD_LEVELS:
+        why.append(f"with the noise measured only between exposures a response is trusted up to "
+                   f"{TEXTURE_GOOD_LEVELS:g} levels RMS (good fits: 1.2-2.9)")
     if fit_rms is not None and not (fit_rms <= FIT_RMS_WARNING):
         why.append(f"the response predicts the images with an RMS error of {fit_rms:.1f} levels (above "
                    f"{FIT_RMS_WARNING:g})")
@@ -350,8 +367,9 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
     kind = "held-out prediction"
     if fitted and refit is None:
         kind = "prediction of each exposure from the others through the response fitted on all (no refits)"
+    texture = (hold["noise_in_images"], hold["noise_between"]) if hold["texture"] else None
     grade, sentence = verdict(hold["rms"], split, hold["ratio"], compressed=hold["compressed"],
-                              in_sample=hold["in_sample"], fit_rms=fit_rms, kind=kind)
+                              in_sample=hold["in_sample"], fit_rms=fit_rms, kind=kind, texture=texture)
     tied = tied_share(response)
     if tied > TIED_DOUBTFUL and grade in GRADES:
         worse = worse_grade("broken" if tied > TIED_BROKEN else "doubtful", grade)
@@ -373,7 +391,10 @@ def assess(images: Sequence[np.ndarray], times: Sequence[float], response: Camer
             grade = "doubtful"
             sentence = sentence.replace("quality good", "quality doubtful", 1)
     out = {"holdout_rms_levels": hold["rms"], "holdout_per_exposure": hold["per_exposure"],
-           "image_noise_levels": hold["noise"], "holdout_over_noise": hold["ratio"], "jpeg": hold["compressed"],
+           "image_noise_levels": None if hold["texture"] else hold["noise"],
+           "noise_measured": "between exposures (texture at the pixel scale)" if hold["texture"] else "in the images",
+           "laplacian_noise_levels": hold["noise_in_images"], "noise_between_exposures_levels": hold["noise_between"],
+           "holdout_over_noise": hold["ratio"], "jpeg": hold["compressed"],
            "holdout_refit": hold["refit"], "prediction": (f"in-sample ({hold['in_sample']})" if hold["in_sample"]
                                                           else "held-out" if kind == "held-out prediction" else
                                                           "from the other exposures, response fitted on all"),
