@@ -166,3 +166,19 @@ def test_a_list_the_images_do_not_show_at_all_is_warned_about(selfcal_room, lit_
     with caplog.at_level(logging.WARNING):
         enforce(check, tmp_path / "k.txt")
     assert "k.txt: the file's exposure changes do not match the images'" in caplog.text
+
+
+def test_compare_refuses_a_list_one_frame_early_before_writing(lit_room, tmp_path):
+    from click.testing import CliRunner
+    from cli_helpers import error_line
+
+    from mapping.cli import cli
+
+    folder, k, stamps = lit_room
+    path = _write(tmp_path / "k.txt", stamps, k, -1)
+    res = CliRunner().invoke(cli, ["compare", str(folder), "-r", str(folder / "truth" / "response.npz"), "--methods",
+                                   "response+ec", "--exposures", str(path), "--poses", "gt", "--frames",
+                                   f"3:{3 + FRAMES}", "-o", str(tmp_path / "cmp"), "--no-progress"])
+    line = error_line(res)
+    assert f"{path}: the exposures are off by -1 frame(s) (-0.033 s in the file's clock)" in line
+    assert not (tmp_path / "cmp").exists()
