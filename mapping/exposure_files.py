@@ -17,6 +17,8 @@ FILE``); when no row is that near but the file has exactly one row per frame of 
 first frame, before ``--frames``), the rows are taken in order (a warning says so). Frames without a value are
 fitted (counted, with a warning); when too few have one (``radiometry.quorum``), the run stops naming the file. A
 command that fits none (``reconstruct``, ``compare``: ``every_frame``) stops, in one message, when any frame lacks one.
+The rows matched (``KnownExposures.rows``) are then checked against the images by the commands
+(:mod:`mapping.exposure_alignment`): a list off by a frame or more is refused.
 """
 
 from __future__ import annotations
