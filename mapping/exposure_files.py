@@ -17,6 +17,8 @@ FILE``); when no row is that near but the file has exactly one row per frame of 
 first frame, before ``--frames``), the rows are taken in order (a warning says so). Frames without a value are
 fitted (counted, with a warning); when too few have one (``radiometry.quorum``), the run stops naming the file. A
 command that fits none (``reconstruct``, ``compare``: ``every_frame``) stops, in one message, when any frame lacks one.
+The rows matched (``KnownExposures.rows``) are then checked against the images by the commands
+(:mod:`mapping.exposure_alignment`): a list off by a frame or more is refused.
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ class KnownExposures:
     values: np.ndarray
     per_channel: bool
     how: str
+    #: the file's row matched to each frame (-1: none), the file's values (N, 3) and timestamps (N,) in its order
+    #: (what :mod:`mapping.exposure_alignment` shifts); None when not known
+    rows: np.ndarray | None = None
+    file_values: np.ndarray | None = None
+    file_stamps: np.ndarray | None = None
 
     @property
     def known(self) -> np.ndarray:
@@ -127,23 +134,31 @@ def match_exposure_file(dataset, path: str | os.PathLike, *, max_difference: flo
     frame_stamps, frame_numbers = _frame_keys(dataset)
     n = len(frame_stamps)
     out = np.full((n, 3), np.nan)
+    rows = np.full(n, -1, dtype=np.int64)
     if kind == "radiomap":
-        by_number = {int(k): v for k, v in zip(numbers, values)}
+        order = np.argsort(numbers, kind="stable")       # shifts step through the frame numbers
+        numbers, stamps, values = numbers[order], stamps[order], values[order]
+        by_number = {int(k): r for r, k in enumerate(numbers)}
         for i, number in enumerate(frame_numbers):
             if int(number) in by_number:
-                out[i] = by_number[int(number)]
+                rows[i] = by_number[int(number)]
+                out[i] = values[rows[i]]
         how = "by frame number"
     else:
         ia, ib = associate_timestamps(frame_stamps, stamps, max_difference=max_difference)
         out[ia] = values[ib]
+        rows[ia] = ib
         how = f"by timestamp within {max_difference:g} s"
         total = getattr(dataset, "total_frames", None)
         if len(ia) == 0 and total is not None and len(values) == total and frame_numbers.max() < total:
             out = values[frame_numbers]
+            rows = frame_numbers.astype(np.int64)
             how = "in order (one row per frame; the timestamps do not match the sequence's)"
             log.warning("%s: no timestamp matches the sequence's within %g s; its %d rows are taken in order, one "
                         "per frame", path, max_difference, len(values))
-    table = KnownExposures(path, kind, out, per_channel, how)
+    if kind != "radiomap" and "in order" not in how and np.any(np.diff(stamps) < 0):
+        rows = None                     # rows out of time order: a shift by rows means nothing
+    table = KnownExposures(path, kind, out, per_channel, how, rows, values, stamps)
     matched = table.matched
     count = f" (the file has {len(values)} rows, the sequence {total} frames)" if kind != "radiomap" and (
         total := getattr(dataset, "total_frames", None)) is not None else ""

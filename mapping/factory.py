@@ -111,15 +111,23 @@ def make_tracker(name: str = "auto", *, depth_max: float = 3.0, motion_model: st
 def _given_exposures(path, dataset, response, vignetting, max_difference: float, command: str = "reconstruct"):
     """A :class:`mapping.exposure_compensation.given.GivenExposures` of ``path`` matched to ``dataset``; every
     frame must have a value (:class:`mapping.exposure_files.ExposureFileError` naming the file and ``command``
-    otherwise, and no warning before it that the missing ones are fitted)."""
+    otherwise, and no warning before it that the missing ones are fitted); with a response, the file's alignment is
+    checked against the images (:mod:`mapping.exposure_alignment`: refused when a shift of its rows clearly explains
+    them better, a warning when less clearly; the verdict goes to the estimator's settings)."""
     from mapping.exposure_compensation.given import GivenExposures
     from mapping.exposure_files import match_exposure_file
     from mapping.pose_files import _frame_keys
 
     table = match_exposure_file(dataset, path, max_difference=max_difference, every_frame=command)
+    check = None
+    if response is not None:    # the images' own exposure changes against the file's (mapping.exposure_alignment)
+        from mapping.exposure_alignment import check_alignment, enforce
+
+        check = check_alignment(dataset, table, response, vignetting)
+        enforce(check, path)
     numbers = _frame_keys(dataset)[1]
     return GivenExposures(response, vignetting, known=dict(zip(numbers.tolist(), table.values)),
-                          source=table.describe())
+                          source=table.describe(), check=None if check is None else check.to_json())
 
 
 def build_run(config: ReconstructConfig) -> dict[str, Any]:

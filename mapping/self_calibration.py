@@ -407,8 +407,13 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
     from radiometry.self_calibration_validation import holdout_frames, parse_holdout
 
     parse_holdout(holdout)                    # a ValueError naming the accepted forms
+    alignment = None
     if exposures is not None and not isinstance(exposures, KnownExposures):
+        from mapping.exposure_alignment import check_alignment, enforce
+
         exposures = match_exposure_file(dataset, exposures, max_difference=poses_max_difference)
+        alignment = check_alignment(dataset, exposures, response)   # a list off by a frame or more: refused
+        enforce(alignment, exposures.source)
     if poses == "gt" and dataset.ground_truth() is None:
         raise SelfCalibrationError(f"{dataset.name}: the sequence has no ground-truth poses (--poses gt); use "
                                    "--poses icp or --poses FILE (a trajectory)")
@@ -482,6 +487,7 @@ def run_self_calibration(sequence: str | Path, output: str | Path, *, response: 
             "residual_log_scale_before": [_mad(r) for r in result.residuals_before],
             "residual_log_scale_after": [_mad(r) for r in result.residuals_after],
             "exposures_given": None if exposures is None else exposures.describe(),
+            "exposures_alignment": None if alignment is None else alignment.to_json(),
             "validation": checks["validation"], "ambiguity": result.info.get("ambiguity"),
             "plausibility": checks["plausibility"], "warnings": checks["warnings"],
             "seconds": run.seconds, "peak_rss_mb": round(run.peak_rss_mb, 1),

@@ -120,6 +120,8 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
 
         given = _given_exposures(exposures, dataset, method_list[0].response, None, poses_max_difference,
                                  "compare")
+        if given.check is not None and given.check["verdict"] in ("warn", "mismatch"):    # said in the summary, not only logged
+            settings += f"; exposures {exposures}: {given.check['text']}"
 
     def summary(result) -> str:
         lines = [result.table_text()]

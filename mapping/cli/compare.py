@@ -69,7 +69,8 @@ def _methods(ctx, param, value):
                    "--response is on; here it adds methods).")
 @click.option("--exposures", type=click.Path(dir_okay=False), default=None,
               help="The +ec methods use the camera's recorded per-frame exposures (exposure x gain; exposures.txt, "
-                   "'timestamp k' or 'timestamp k_r k_g k_b' lines, TUM monoVO times.txt) instead of estimates.")
+                   "'timestamp k' or 'timestamp k_r k_g k_b' lines, TUM monoVO times.txt) instead of estimates; "
+                   "checked against the images: a list off by a frame or more is refused.")
 @click.option("--methods", callback=_methods, default=None, metavar="LIST",
               help="Comma-separated methods instead of the default (none,poly,lut[,poly+ec,lut+ec]): none, "
                    "response, poly, lut, self, and response+ec, poly+ec, lut+ec, self+ec.")

@@ -82,7 +82,8 @@ def _mesh_exposure(ctx, param, value):
 @click.option("--exposures", "exposures", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="With exposure compensation: the camera's recorded per-frame exposures (exposure x gain; "
                    "exposures.txt, 'timestamp k' or 'timestamp k_r k_g k_b' lines, TUM monoVO times.txt) instead "
-                   "of estimating them; one per frame.")
+                   "of estimating them; one per frame. Checked against the images' exposure changes: a list off by "
+                   "a frame or more is refused.")
 @click.option("--mesh-exposure", default=None, callback=_mesh_exposure, metavar="median|first|K|R,G,B",
               help="With exposure compensation: the exposure of the mesh colours relative to the first frame: "
                    "median (of the sequence's estimates; the default), first, a number or r,g,b.")

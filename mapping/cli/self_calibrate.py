@@ -34,7 +34,8 @@ Examples:
               help="Folder for vignetting.npz, exposures.txt, figures and the summary.")
 @click.option("--exposures", "exposures_path", type=click.Path(dir_okay=False), default=None,
               help="Known per-frame exposures (exposure x gain): radiomap's exposures.txt, 'timestamp k' or "
-                   "'timestamp k_r k_g k_b' lines, or TUM monoVO times.txt; only frames without one are fitted.")
+                   "'timestamp k_r k_g k_b' lines, or TUM monoVO times.txt; only frames without one are fitted. Checked "
+                   "against the images' exposure changes: a list off by a frame or more is refused.")
 @click.option("--holdout", default="every:5", show_default=True, metavar="every:N|last:P%|none",
               help="Frames withheld from the fit to validate V on (held-out L1 and PSNR with and without V).")
 @click.option("--strict", is_flag=True, help="Refuse (write nothing) unless V predicts withheld frames better than "

@@ -19,9 +19,11 @@ from mapping.exposure_compensation.records import ExposureRecord
 
 class GivenExposures(ExposureEstimator):
     """Exposure "estimates" from a table: ``known`` maps a frame number (:attr:`RGBDFrame.index`) to its
-    exposure ``(3,)`` (any unit; only ratios matter); ``source`` names the file in the settings."""
+    exposure ``(3,)`` (any unit; only ratios matter); ``source`` names the file in the settings; ``check``: the
+    verdict on its alignment (:meth:`mapping.exposure_alignment.AlignmentCheck.to_json`), recorded in them."""
 
-    def __init__(self, response, vignetting=None, *, known: dict[int, np.ndarray], source: str = "") -> None:
+    def __init__(self, response, vignetting=None, *, known: dict[int, np.ndarray], source: str = "",
+                 check: dict | None = None) -> None:
         super().__init__(response, vignetting)
         if not known:
             raise ValueError("known exposures: the table is empty")
@@ -30,6 +32,7 @@ class GivenExposures(ExposureEstimator):
         if bad:
             raise ValueError(f"known exposures must be finite and > 0; frame(s) {bad[:5]} are not")
         self.source = source
+        self.check = check
         self._reference: np.ndarray | None = None
 
     def estimate(self, frame, view: Any = None, *, pose: np.ndarray | None = None) -> ExposureRecord:
@@ -46,7 +49,10 @@ class GivenExposures(ExposureEstimator):
         return record
 
     def settings(self) -> dict:
-        return {"given": self.source or "table", "frames": len(self.known)}
+        doc = {"given": self.source or "table", "frames": len(self.known)}
+        if self.check is not None:      # the file's alignment against the images (mapping.exposure_alignment)
+            doc["alignment_check"] = self.check
+        return doc
 
 
 __all__ = ["GivenExposures"]
