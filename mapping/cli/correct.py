@@ -135,18 +135,15 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     total = 0
     bar = progress_bar(frames, total=source.length, desc="correct", enabled=not no_progress, leave=False)
     first_shape = None
+    resampled: set[tuple[int, int]] = set()   # the image sizes the model was said to be resampled to
     se = None
     # all outputs or none: written to a staging folder and renamed into place once every frame is done, so an error
     # or Ctrl-C/SIGTERM half-way leaves the folder as it was (no partial set, no earlier output half-replaced)
     with publish_set() as files:
         for i, frame in enumerate(bar):
+            shape = np.asarray(frame).shape[:2]
             if first_shape is None:
-                first_shape = np.asarray(frame).shape[:2]
-                model_size = tuple(getattr(vignetting, "resolution", first_shape[::-1]))
-                if model_size != first_shape[::-1]:  # same aspect (else the model refuses below): resampled
-                    click.echo(f"note: the vignetting model ({model_size[0]}x{model_size[1]}) is resampled to the "
-                               f"images' {first_shape[1]}x{first_shape[0]}: right when they cover the same sensor "
-                               "area (binned or scaled), wrong for a cropped sensor mode", err=True)
+                first_shape = shape
             name = names[i] if names is not None else (f"frame_{i:06d}" if isinstance(source, VideoFrames)
                                                        else Path(input_path).stem)
             target = out / f"{name}{ext}"
@@ -163,6 +160,14 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                 total += result.size
                 write_image(files.path(target), result)
             written += 1
+            model_size = tuple(getattr(vignetting, "resolution", shape[::-1]))
+            if model_size != shape[::-1] and shape not in resampled:  # said once it fitted (same aspect)
+                resampled.add(shape)   # said once per size, for every size that needs it (a mixed-size folder)
+                click.echo(f"note: the vignetting model ({model_size[0]}x{model_size[1]}) is resampled to the "
+                           f"images' {shape[1]}x{shape[0]} ({source_name}"
+                           f"{' and any other of that size' if names is not None and len(names) > 1 else ''}): right "
+                           "when they cover the same sensor area (binned or scaled), wrong for a cropped sensor mode",
+                           err=True)
         if stderr_path is not None and first_shape is not None:
             from radiometry.correction import corrected_relative_stderr
 

@@ -1,0 +1,66 @@
+"""``radiomap correct`` and its inputs (audit C of 2026-11-28): ``--force`` over an earlier, longer video's frames
+leaves none of them; a truncated video is said and its last, partly decoded frame is not written; an image's EXIF
+orientation is carried over to the PNG; a resampled model is said for every image size that needs it; 16-bit input
+keeps its precision in ``--irradiance``."""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mapping.cli import cli
+from radiometry.response import CameraResponse
+from radiometry.vignetting import LUTVignetting
+
+W, H = 48, 36
+
+
+def _models(folder, *, flat=False):
+    yy, xx = np.mgrid[0:H, 0:W]
+    r2 = ((xx - (W - 1) / 2) ** 2 + (yy - (H - 1) / 2) ** 2) / (0.25 * (W ** 2 + H ** 2))
+    v = np.ones((H, W)) if flat else 1 - 0.35 * r2
+    lut = LUTVignetting(np.repeat(v[:, :, None], 3, axis=2).astype(np.float32))
+    return CameraResponse.gamma(2.2).save(folder / "crf.npz"), lut.save(folder / "v.npz")
+
+
+def _correct(source, models, out, *extra):
+    return CliRunner().invoke(cli, ["correct", str(source), "-r", str(models[0]), "--vignetting", str(models[1]),
+                                    "-o", str(out), "--no-progress", *map(str, extra)])
+
+
+def _video(path, frames, fourcc="MJPG"):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 10, (W, H))
+    if not writer.isOpened():
+        pytest.skip(f"OpenCV has no {fourcc} writer here")
+    rng = np.random.default_rng(len(frames))
+    for level in frames:
+        img = np.clip(rng.normal(level, 30, (H, W, 3)), 0, 255).astype(np.uint8)  # texture: a JPEG of some size
+        writer.write(img)
+    writer.release()
+    return path
+
+
+def _listing(folder):
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+
+
+# ---- 4. mixed sizes ------------------------------------------------------------------------------------------
+def test_a_resampled_model_is_said_for_every_size_that_needs_it(tmp_path):
+    models = _models(tmp_path)
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name, (h, w) in {"a": (H, W), "b": (H, W), "c": (2 * H, 2 * W), "d": (2 * H, 2 * W), "e": (H // 2, W // 2)}\
+            .items():
+        cv2.imwrite(str(folder / f"{name}.png"), np.full((h, w, 3), 100, np.uint8))
+    result = _correct(folder, models, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    notes = [line for line in result.output.splitlines() if "is resampled" in line]
+    assert len(notes) == 2, notes
+    assert f"{2 * W}x{2 * H}" in notes[0] and "c.png" in notes[0]
+    assert f"{W // 2}x{H // 2}" in notes[1] and "e.png" in notes[1]
