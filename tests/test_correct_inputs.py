@@ -64,3 +64,38 @@ def test_a_resampled_model_is_said_for_every_size_that_needs_it(tmp_path):
     assert len(notes) == 2, notes
     assert f"{2 * W}x{2 * H}" in notes[0] and "c.png" in notes[0]
     assert f"{W // 2}x{H // 2}" in notes[1] and "e.png" in notes[1]
+
+
+# ---- 2. a truncated video ------------------------------------------------------------------------------------
+def test_a_truncated_video_is_said_and_its_partial_last_frame_not_written(tmp_path, caplog):
+    models = _models(tmp_path)
+    whole = _video(tmp_path / "whole.avi", [40 + 15 * i for i in range(10)])
+    data = whole.read_bytes()
+    half = tmp_path / "half.avi"
+    half.write_bytes(data[:len(data) // 2])
+    cap = cv2.VideoCapture(str(half))
+    declared, decoded = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0
+    while cap.read()[0]:
+        decoded += 1
+    cap.release()
+    assert declared == 10 and 0 < decoded < 10, (declared, decoded)  # the case: OpenCV reads a part, no error
+    assert _correct(whole, models, tmp_path / "whole").exit_code == 0
+    with caplog.at_level(logging.WARNING):
+        result = _correct(half, models, tmp_path / "half")
+    assert result.exit_code == 0, result.output
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any(str(half) in m and "10" in m and str(decoded) in m for m in said), said
+    written = _listing(tmp_path / "half")
+    assert written == [f"frame_{i:06d}.png" for i in range(decoded - 1)]   # the last decoded one left out
+    for name in written:   # the frames kept are those of the intact file, byte for byte
+        assert (tmp_path / "half" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    assert f"wrote {decoded - 1} corrected images" in result.output
+
+
+def test_an_intact_video_keeps_its_last_frame(tmp_path, caplog):
+    models = _models(tmp_path)
+    clip = _video(tmp_path / "clip.avi", [50, 100, 150])
+    with caplog.at_level(logging.WARNING):
+        result = _correct(clip, models, tmp_path / "out")
+    assert result.exit_code == 0 and "wrote 3 corrected images" in result.output, result.output
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "declares" in r.getMessage()]
