@@ -99,3 +99,76 @@ def test_an_intact_video_keeps_its_last_frame(tmp_path, caplog):
         result = _correct(clip, models, tmp_path / "out")
     assert result.exit_code == 0 and "wrote 3 corrected images" in result.output, result.output
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "declares" in r.getMessage()]
+
+
+# ---- 1. --force over an earlier, longer video ----------------------------------------------------------------
+def test_force_over_a_longer_video_leaves_only_this_runs_frames(tmp_path):
+    models = _models(tmp_path)
+    long = _video(tmp_path / "long.avi", [60 + 10 * i for i in range(6)])
+    short = _video(tmp_path / "short.avi", [200, 190, 180])
+    out = tmp_path / "out"
+    assert _correct(long, models, out).exit_code == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "frame_7.png").write_bytes(b"not correct's name pattern")
+    result = _correct(short, models, out, "--force")
+    assert result.exit_code == 0, result.output
+    assert _listing(out) == ["frame_000000.png", "frame_000001.png", "frame_000002.png", "frame_7.png", "notes.txt"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert "frame_000003.png" in result.output and "frame_000005.png" in result.output  # the removal is said
+    record = json.loads((out / ".radiomap-correct.json").read_text())
+    assert sorted(record["files"]) == ["frame_000000.png", "frame_000001.png", "frame_000002.png"]
+
+
+def test_force_over_a_folder_run_removes_its_recorded_outputs_only(tmp_path):
+    models = _models(tmp_path)
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    second.mkdir()
+    for name in ("a", "b", "c"):
+        cv2.imwrite(str(first / f"{name}.png"), np.full((H, W, 3), 120, np.uint8))
+    cv2.imwrite(str(second / "a.png"), np.full((H, W, 3), 90, np.uint8))
+    out = tmp_path / "out"
+    assert _correct(first, models, out).exit_code == 0
+    cv2.imwrite(str(out / "d.png"), np.zeros((H, W, 3), np.uint8))  # the user's, written after the run
+    assert _correct(first, models, out, "--irradiance").exit_code == 0   # no name collides: added, recorded too
+    assert _listing(out) == ["a.npy", "a.png", "b.npy", "b.png", "c.npy", "c.png", "d.png"]
+    result = _correct(second, models, out, "--force")
+    assert result.exit_code == 0, result.output
+    assert _listing(out) == ["a.png", "d.png"]
+    assert int(cv2.imread(str(out / "a.png"))[H // 2, W // 2, 0]) == 90
+
+
+def test_an_interrupted_forced_run_keeps_the_earlier_frames(tmp_path, monkeypatch):
+    from radiometry import images
+
+    models = _models(tmp_path)
+    long = _video(tmp_path / "long.avi", [60 + 10 * i for i in range(5)])
+    short = _video(tmp_path / "short.avi", [200, 190])
+    out = tmp_path / "out"
+    assert _correct(long, models, out).exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = images.write_image, []
+
+    def interrupted(path, image, **kw):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(path, image, **kw)
+
+    monkeypatch.setattr(images, "write_image", interrupted)
+    result = _correct(short, models, out, "--force")
+    assert result.exit_code != 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+def test_force_over_frames_of_a_version_without_the_record_goes_by_their_name_pattern(tmp_path):
+    """Outputs of a radiomap before the record (the audit's out_vid): a video run's ``frame_NNNNNN`` files."""
+    models = _models(tmp_path)
+    long = _video(tmp_path / "long.avi", [60 + 10 * i for i in range(5)])
+    out = tmp_path / "out"
+    assert _correct(long, models, out).exit_code == 0
+    (out / ".radiomap-correct.json").unlink()
+    (out / "frame_7.png").write_bytes(b"not correct's name pattern")
+    (out / "shot.png").write_bytes(b"the user's")
+    result = _correct(_video(tmp_path / "short.avi", [200, 190]), models, out, "--force")
+    assert result.exit_code == 0, result.output
+    assert _listing(out) == ["frame_000000.png", "frame_000001.png", "frame_7.png", "shot.png"]

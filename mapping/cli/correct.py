@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import json
+import os
+import re
 from pathlib import Path
 
 import click
@@ -18,6 +21,34 @@ Examples:
   radiomap correct frame.png -r pcalib.txt --vignetting vignette.png -o irr/ --irradiance --irradiance-format tiff
       (32-bit float irradiance f^-1(I)/V, RGB, for fusion or measurement)
 """
+
+
+#: correct's record of the outputs it wrote into its folder: the next ``--force`` run removes those it does not rewrite
+RECORD = ".radiomap-correct.json"
+#: the names of a video's frames: what a radiomap before the record left, recognised without it
+_FRAME_NAME = re.compile(r"frame_\d{6}\.(png|npy|tiff|exr)\Z")
+
+
+def _earlier_outputs(out: Path, *, video: bool) -> list[str]:
+    """The outputs an earlier ``correct`` wrote into ``out`` that are still there: those its record lists or, with no
+    record (a radiomap before it) and a video to correct now, the files named like a video's frames. Any other file
+    in ``out`` is the user's: never listed."""
+    try:
+        listed = json.loads((out / RECORD).read_text()).get("files", [])
+        names = {n for n in listed if isinstance(n, str) and n not in ("", ".", "..", RECORD) and n == Path(n).name}
+    except FileNotFoundError:
+        names = {p.name for p in out.iterdir() if _FRAME_NAME.match(p.name)} if video else set()
+    except (OSError, ValueError, AttributeError):   # unreadable: nothing is known to be correct's
+        names = set()
+    return sorted(n for n in names if (out / n).is_file())
+
+
+def _is_one_of(path: Path, others) -> bool:
+    for other in others:
+        with contextlib.suppress(OSError):
+            if os.path.samefile(path, other):
+                return True
+    return False
 
 
 def _scale_type(value: str) -> float | str:
@@ -78,7 +109,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     from radiometry.api import read_vignetting
     from radiometry.correction import Corrector
     from radiometry.errors import OutputError
-    from radiometry.fileio import check_outputs, check_overwrite, ensure_dir, publish_set
+    from radiometry.fileio import atomic_write_json, check_outputs, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import load_response
     from radiometry.images import check_float_format, write_float_image, write_image
     from radiometry.progress import progress_bar
@@ -120,6 +151,9 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
             raise click.BadParameter(f"this OpenCV build cannot write 32-bit float {fmt.upper()} images; use npy or "
                                      "tiff", param_hint="--irradiance-format") from None
     out = ensure_dir(outdir)
+    earlier = _earlier_outputs(out, video=isinstance(source, VideoFrames))
+    this_run: list[str] = []   # the names this run writes into out
+    retired: list[str] = []
 
     frames = iter(source)
     if scale_value == "auto" and not irradiance:
@@ -160,6 +194,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                 total += result.size
                 write_image(files.path(target), result)
             written += 1
+            this_run.append(target.name)
             model_size = tuple(getattr(vignetting, "resolution", shape[::-1]))
             if model_size != shape[::-1] and shape not in resampled:  # said once it fitted (same aspect)
                 resampled.add(shape)   # said once per size, for every size that needs it (a mixed-size folder)
@@ -174,6 +209,22 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
             with _models_must_fit(input_path, response_path, vignetting_path):
                 se = corrected_relative_stderr(vignetting, first_shape[0], first_shape[1])
             write_float_image(files.path(ensure_dir(Path(stderr_path).parent) / Path(stderr_path).name), se)
+            if os.path.abspath(Path(stderr_path).parent) == os.path.abspath(out):
+                this_run.append(Path(stderr_path).name)
+        if written:
+            # --force: the folder holds this run's outputs only, the earlier run's that it did not rewrite (the last
+            # frames of a longer video) removed in the same commit (kept if the run fails or is interrupted);
+            # without it nothing was replaced, and the earlier outputs stay listed
+            inputs = [*(source.paths if names is not None else [input_path]), response_path, vignetting_path]
+            retired = [n for n in earlier if n not in this_run and not _is_one_of(out / n, inputs)] if force else []
+            for stale in retired:
+                files.retire(out / stale)
+            listed = sorted(set(this_run) | (set() if force else set(earlier)))
+            atomic_write_json(files.path(out / RECORD), {"written_by": "radiomap correct", "input": str(input_path),
+                                                        "files": listed})
+    if retired:
+        click.echo(f"removed {len(retired)} output{'s' if len(retired) > 1 else ''} of the earlier run that this one did "
+                   f"not rewrite ({retired[0]}{' .. ' + retired[-1] if len(retired) > 1 else ''})")
     if se is not None:
         click.echo(f"wrote the relative standard error of the corrected irradiance to {stderr_path} (median "
                    f"{100 * float(np.median(se)):.2f}%, 99th percentile {100 * float(np.percentile(se, 99)):.2f}%)")
