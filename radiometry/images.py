@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -208,8 +210,10 @@ def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
     return depth
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix."""
+def write_image(path: str | os.PathLike, image: np.ndarray, *, orientation: int = 1) -> Path:
+    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix. ``orientation``
+    (EXIF, 1..8; 1: as stored) is written into a PNG's ``eXIf`` chunk, so that viewers turn the image as they turn the
+    photo it came from (:func:`exif_orientation`); other formats are written without it."""
     cv2 = _cv2()
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 3:
@@ -218,7 +222,90 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     ok, buf = cv2.imencode(path.suffix or ".png", image)
     if not ok:
         raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
-    return atomic_write_bytes(path, buf.tobytes())
+    data = buf.tobytes()
+    if orientation != 1 and data.startswith(_PNG_SIGNATURE):
+        data = _png_with_orientation(data, orientation)
+    return atomic_write_bytes(path, data)
+
+
+#: how a viewer shows an image of each EXIF orientation (1: as stored)
+ORIENTATIONS = {1: "as stored", 2: "mirrored left-right", 3: "turned 180 degrees", 4: "mirrored top-bottom",
+                5: "mirrored and turned 90 degrees", 6: "turned 90 degrees clockwise",
+                7: "mirrored and turned 90 degrees", 8: "turned 90 degrees anticlockwise"}
+_ORIENTATION_TAG = 0x0112
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation (1..8) a JPEG (``APP1`` Exif) or a PNG (``eXIf`` chunk) declares; 1 (as stored) when it
+    declares none, for other formats and for a file that cannot be read. radiomap reads images as stored (the
+    sensor's pixel order, where vignetting lives): viewers turn them by this tag."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+            if head.startswith(b"\xff\xd8"):
+                return _tiff_orientation(_jpeg_exif(fh))
+            if head == _PNG_SIGNATURE:
+                return _tiff_orientation(_png_exif(fh))
+    except (OSError, struct.error):
+        pass
+    return 1
+
+
+def _jpeg_exif(fh) -> bytes:
+    """The TIFF block of a JPEG's Exif segment (``fh`` after the first 8 bytes), b'' if none before the scan."""
+    fh.seek(2)
+    while True:
+        marker = fh.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF or marker[1] in (0xD9, 0xDA):   # end of image, start of scan
+            return b""
+        if 0xD0 <= marker[1] <= 0xD7 or marker[1] == 0x01:   # markers without a length
+            continue
+        length = struct.unpack(">H", fh.read(2))[0]
+        body = fh.read(length - 2)
+        if marker[1] == 0xE1 and body.startswith(b"Exif\x00\x00"):
+            return body[6:]
+
+
+def _png_exif(fh) -> bytes:
+    """The ``eXIf`` chunk of a PNG (``fh`` after the signature), b'' if none before the image data."""
+    while True:
+        head = fh.read(8)
+        if len(head) < 8:
+            return b""
+        length, kind = struct.unpack(">I", head[:4])[0], head[4:]
+        if kind in (b"IDAT", b"IEND"):
+            return b""
+        if kind == b"eXIf":
+            return fh.read(length)
+        fh.seek(length + 4, os.SEEK_CUR)
+
+
+def _tiff_orientation(tiff: bytes) -> int:
+    """The orientation tag of the first IFD of an EXIF TIFF block (1 when absent or malformed)."""
+    order = {b"II": "<", b"MM": ">"}.get(tiff[:2])
+    if order is None or len(tiff) < 8 or struct.unpack(order + "H", tiff[2:4])[0] != 42:
+        return 1
+    ifd = struct.unpack(order + "I", tiff[4:8])[0]
+    if ifd + 2 > len(tiff):
+        return 1
+    for k in range(struct.unpack(order + "H", tiff[ifd:ifd + 2])[0]):
+        entry = tiff[ifd + 2 + 12 * k: ifd + 14 + 12 * k]
+        if len(entry) < 12:
+            break
+        tag, kind, _count = struct.unpack(order + "HHI", entry[:8])
+        if tag == _ORIENTATION_TAG and kind == 3:   # SHORT
+            value = struct.unpack(order + "H", entry[8:10])[0]
+            return value if value in ORIENTATIONS else 1
+    return 1
+
+
+def _png_with_orientation(png: bytes, orientation: int) -> bytes:
+    """``png`` with an ``eXIf`` chunk (after IHDR, before the image data) holding only the orientation tag."""
+    tiff = b"MM\x00\x2a" + struct.pack(">I", 8) + struct.pack(">H", 1) + \
+        struct.pack(">HHIHH", _ORIENTATION_TAG, 3, 1, int(orientation), 0) + struct.pack(">I", 0)
+    chunk = struct.pack(">I", len(tiff)) + b"eXIf" + tiff + struct.pack(">I", zlib.crc32(b"eXIf" + tiff))
+    end_of_ihdr = len(_PNG_SIGNATURE) + 8 + 13 + 4
+    return png[:end_of_ihdr] + chunk + png[end_of_ihdr:]
 
 
 def write_float_image(path: str | os.PathLike, data: np.ndarray) -> Path:

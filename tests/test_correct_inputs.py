@@ -172,3 +172,66 @@ def test_force_over_frames_of_a_version_without_the_record_goes_by_their_name_pa
     result = _correct(_video(tmp_path / "short.avi", [200, 190]), models, out, "--force")
     assert result.exit_code == 0, result.output
     assert _listing(out) == ["frame_000000.png", "frame_000001.png", "frame_7.png", "shot.png"]
+
+
+# ---- 3. EXIF orientation -------------------------------------------------------------------------------------
+def _jpeg_with_orientation(path, image_rgb, orientation):
+    """A JPEG whose APP1 carries only the EXIF orientation tag (written by hand: no dependency)."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 98])
+    assert ok
+    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, orientation,
+                                                                                   0) + struct.pack("<I", 0)
+    app1 = b"Exif\x00\x00" + tiff
+    data = buf.tobytes()
+    path.write_bytes(data[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + data[2:])
+    return path
+
+
+def test_exif_orientation_is_carried_to_the_png_and_said(tmp_path):
+    from radiometry.images import exif_orientation
+
+    models = _models(tmp_path)
+    rng = np.random.default_rng(3)
+    img = rng.integers(40, 200, (H, W, 3), dtype=np.uint8)
+    src = _jpeg_with_orientation(tmp_path / "portrait.jpg", img, 6)
+    assert exif_orientation(src) == 6
+    result = _correct(src, models, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    png = tmp_path / "out" / "portrait.png"
+    assert exif_orientation(png) == 6       # viewers turn it as they turn the original
+    stored = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert stored.shape == (H, W, 3)        # corrected in the stored (sensor) pixel order
+    assert "orientation 6" in result.output and "portrait.jpg" in result.output
+    from PIL import Image   # an independent reader: Pillow (a dependency of matplotlib) sees the tag in the PNG
+    with Image.open(png) as im:
+        assert im.getexif().get(0x0112) == 6
+    plain = _correct(_jpeg_with_orientation(tmp_path / "plain.jpg", img, 1), models, tmp_path / "out2")
+    assert plain.exit_code == 0 and "EXIF orientation" not in plain.output
+    assert exif_orientation(tmp_path / "out2" / "plain.png") == 1
+
+
+def test_exif_orientation_of_irradiance_output_is_said(tmp_path):
+    models = _models(tmp_path)
+    img = np.full((H, W, 3), 100, np.uint8)
+    src = _jpeg_with_orientation(tmp_path / "p.jpg", img, 8)
+    result = _correct(src, models, tmp_path / "out", "--irradiance")
+    assert result.exit_code == 0, result.output
+    assert "orientation 8" in result.output and "p.jpg" in result.output and "rotate" in result.output
+    assert np.load(tmp_path / "out" / "p.npy").shape == (H, W, 3)
+
+
+def test_exif_orientation_of_files_that_declare_none_or_garbage_is_as_stored(tmp_path):
+    from radiometry.images import exif_orientation
+
+    img = np.full((H, W, 3), 100, np.uint8)
+    for name, data in {"text.png": b"not an image", "short.jpg": b"\xff\xd8\xff\xe1\x00\x10Exif\x00\x00II*\x00",
+                       "bad_order.jpg": None}.items():
+        path = tmp_path / name
+        if data is None:
+            _jpeg_with_orientation(path, img, 6)
+            path.write_bytes(path.read_bytes().replace(b"Exif\x00\x00II", b"Exif\x00\x00XX", 1))
+        else:
+            path.write_bytes(data)
+        assert exif_orientation(path) == 1, name
+    cv2.imwrite(str(tmp_path / "plain.png"), img)
+    assert exif_orientation(tmp_path / "plain.png") == 1

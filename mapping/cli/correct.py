@@ -111,7 +111,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     from radiometry.errors import OutputError
     from radiometry.fileio import atomic_write_json, check_outputs, check_overwrite, ensure_dir, publish_set
     from radiometry.formats import load_response
-    from radiometry.images import check_float_format, write_float_image, write_image
+    from radiometry.images import ORIENTATIONS, check_float_format, exif_orientation, write_float_image, write_image
     from radiometry.progress import progress_bar
     from radiometry.vignetting_calibration import FolderFrames, VideoFrames, open_frames
 
@@ -170,6 +170,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     bar = progress_bar(frames, total=source.length, desc="correct", enabled=not no_progress, leave=False)
     first_shape = None
     resampled: set[tuple[int, int]] = set()   # the image sizes the model was said to be resampled to
+    turned = False   # an input's EXIF orientation was said
     se = None
     # all outputs or none: written to a staging folder and renamed into place once every frame is done, so an error
     # or Ctrl-C/SIGTERM half-way leaves the folder as it was (no partial set, no earlier output half-replaced)
@@ -183,6 +184,15 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
             target = out / f"{name}{ext}"
             check_overwrite(target, force=force)
             source_name = source.paths[i] if names is not None else f"{input_path} ({name})"
+            # the pixels as stored (the sensor's order, where V lives); the PNG keeps the photo's orientation tag
+            orientation = exif_orientation(source.paths[i]) if names is not None else 1
+            if orientation != 1 and not turned:
+                turned = True
+                click.echo(f"note: {source_name} declares EXIF orientation {orientation} (viewers show it "
+                           f"{ORIENTATIONS[orientation]}): corrected in its stored (sensor) pixel order, as the vignetting "
+                           "is; " + (f"the {ext} irradiance maps carry no orientation: rotate them for display" if
+                                     irradiance else "the PNG carries the same orientation, so viewers turn it alike"),
+                           err=True)
             if irradiance:
                 with _models_must_fit(source_name, response_path, vignetting_path):
                     irr = corrector.irradiance(frame)
@@ -192,7 +202,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
                     result = corrector.correct(frame, scale=float(scale_value))
                 clipped += int(np.count_nonzero((result == 255) & (np.asarray(frame) < 255)))
                 total += result.size
-                write_image(files.path(target), result)
+                write_image(files.path(target), result, orientation=orientation)
             written += 1
             this_run.append(target.name)
             model_size = tuple(getattr(vignetting, "resolution", shape[::-1]))
