@@ -129,11 +129,12 @@ def _read_encoded(path: Path, what: str) -> np.ndarray:
     return img
 
 
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
+def read_rgb(path: str | os.PathLike, *, keep_16bit: bool = False) -> np.ndarray:
     """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
 
-    16-bit images are scaled to 8 bits. Raises :class:`ImageError` naming the file when it is missing,
-    unreadable or truncated.
+    16-bit images are scaled to 8 bits (the top 8 of 16), or with ``keep_16bit`` returned as uint16 (levels
+    ``value / 257``, which :meth:`radiometry.correction.Corrector.irradiance` interpolates). Raises
+    :class:`ImageError` naming the file when it is missing, unreadable or truncated.
     """
     cv2 = _cv2()
     path = Path(path)
@@ -142,8 +143,9 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
         top = int(img.max()) if img.size else 0
         if top < 4096 and str(path.parent) not in _NARROW_WARNED:
             _NARROW_WARNED.add(str(path.parent))
-            log.warning("%s: %s", path, _narrow_text(top))
-        img = (img >> 8).astype(np.uint8)
+            log.warning("%s: %s", path, _narrow_text(top) if not keep_16bit else _narrow_kept_text(top))
+        if not keep_16bit:
+            img = (img >> 8).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
     if img.ndim == 3:
@@ -163,6 +165,13 @@ def _narrow_text(top: int) -> str:
     return (f"16-bit image whose values use {bits} of the 16 bits (up to {top}); it is reduced to 8 bits by keeping "
             f"the top 8 of 16, which leaves {max(top >> 8, 0) + 1} levels: save 8-bit images, or scale the data to "
             f"the full 16-bit range (x{2 ** (16 - bits)} for {bits}-bit data)")
+
+
+def _narrow_kept_text(top: int) -> str:
+    bits = max(int(top).bit_length(), 1)
+    return (f"16-bit image whose values use {bits} of the 16 bits (up to {top}): read as levels value/257, its "
+            f"brightest is level {top / 257:.1f} of 255; scale the data to the full 16-bit range "
+            f"(x{2 ** (16 - bits)} for {bits}-bit data)")
 
 
 def sixteen_bit_note(paths) -> str:

@@ -235,3 +235,20 @@ def test_exif_orientation_of_files_that_declare_none_or_garbage_is_as_stored(tmp
         assert exif_orientation(path) == 1, name
     cv2.imwrite(str(tmp_path / "plain.png"), img)
     assert exif_orientation(tmp_path / "plain.png") == 1
+
+
+# ---- 5. 16-bit input and --irradiance ------------------------------------------------------------------------
+def test_sixteen_bit_input_keeps_its_precision_in_irradiance(tmp_path):
+    models = _models(tmp_path, flat=True)
+    values = np.linspace(3000, 60000, H * W).astype(np.uint16).reshape(H, W)
+    img16 = np.repeat(values[:, :, None], 3, axis=2)
+    src = tmp_path / "grad16.png"
+    cv2.imwrite(str(src), img16)
+    result = _correct(src, models, tmp_path / "out", "--irradiance")
+    assert result.exit_code == 0, result.output
+    irr = np.load(tmp_path / "out" / "grad16.npy")
+    truth = CameraResponse.gamma(2.2).inverse(img16.astype(np.float32) / 257.0)  # f^-1 interpolated between levels
+    np.testing.assert_allclose(irr, truth, rtol=1e-5)
+    assert len(np.unique(irr[:, :, 0])) == len(np.unique(values))
+    eight = _correct(src, models, tmp_path / "out8")
+    assert eight.exit_code == 0 and "16-bit" in eight.output and "grad16.png" in eight.output, eight.output

@@ -51,6 +51,25 @@ def _is_one_of(path: Path, others) -> bool:
     return False
 
 
+def _folder_frames(paths, irradiance: bool):
+    """The images: 16-bit ones at full precision for ``--irradiance`` (``f^-1`` interpolated between its 256 levels
+    at ``value / 257``), reduced to their top 8 bits for 8-bit output, said once."""
+    import numpy as np
+
+    from radiometry.images import read_rgb
+
+    said = False
+    for path in paths:
+        image = read_rgb(path, keep_16bit=True)
+        if image.dtype == np.uint16 and not irradiance:
+            if not said:
+                said = True
+                click.echo(f"note: {path} is a 16-bit image: its 8-bit output is corrected from its top 8 bits (as "
+                           "every 16-bit input); --irradiance uses all 16", err=True)
+            image = (image >> 8).astype(np.uint8)
+        yield image
+
+
 def _scale_type(value: str) -> float | str:
     if value.strip().lower() == "auto":
         return "auto"
@@ -155,7 +174,7 @@ def command(input_path: str, response_path: str, vignetting_path: str, outdir: s
     this_run: list[str] = []   # the names this run writes into out
     retired: list[str] = []
 
-    frames = iter(source)
+    frames = iter(source) if names is None else _folder_frames(source.paths, irradiance)
     if scale_value == "auto" and not irradiance:
         head = list(itertools.islice(frames, 10))
         with _models_must_fit(input_path, response_path, vignetting_path):
