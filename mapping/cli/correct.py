@@ -111,7 +111,8 @@ def _models_must_fit(what, response_path: str, vignetting_path: str):
               help="Also write the per-pixel relative standard error of the corrected irradiance that comes from "
                    "the vignetting calibration (.npy, .tiff or .exr; float32 HxWxC at the images' size). Needs a "
                    "LUT calibrated by radiomap vignetting.")
-@click.option("--force", is_flag=True, help="Overwrite existing output files.")
+@click.option("--force", is_flag=True, help="Replace an earlier run's outputs as a whole: those this run does not "
+              "rewrite (the last frames of a longer video) are removed; other files are kept.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @deprecated_alias("-v", "vignetting_path", "--vignetting", "-v is radiomap's --verbose: radiomap -v correct ...")
 @deprecated_alias("--format", "fmt", "--irradiance-format", "--format is a sequence layout elsewhere")
