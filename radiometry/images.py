@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -127,11 +129,12 @@ def _read_encoded(path: Path, what: str) -> np.ndarray:
     return img
 
 
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
+def read_rgb(path: str | os.PathLike, *, keep_16bit: bool = False) -> np.ndarray:
     """Read a colour image as RGB uint8 ``(H, W, 3)``; grayscale files give ``(H, W)``.
 
-    16-bit images are scaled to 8 bits. Raises :class:`ImageError` naming the file when it is missing,
-    unreadable or truncated.
+    16-bit images are scaled to 8 bits (the top 8 of 16), or with ``keep_16bit`` returned as uint16 (levels
+    ``value / 257``, which :meth:`radiometry.correction.Corrector.irradiance` interpolates). Raises
+    :class:`ImageError` naming the file when it is missing, unreadable or truncated.
     """
     cv2 = _cv2()
     path = Path(path)
@@ -140,8 +143,9 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
         top = int(img.max()) if img.size else 0
         if top < 4096 and str(path.parent) not in _NARROW_WARNED:
             _NARROW_WARNED.add(str(path.parent))
-            log.warning("%s: %s", path, _narrow_text(top))
-        img = (img >> 8).astype(np.uint8)
+            log.warning("%s: %s", path, _narrow_text(top) if not keep_16bit else _narrow_kept_text(top))
+        if not keep_16bit:
+            img = (img >> 8).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise ImageError(f"{path}: unsupported pixel type {img.dtype}; convert it to 8-bit")
     if img.ndim == 3:
@@ -161,6 +165,13 @@ def _narrow_text(top: int) -> str:
     return (f"16-bit image whose values use {bits} of the 16 bits (up to {top}); it is reduced to 8 bits by keeping "
             f"the top 8 of 16, which leaves {max(top >> 8, 0) + 1} levels: save 8-bit images, or scale the data to "
             f"the full 16-bit range (x{2 ** (16 - bits)} for {bits}-bit data)")
+
+
+def _narrow_kept_text(top: int) -> str:
+    bits = max(int(top).bit_length(), 1)
+    return (f"16-bit image whose values use {bits} of the 16 bits (up to {top}): read as levels value/257, its "
+            f"brightest is level {top / 257:.1f} of 255; scale the data to the full 16-bit range "
+            f"(x{2 ** (16 - bits)} for {bits}-bit data)")
 
 
 def sixteen_bit_note(paths) -> str:
@@ -208,8 +219,10 @@ def read_depth(path: str | os.PathLike, scale: float) -> np.ndarray:
     return depth
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix."""
+def write_image(path: str | os.PathLike, image: np.ndarray, *, orientation: int = 1) -> Path:
+    """Write an RGB (or grayscale) uint8/uint16 image atomically; the format follows the suffix. ``orientation``
+    (EXIF, 1..8; 1: as stored) is written into a PNG's ``eXIf`` chunk, so that viewers turn the image as they turn the
+    photo it came from (:func:`exif_orientation`); other formats are written without it."""
     cv2 = _cv2()
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 3:
@@ -218,7 +231,90 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     ok, buf = cv2.imencode(path.suffix or ".png", image)
     if not ok:
         raise OutputError(f"cannot encode {path} as {path.suffix}; use .png")
-    return atomic_write_bytes(path, buf.tobytes())
+    data = buf.tobytes()
+    if orientation != 1 and data.startswith(_PNG_SIGNATURE):
+        data = _png_with_orientation(data, orientation)
+    return atomic_write_bytes(path, data)
+
+
+#: how a viewer shows an image of each EXIF orientation (1: as stored)
+ORIENTATIONS = {1: "as stored", 2: "mirrored left-right", 3: "turned 180 degrees", 4: "mirrored top-bottom",
+                5: "mirrored and turned 90 degrees", 6: "turned 90 degrees clockwise",
+                7: "mirrored and turned 90 degrees", 8: "turned 90 degrees anticlockwise"}
+_ORIENTATION_TAG = 0x0112
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation (1..8) a JPEG (``APP1`` Exif) or a PNG (``eXIf`` chunk) declares; 1 (as stored) when it
+    declares none, for other formats and for a file that cannot be read. radiomap reads images as stored (the
+    sensor's pixel order, where vignetting lives): viewers turn them by this tag."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+            if head.startswith(b"\xff\xd8"):
+                return _tiff_orientation(_jpeg_exif(fh))
+            if head == _PNG_SIGNATURE:
+                return _tiff_orientation(_png_exif(fh))
+    except (OSError, struct.error):
+        pass
+    return 1
+
+
+def _jpeg_exif(fh) -> bytes:
+    """The TIFF block of a JPEG's Exif segment (``fh`` after the first 8 bytes), b'' if none before the scan."""
+    fh.seek(2)
+    while True:
+        marker = fh.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF or marker[1] in (0xD9, 0xDA):   # end of image, start of scan
+            return b""
+        if 0xD0 <= marker[1] <= 0xD7 or marker[1] == 0x01:   # markers without a length
+            continue
+        length = struct.unpack(">H", fh.read(2))[0]
+        body = fh.read(length - 2)
+        if marker[1] == 0xE1 and body.startswith(b"Exif\x00\x00"):
+            return body[6:]
+
+
+def _png_exif(fh) -> bytes:
+    """The ``eXIf`` chunk of a PNG (``fh`` after the signature), b'' if none before the image data."""
+    while True:
+        head = fh.read(8)
+        if len(head) < 8:
+            return b""
+        length, kind = struct.unpack(">I", head[:4])[0], head[4:]
+        if kind in (b"IDAT", b"IEND"):
+            return b""
+        if kind == b"eXIf":
+            return fh.read(length)
+        fh.seek(length + 4, os.SEEK_CUR)
+
+
+def _tiff_orientation(tiff: bytes) -> int:
+    """The orientation tag of the first IFD of an EXIF TIFF block (1 when absent or malformed)."""
+    order = {b"II": "<", b"MM": ">"}.get(tiff[:2])
+    if order is None or len(tiff) < 8 or struct.unpack(order + "H", tiff[2:4])[0] != 42:
+        return 1
+    ifd = struct.unpack(order + "I", tiff[4:8])[0]
+    if ifd + 2 > len(tiff):
+        return 1
+    for k in range(struct.unpack(order + "H", tiff[ifd:ifd + 2])[0]):
+        entry = tiff[ifd + 2 + 12 * k: ifd + 14 + 12 * k]
+        if len(entry) < 12:
+            break
+        tag, kind, _count = struct.unpack(order + "HHI", entry[:8])
+        if tag == _ORIENTATION_TAG and kind == 3:   # SHORT
+            value = struct.unpack(order + "H", entry[8:10])[0]
+            return value if value in ORIENTATIONS else 1
+    return 1
+
+
+def _png_with_orientation(png: bytes, orientation: int) -> bytes:
+    """``png`` with an ``eXIf`` chunk (after IHDR, before the image data) holding only the orientation tag."""
+    tiff = b"MM\x00\x2a" + struct.pack(">I", 8) + struct.pack(">H", 1) + \
+        struct.pack(">HHIHH", _ORIENTATION_TAG, 3, 1, int(orientation), 0) + struct.pack(">I", 0)
+    chunk = struct.pack(">I", len(tiff)) + b"eXIf" + tiff + struct.pack(">I", zlib.crc32(b"eXIf" + tiff))
+    end_of_ihdr = len(_PNG_SIGNATURE) + 8 + 13 + 4
+    return png[:end_of_ihdr] + chunk + png[end_of_ihdr:]
 
 
 def write_float_image(path: str | os.PathLike, data: np.ndarray) -> Path:

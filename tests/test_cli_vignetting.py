@@ -174,7 +174,8 @@ def test_correct_video_and_auto_scale(sweep, model_file, tmp_path):
                     "--scale", "auto")
     assert result.exit_code == 0, result.output
     assert "--scale auto:" in result.stdout and "wrote 4 corrected images" in result.stdout
-    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [f"frame_{i:06d}.png" for i in range(4)]
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [".radiomap-correct.json"] + [f"frame_{i:06d}.png"
+                                                                  for i in range(4)]
     result = invoke("correct", video, "-r", sweep["response"], "--vignetting", model_file, "-o", tmp_path / "w",
                     "--scale", "-2")
     assert result.exit_code == 1 and "--scale -2 is outside the sensible range 0.0001..10000" in result.output

@@ -54,7 +54,7 @@ def test_a_failed_forced_run_keeps_the_earlier_outputs_byte_for_byte(tmp_path):
     good = _frames(tmp_path / "good", [(H, W)] * 3)
     assert _correct(good, models, tmp_path / "out").exit_code == 0
     before = {p.name: p.read_bytes() for p in (tmp_path / "out").iterdir()}
-    assert sorted(before) == ["f0.png", "f1.png", "f2.png"]
+    assert sorted(before) == [".radiomap-correct.json", "f0.png", "f1.png", "f2.png"]  # the record: audit C
     bad = _frames(tmp_path / "bad", [(H, W), (H, W), (W, H)])
     cv2.imwrite(str(bad / "f0.png"), np.zeros((H, W, 3), np.uint8))  # would replace f0.png with other content
     result = _correct(bad, models, tmp_path / "out", "--force")
@@ -72,7 +72,7 @@ def test_a_complete_run_writes_every_image_and_the_stderr_file(tmp_path):
                                       "-o", str(tmp_path / "out"), "--stderr", str(tmp_path / "se" / "se.npy"),
                                       "--no-progress"])
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["f0.png", "f1.png"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".radiomap-correct.json", "f0.png", "f1.png"]
     se = np.load(tmp_path / "se" / "se.npy")
     assert se.shape == (H, W, 3) and np.allclose(se, 0.01, atol=1e-3)
     assert not [p for p in (tmp_path / "se").iterdir() if p.name != "se.npy"]

@@ -363,7 +363,7 @@ def test_correct_refuses_to_overwrite_its_inputs(models, tmp_path):
     # into the input folder without a collision (c.jpg -> c.png) is fine
     only_jpg = images(tmp_path / "jpg", "c.jpg")
     assert run("correct", only_jpg, *models, "-o", only_jpg).exit_code == 0
-    assert sorted(p.name for p in only_jpg.iterdir()) == ["c.jpg", "c.png"]
+    assert sorted(p.name for p in only_jpg.iterdir()) == [".radiomap-correct.json", "c.jpg", "c.png"]
 
 
 def test_correct_refuses_two_inputs_into_one_output(models, tmp_path):
