@@ -10,6 +10,8 @@ One job per module:
 - :mod:`~mapping.batch.runner`: :func:`run_batch`, the tasks on Ray or local processes (skip complete folders,
   rerun the others, progress);
 - :mod:`~mapping.batch.sequences`: the sequence list and the results folders' names;
+- :mod:`~mapping.batch.resume`: what a resumed batch checks in OUT (the run that made a folder, changed options,
+  damaged folders);
 - :mod:`~mapping.batch.report`: ``OUT/summary.csv`` and ``OUT/index.html``.
 """
 

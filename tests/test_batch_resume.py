@@ -1,0 +1,134 @@
+"""A resumed ``radiomap batch`` reports only results made by this batch's command, sequence and options
+(mapping.batch.resume): a complete folder made with other options is refused before anything runs (--force runs
+it again); a folder keeps its name when the list gains a sequence of the same folder name, and folders no listed
+sequence takes are named; a finished folder with a listed file missing, empty or unreadable is run again, naming
+the file; the summary's time columns say what they measure."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mapping.batch import BatchError, Task, run_batch
+from mapping.batch.resume import changed_options, mismatch, refusal
+
+W, H = 64, 48
+RADIOMAP = [sys.executable, "-c", "import sys; from mapping.cli import main; sys.exit(main())"]
+
+
+def _options(data, voxel: str = "0.05") -> list[str]:
+    return ["--poses", "gt", "-r", str(data["crf"]), "--depth-max", "6", "--voxel-size", voxel]
+
+
+def _batch(listing: Path, out: Path, options: list[str], *extra: str, command: str = "reconstruct"):
+    return subprocess.run([*RADIOMAP, "batch", command, str(listing), "-o", str(out), "--engine", "processes",
+                           "--workers", "1", "--no-progress", *extra, "--", *options],
+                          capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """Two short simulated rooms in seqs/ (alpha, beta), a third room also named alpha in other/, the list of the
+    first two, a response file, and the batch of the two made once (copied by each test that resumes it)."""
+    from mapping.simulation.sequences import simulate_room
+    from radiometry.response import CameraResponse
+    from radiometry.simulation import CameraSpec
+
+    root = tmp_path_factory.mktemp("resume")
+    seqs = {}
+    for key, folder, seed in (("alpha", root / "seqs" / "alpha", 1), ("beta", root / "seqs" / "beta", 2),
+                              ("other", root / "other" / "alpha", 3)):
+        seqs[key] = simulate_room(folder, camera=CameraSpec.preset("xtion", width=W, height=H), seed=seed,
+                                  n_frames=6, progress=False)
+    listing = root / "list.txt"
+    listing.write_text(f"{seqs['alpha']}\n{seqs['beta']}\n")
+    crf = root / "crf.npz"
+    CameraResponse.gamma().save(crf)
+    data = {"root": root, "seqs": seqs, "list": listing, "crf": crf}
+    res = _batch(listing, root / "made", _options(data))
+    assert res.returncode == 0, res.stderr
+    data["made"] = root / "made"
+    return data
+
+
+def _resumable(data, tmp_path) -> Path:
+    out = tmp_path / "out"
+    shutil.copytree(data["made"], out, symlinks=True)
+    return out
+
+
+def _stamps(out: Path) -> dict[str, int]:
+    return {str(p.relative_to(out)): p.stat().st_mtime_ns for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+# ------------------------------------------------------------------ item 1: changed options
+def test_changed_options_compares_what_changes_results():
+    old = {"command": "reconstruct", "parameters": {"sequence": "/s/a", "output": "/o/a", "voxel_size": 0.04,
+                                                    "response": "/m/crf.npz", "formats": ["ply"], "gone": 1}}
+    new = {"command": "reconstruct", "parameters": {"sequence": "/s/a", "output": "/elsewhere/a", "voxel_size": 0.02,
+                                                    "response": None, "formats": ("ply",), "added": 2}}
+    # the place is not compared, a tuple equals its JSON list, an option only one record holds is not compared
+    assert changed_options(old, new) == [("voxel_size", 0.04, 0.02), ("response", "/m/crf.npz", None)]
+    why = mismatch(Path("/o/a"), "reconstruct", Path("/s/a"), old, new)
+    assert why == "made with other options (--voxel-size 0.04 -> 0.02; --response /m/crf.npz -> not given)"
+    assert mismatch(Path("/o/a"), "compare", Path("/s/a"), old, new) == "it holds a reconstruct run, not compare"
+    assert "holds the results of /s/a, not of /s/b" in mismatch(Path("/o/a"), "reconstruct", Path("/s/b"), old, None)
+    same = {**new, "parameters": {**old["parameters"], "output": "/x"}}
+    assert changed_options(old, same) == [] and mismatch(Path("/o/a"), "reconstruct", Path("/s/a"), old, same) is None
+    # digests of the inputs, where both records hold them
+    assert changed_options({**old, "input_sha256": {"response": "ab"}}, {**same, "input_sha256": {"response": "cd"}}) \
+        == [("input_sha256", "recorded contents", "other contents")]
+    line = refusal([(Path("/o/a"), "made with other options (--voxel-size 0.04 -> 0.02)"), (Path("/o/b"), "x")])
+    assert "\n" not in line and "(b)" in line and "another -o" in line and "--force" in line
+    assert line.startswith("/o/a: complete, but made with other options (--voxel-size 0.04 -> 0.02)")
+
+
+@pytest.mark.slow
+def test_a_resume_with_other_options_is_refused_before_anything_runs(data, tmp_path):
+    out = _resumable(data, tmp_path)
+    before = _stamps(out)
+    summary = (out / "summary.csv").read_bytes()
+    res = _batch(data["list"], out, _options(data, voxel="0.04"))
+    assert res.returncode == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith(f"radiomap: error: {out / 'alpha'}: complete, but made with other options "
+                               "(--voxel-size 0.05 -> 0.04)") and "(beta)" in lines[0]
+    assert "another -o" in lines[0] and "--force" in lines[0]
+    assert _stamps(out) == before and (out / "summary.csv").read_bytes() == summary   # nothing ran, nothing written
+    # without a response (and its exposure compensation): refused too, naming the option
+    res = _batch(data["list"], out, ["--poses", "gt", "--depth-max", "6", "--voxel-size", "0.05"])
+    assert res.returncode == 1 and f"--response {data['crf']} -> not given" in res.stderr
+    # an option that does not change the results (the command's own --no-progress): skipped as before
+    res = _batch(data["list"], out, [*_options(data), "--no-progress"])
+    assert res.returncode == 0 and res.stdout.count("skipped, complete in") == 2, res.stderr
+    # --force runs them again with the new options
+    res = _batch(data["list"], out, _options(data, voxel="0.04"), "--force")
+    assert res.returncode == 0, res.stderr
+    for name in ("alpha", "beta"):
+        assert json.loads((out / name / "config.json").read_text())["parameters"]["voxel_size"] == 0.04
+    res = _batch(data["list"], out, _options(data, voxel="0.04"))
+    assert res.returncode == 0 and res.stdout.count("skipped, complete in") == 2
+
+
+def test_a_folder_of_another_sequence_or_command_is_refused(tmp_path):
+    """run_batch itself (not only the CLI) refuses a folder whose record names another sequence or command."""
+    folder = tmp_path / "out" / "alpha"
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"command": "compare", "parameters": {
+        "sequence": str(tmp_path / "seqs" / "alpha")}}))
+    task = Task("alpha", "reconstruct", tmp_path / "seqs" / "alpha", folder, {"manifest": {"parameters": {}}})
+    with pytest.raises(BatchError, match=r"alpha: complete, but it holds a compare run, not reconstruct; .*another -o"):
+        run_batch([task], tmp_path / "out", engine="processes")
+    (folder / "config.json").write_text(json.dumps({"command": "reconstruct", "parameters": {
+        "sequence": str(tmp_path / "seqs" / "beta")}}))
+    with pytest.raises(BatchError, match=r"holds the results of .*beta, not of .*alpha"):
+        run_batch([task], tmp_path / "out", engine="processes")
+    assert not (tmp_path / "out" / "logs").exists()       # refused before anything was written
+
