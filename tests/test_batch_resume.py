@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from mapping.batch import BatchError, Task, run_batch
+from mapping.batch import BatchError, Task, folder_names, run_batch, task_names
 from mapping.batch.resume import changed_options, mismatch, refusal
 
 W, H = 64, 48
@@ -131,4 +131,67 @@ def test_a_folder_of_another_sequence_or_command_is_refused(tmp_path):
     with pytest.raises(BatchError, match=r"holds the results of .*beta, not of .*alpha"):
         run_batch([task], tmp_path / "out", engine="processes")
     assert not (tmp_path / "out" / "logs").exists()       # refused before anything was written
+
+
+# ------------------------------------------------------------------ item 2: names stable across resumes
+def _recorded(folder: Path, sequence: Path) -> None:
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"command": "reconstruct", "parameters": {
+        "sequence": str(sequence)}}))
+
+
+def test_folder_names_keep_the_folders_that_record_their_sequence(tmp_path):
+    a, b, c, other = (tmp_path / "seqs" / "alpha", tmp_path / "seqs" / "beta", tmp_path / "seqs" / "gamma",
+                      tmp_path / "other" / "alpha")
+    out = tmp_path / "out"
+    assert folder_names([a, b], out) == (["alpha", "beta"], [])        # no OUT yet: task_names
+    _recorded(out / "alpha", a)
+    _recorded(out / "beta", b)
+    # the list gains a sequence of the same folder name: alpha keeps its folder, the new one is told apart
+    assert task_names([a, b, other]) == ["seqs_alpha", "beta", "other_alpha"]
+    assert folder_names([a, b, other], out) == (["alpha", "beta", "other_alpha"], [])
+    assert folder_names([other, b, a], out) == (["other_alpha", "beta", "alpha"], [])
+    # a folder made for a sequence no longer listed is never given to another one, and is named
+    names, notes = folder_names([other, c], out)
+    assert names == ["other_alpha", "gamma"]
+    assert notes == [f"note: {out / n} holds the results of {s}, which the list does not name; left as it is, "
+                     "not in the summary" for n, s in (("alpha", a), ("beta", b))]
+    # made by a batch of the longer list first: the names it gave are kept when the list shrinks
+    out2 = tmp_path / "out2"
+    _recorded(out2 / "seqs_alpha", a)
+    _recorded(out2 / "other_alpha", other)
+    assert folder_names([a, b], out2) == (["seqs_alpha", "beta"], [f"note: {out2 / 'other_alpha'} holds the results "
+                                                                  f"of {other}, which the list does not name; left "
+                                                                  "as it is, not in the summary"])
+    # two folders of one sequence: the one task_names gives is used, the other named
+    _recorded(out2 / "alpha", a)
+    names, notes = folder_names([a, b], out2)
+    assert names == ["alpha", "beta"] and any(f"{out2 / 'seqs_alpha'} holds the results of {a}, which this batch "
+                                              f"reports from {out2 / 'alpha'}" in n for n in notes)
+
+
+@pytest.mark.slow
+def test_a_resume_keeps_the_names_of_finished_folders(data, tmp_path):
+    out = _resumable(data, tmp_path)
+    before = _stamps(out)
+    longer = tmp_path / "more.txt"
+    longer.write_text(data["list"].read_text() + f"{data['seqs']['other']}\n")
+    res = _batch(longer, out, _options(data))
+    assert res.returncode == 0, res.stderr
+    assert "alpha: skipped, complete in" in res.stdout and "beta: skipped, complete in" in res.stdout
+    assert "other_alpha: complete in" in res.stdout and not (out / "seqs_alpha").exists()
+    assert {k: v for k, v in _stamps(out).items() if k.startswith(("alpha/", "beta/"))} == \
+        {k: v for k, v in before.items() if k.startswith(("alpha/", "beta/"))}        # nothing redone
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["sequence"] for r in rows] == ["alpha", "beta", "other_alpha"]
+    assert json.loads((out / "other_alpha" / "config.json").read_text())["parameters"]["sequence"] == \
+        str(data["seqs"]["other"])
+    # the list without alpha: its folder is named as left out, not silently orphaned
+    shorter = tmp_path / "short.txt"
+    shorter.write_text(f"{data['seqs']['beta']}\n{data['seqs']['other']}\n")
+    res = _batch(shorter, out, _options(data))
+    assert res.returncode == 0, res.stderr
+    assert f"note: {out / 'alpha'} holds the results of {data['seqs']['alpha']}, which the list does not name" \
+        in res.stderr
+    assert [r["sequence"] for r in csv.DictReader((out / "summary.csv").open())] == ["beta", "other_alpha"]
 

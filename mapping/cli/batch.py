@@ -50,8 +50,8 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
             threads: int | None, engine: str, address: str | None, force: bool, no_progress: bool) -> None:
     """Run COMMAND (reconstruct, compare or self-calibrate) on every sequence folder listed in LIST, one task per
     sequence, each result in OUT/<name>/ exactly as 'radiomap COMMAND' writes it."""
-    from mapping.batch import (COMMANDS, BatchError, Task, read_sequence_list, run_batch, summary_rows,
-                               task_names, write_summary)
+    from mapping.batch import (COMMANDS, BatchError, Task, folder_names, read_sequence_list, run_batch,
+                               summary_rows, write_summary)
     from mapping.batch.report import columns_of
     from mapping.cli import SUBCOMMANDS
     from radiometry.tables import format_table
@@ -63,7 +63,9 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
         if key in _OWN or (token.startswith("-o") and not token.startswith("--")):
             raise click.UsageError(f"{token} is not an option of the command here: give {_OWN.get(key, _OWN['-o'])}")
     sequences = read_sequence_list(sequence_list)
-    names = task_names(sequences)
+    names, notes = folder_names(sequences, output)   # a folder keeps its sequence across resumes
+    for line in notes:
+        click.echo(line, err=True)
     ctx = click.get_current_context()
     cmd = SUBCOMMANDS[command_name]
     task_arguments = __import__(cmd.callback.__module__, fromlist=["task_arguments"]).task_arguments
