@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from mapping.batch import BatchError, Task, folder_names, run_batch, task_names
-from mapping.batch.resume import changed_options, mismatch, refusal
+from mapping.batch import COMMANDS, BatchError, Task, folder_names, run_batch, task_names
+from mapping.batch.resume import changed_options, damage, mismatch, recorded_run, refusal
 
 W, H = 64, 48
 RADIOMAP = [sys.executable, "-c", "import sys; from mapping.cli import main; sys.exit(main())"]
@@ -194,4 +194,45 @@ def test_a_resume_keeps_the_names_of_finished_folders(data, tmp_path):
     assert f"note: {out / 'alpha'} holds the results of {data['seqs']['alpha']}, which the list does not name" \
         in res.stderr
     assert [r["sequence"] for r in csv.DictReader((out / "summary.csv").open())] == ["beta", "other_alpha"]
+
+
+# ------------------------------------------------------------------ item 3: damaged folders
+def test_damage_names_the_first_missing_empty_or_unreadable_file(tmp_path):
+    folder = tmp_path / "run"
+    (folder / "none").mkdir(parents=True)
+    for name in ("config.json", "metrics.json", "mesh.ply"):
+        (folder / name).write_text("{}" if name.endswith(".json") else "ply\n")
+    (folder / "none" / "metrics.json").write_text("{}")
+    (folder / ".radiomap-files.json").write_text(json.dumps({"files": ["config.json", "mesh.ply", "metrics.json"],
+                                                             "folders": ["none"]}))
+    (folder / "none" / ".radiomap-files.json").write_text(json.dumps({"files": ["metrics.json"]}))
+    assert damage(folder, ["config.json"]) is None
+    assert damage(folder, ["summary.txt"]) == "summary.txt is missing"       # named by the command
+    (folder / "mesh.ply").unlink()
+    assert damage(folder) == "mesh.ply is missing"                           # listed by the run
+    (folder / "mesh.ply").write_bytes(b"")
+    assert damage(folder) == "mesh.ply is empty"
+    (folder / "mesh.ply").write_text("ply\n")
+    (folder / "none" / "metrics.json").write_text("{trunc")
+    assert damage(folder) == "none/metrics.json does not read as JSON"
+    shutil.rmtree(folder / "none")
+    assert damage(folder) == "none/ is missing"
+    assert recorded_run(folder) is None                                      # config.json holds no parameters
+
+
+@pytest.mark.slow
+def test_a_damaged_folder_is_run_again_naming_the_file(data, tmp_path):
+    out = _resumable(data, tmp_path)
+    mesh = (out / "alpha" / "mesh.ply").read_bytes()
+    (out / "alpha" / "mesh.ply").unlink()
+    (out / "beta" / "histogram.json").write_bytes(b"")
+    assert all(COMMANDS["reconstruct"].complete(out / n) for n in ("alpha", "beta"))   # finished, but damaged
+    res = _batch(data["list"], out, _options(data))
+    assert res.returncode == 0, res.stderr
+    assert f"alpha: not complete ({out / 'alpha'}/mesh.ply is missing); running it again" in res.stderr
+    assert f"beta: not complete ({out / 'beta'}/histogram.json is empty); running it again" in res.stderr
+    assert "alpha: complete in" in res.stdout and "beta: complete in" in res.stdout
+    assert len((out / "alpha" / "mesh.ply").read_bytes()) == len(mesh)
+    json.loads((out / "beta" / "histogram.json").read_text())
+    assert {r["status"] for r in csv.DictReader((out / "summary.csv").open())} == {"complete"}
 

@@ -7,6 +7,8 @@ this batch's command and options (docs/guides/batch.md, "Resuming"):
   the progress bar do not count), and the input digests when both records hold them;
 - :func:`refusal`: the one-line refusal for the complete folders a batch would otherwise skip although they were
   made by another command, from another sequence or with other options;
+- :func:`damage`: why a finished folder is not whole: a file its run listed (``.radiomap-files.json``, its results
+  folders' too) or the command needs is missing, empty or, a JSON file, unreadable.
 
 Nothing here writes; :mod:`mapping.batch.runner` and :mod:`mapping.batch.sequences` act on the answers.
 """
@@ -22,6 +24,8 @@ from typing import Any
 RECORDS = (("config.json", None), ("self_calibration.json", "run"))
 #: parameters that say where a run read and wrote, not what it computed (compared apart: the sequence)
 PLACE = frozenset({"sequence", "output"})
+#: the list of files a run wrote (:data:`mapping.export.MANIFEST`; spelled here so that nothing heavy is imported)
+FILE_LIST = ".radiomap-files.json"
 
 
 def recorded_run(folder: str | os.PathLike) -> dict | None:
@@ -106,5 +110,51 @@ def refusal(found: list[tuple[Path, str]]) -> str | None:
             "another -o for the new results, or --force to run the complete sequences again with this batch's options")
 
 
-__all__ = ["PLACE", "RECORDS", "changed_options", "mismatch", "option_text", "recorded_run", "recorded_sequence",
-           "refusal"]
+def listed_outputs(folder: Path) -> tuple[list[str], list[str]]:
+    """The files and the results folders the run of ``folder`` listed in its ``.radiomap-files.json`` (none when
+    it has no such list)."""
+    try:
+        doc = json.loads((folder / FILE_LIST).read_text(encoding="utf-8"))
+    except (OSError, ValueError, UnicodeDecodeError, RecursionError):
+        return [], []
+
+    def own(names) -> list[str]:
+        return [n for n in (names if isinstance(names, list) else []) if isinstance(n, str) and n == Path(n).name
+                and n not in ("", ".", "..")]
+
+    return (own(doc.get("files")), own(doc.get("folders"))) if isinstance(doc, dict) else ([], [])
+
+
+def damage(folder: str | os.PathLike, required: tuple[str, ...] | list[str] = ()) -> str | None:
+    """Why the finished results folder ``folder`` is not whole, naming the file (``mesh.ply is missing``,
+    ``none/histogram.json is empty``), or None: every file its run listed and every name in ``required`` is
+    there and not empty, every JSON file among them reads, and so does each results folder the run listed (by
+    its own list)."""
+    folder = Path(folder)
+    files, folders = listed_outputs(folder)
+    for name in dict.fromkeys([*required, *files]):
+        path = folder / name
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return f"{name} is missing"
+        if not path.is_file():
+            return f"{name} is not a file"
+        if size == 0:
+            return f"{name} is empty"
+        if path.suffix == ".json":
+            try:
+                json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError, UnicodeDecodeError, RecursionError):
+                return f"{name} does not read as JSON"
+    for name in folders:
+        if not (folder / name).is_dir():
+            return f"{name}/ is missing"
+        why = damage(folder / name)
+        if why is not None:
+            return f"{name}/{why}"
+    return None
+
+
+__all__ = ["FILE_LIST", "PLACE", "RECORDS", "changed_options", "damage", "listed_outputs", "mismatch",
+           "option_text", "recorded_run", "recorded_sequence", "refusal"]

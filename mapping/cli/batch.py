@@ -85,7 +85,8 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
             click.echo(f"{task.name}: failed: {outcome.error}", err=True)
 
     outcomes = run_batch(tasks, output, workers=workers, threads=threads, engine=engine, address=address,
-                         force=force, progress=not no_progress, notify=report)
+                         force=force, progress=not no_progress, notify=report,
+                         note=lambda line: click.echo(line, err=True))
     files = write_summary(outcomes, output, title=f"radiomap batch {command_name}: {sequence_list.name}")
     rows = summary_rows(outcomes)
     shown = [{k: "-" if v is None else v for k, v in row.items()} for row in rows]
