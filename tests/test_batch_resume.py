@@ -236,3 +236,22 @@ def test_a_damaged_folder_is_run_again_naming_the_file(data, tmp_path):
     json.loads((out / "beta" / "histogram.json").read_text())
     assert {r["status"] for r in csv.DictReader((out / "summary.csv").open())} == {"complete"}
 
+
+# ------------------------------------------------------------------ item 4: the summary's seconds
+@pytest.mark.slow
+def test_the_summary_names_which_seconds_it_shows(data, tmp_path):
+    out = tmp_path / "cmp"
+    res = _batch(data["list"], out, ["-r", str(data["crf"]), "--methods", "none,response", "--views", "0",
+                                     "--voxel-size", "0.05", "--depth-max", "6"], command="compare")
+    assert res.returncode == 0, res.stderr
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert "seconds" not in rows[0]          # no column that could be taken for compare.csv's seconds
+    for row in rows:
+        folder = out / row["sequence"]
+        table = {r["method"]: r for r in csv.DictReader((folder / "compare.csv").open())}
+        metrics = json.loads((folder / row["method"] / "metrics.json").read_text())
+        assert float(row["method s"]) == pytest.approx(float(table[row["method"]]["seconds"]), abs=0.006)
+        assert float(row["loop s"]) == pytest.approx(metrics["timing"]["seconds"], abs=0.006)
+        assert float(row["frames/s"]) == pytest.approx(metrics["timing"]["frames_per_second"], abs=0.006)
+    rows = list(csv.DictReader((data["made"] / "summary.csv").open()))
+    assert "loop s" in rows[0] and "seconds" not in rows[0]
