@@ -1,5 +1,5 @@
 """What a batch checks in ``OUT`` before it runs anything, so that a resumed batch reports only results made by
-this batch's command and options (docs/guides/batch.md, "Resuming"):
+this batch's command and options (docs/guides/batch.md, "What resume guarantees"):
 
 - :func:`recorded_run`: the record of the run that made a results folder (its ``config.json``, or the ``run`` of a
   self-calibration's ``self_calibration.json``): the command, the sequence and the options;

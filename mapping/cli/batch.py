@@ -20,8 +20,10 @@ Examples:
       on a Ray cluster: the sequences, the models and OUT on storage every node sees
 \b
 Run it again to resume: complete results folders are skipped, folders of runs that did not finish (killed,
-failed) are run again. Each task's output is in OUT/logs/<name>.log. Options after -- are those of
-'radiomap COMMAND' (all but SEQUENCE, -o and --force).
+failed) or that miss a file are run again, and a folder keeps its name. A complete folder made with other
+options (or by another command) is refused before anything runs: give another -o, or --force. Each task's
+output is in OUT/logs/<name>.log. Options after -- are those of 'radiomap COMMAND' (all but SEQUENCE, -o and
+--force).
 """
 
 #: options of the command that the batch sets itself
@@ -44,7 +46,7 @@ _OWN = {"-o": "-o OUT of batch (each sequence gets OUT/<name>)", "--output": "-o
                    "one; auto: Ray when it is installed (pip install 'radiomap[cluster]').")
 @click.option("--address", default=None, metavar="ADDR",
               help="Join a running Ray cluster: auto (the one 'ray start' made on this machine) or HOST:PORT.")
-@click.option("--force", is_flag=True, help="Run complete sequences again too.")
+@click.option("--force", is_flag=True, help="Run complete sequences again too (also those made with other options).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(command_name: str, sequence_list: Path, options: tuple[str, ...], output: Path, workers: int | None,
             threads: int | None, engine: str, address: str | None, force: bool, no_progress: bool) -> None:
