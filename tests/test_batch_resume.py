@@ -28,7 +28,7 @@ def _options(data, voxel: str = "0.05") -> list[str]:
 
 def _batch(listing: Path, out: Path, options: list[str], *extra: str, command: str = "reconstruct"):
     return subprocess.run([*RADIOMAP, "batch", command, str(listing), "-o", str(out), "--engine", "processes",
-                           "--workers", "1", "--no-progress", *extra, "--", *options],
+                           "--workers", "2", "--no-progress", *extra, "--", *options],
                           capture_output=True, text=True, timeout=900)
 
 
@@ -241,7 +241,9 @@ def test_a_damaged_folder_is_run_again_naming_the_file(data, tmp_path):
 @pytest.mark.slow
 def test_the_summary_names_which_seconds_it_shows(data, tmp_path):
     out = tmp_path / "cmp"
-    res = _batch(data["list"], out, ["-r", str(data["crf"]), "--methods", "none,response", "--views", "0",
+    one = tmp_path / "one.txt"
+    one.write_text(f"{data['seqs']['alpha']}\n")
+    res = _batch(one, out, ["-r", str(data["crf"]), "--methods", "none,response", "--views", "0",
                                      "--voxel-size", "0.05", "--depth-max", "6"], command="compare")
     assert res.returncode == 0, res.stderr
     rows = list(csv.DictReader((out / "summary.csv").open()))
