@@ -559,7 +559,7 @@ def self_calibration_rows(folder: Path) -> list[dict]:
     doc = json.loads((Path(folder) / MARKER).read_text(encoding="utf-8"))
     seconds = doc["seconds"]
     return [{"frames": doc["frames_used"], "sightings": doc["sampling"]["sightings"],
-             "seconds": seconds.get("total"), "cpu s/100 frames": seconds.get("cpu_per_100_frames"),
+             "total s": seconds.get("total"), "cpu s/100 frames": seconds.get("cpu_per_100_frames"),
              "resid after %": round(100 * max(doc["residual_log_scale_after"]), 2),
              "thin regions": ", ".join(doc["thin_regions"]) or "-", "peak MiB": doc["peak_rss_mb"]}]
 

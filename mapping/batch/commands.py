@@ -18,7 +18,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from mapping.self_calibration import run_self_calibration, self_calibration_complete, self_calibration_rows
+from mapping.self_calibration import (MARKER, run_self_calibration, self_calibration_complete,
+                                      self_calibration_rows)
 from radiometry.registry import Registry
 
 log = logging.getLogger(__name__)
@@ -185,12 +186,17 @@ def compare_rows(folder: Path) -> list[dict]:
     """The batch summary's rows of a complete comparison: one per method (from each method's metrics.json)."""
     doc = json.loads((folder / "compare.json").read_text(encoding="utf-8"))
     ate = doc.get("ate")
+    table = {row.get("method"): row for row in doc.get("table") or []}    # compare.csv's rows
     rows = []
     for method in doc["methods"]:
         metrics = json.loads((folder / method["folder"] / "metrics.json").read_text(encoding="utf-8"))
-        rows.append({"method": method["name"], **_row(metrics["frames"]["total"], metrics["frames"]["fused"],
-                                                      metrics["timing"]["seconds"], metrics["histogram"], ate,
-                                                      metrics.get("holdout"))})
+        row = {"method": method["name"], **_row(metrics["frames"]["total"], metrics["frames"]["fused"],
+                                                metrics["timing"]["seconds"], metrics["histogram"], ate,
+                                                metrics.get("holdout"))}
+        seconds = table.get(method["name"], {}).get("seconds")
+        # compare.csv's "seconds": the method's whole run (setup, the frame loop, its files; not its mesh)
+        row["method s"] = round(seconds, 2) if isinstance(seconds, (int, float)) else None
+        rows.append(row)
     return rows
 
 
@@ -203,7 +209,9 @@ def compare_complete(folder: Path) -> bool:
 
 def _row(frames: int, fused: int, seconds: float, histogram: dict, ate: dict | None,
          holdout: dict | None = None) -> dict:
-    row = {"frames": frames, "fused": fused, "seconds": round(seconds, 2),
+    # "loop s": metrics.json's timing.seconds, the frame loop (read, track, render, colour, fuse, histogram); the
+    # rate of the single command's fps; not the task's wall time nor compare.csv's "seconds" ("method s")
+    row = {"frames": frames, "fused": fused, "loop s": round(seconds, 2),
            "frames/s": round(frames / seconds, 2) if seconds > 0 else None,
            "L1 mean": histogram.get("mean"), "L1 median": histogram.get("median"), "L1 p90": histogram.get("p90"),
            "ATE cm": None if ate is None else round(100 * ate["rmse"], 2)}
@@ -218,26 +226,59 @@ def _reconstruct_complete(folder: Path) -> bool:
     return is_complete(folder)
 
 
+def _reconstruct_outputs(folder: Path) -> list[str]:
+    """The files every complete reconstruction holds (besides those its run listed in .radiomap-files.json)."""
+    return ["config.json", "metrics.json", "histogram.json", "summary.txt"]
+
+
+def _compare_outputs(folder: Path) -> list[str]:
+    """The files every complete comparison holds: its own and each method's metrics.json (compare.json names the
+    methods' folders)."""
+    names = ["config.json", "compare.json", "compare.csv", "summary.txt"]
+    try:
+        doc = json.loads((folder / "compare.json").read_text(encoding="utf-8"))
+        names += [f"{m['folder']}/metrics.json" for m in doc["methods"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass    # compare.json itself is named above: resume.damage says what is wrong with it
+    return names
+
+
+def _self_calibration_outputs(folder: Path) -> list[str]:
+    """The files a complete self-calibration holds: its record and the files the record lists."""
+    names = [MARKER]
+    try:
+        files = json.loads((folder / MARKER).read_text(encoding="utf-8"))["files"]
+        names += [Path(v).name for v in files.values()]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass
+    return names
+
+
 # ------------------------------------------------------------------ the registry
 @dataclass(frozen=True)
 class BatchCommand:
     """What a batch needs of a command: the library function a task runs (with the keyword arguments the
-    command's ``task_arguments`` makes), whether a results folder is complete, the summary rows of a complete
-    folder and the file the HTML index links to."""
+    command's ``task_arguments`` makes), whether a results folder is finished, the summary rows of a complete
+    folder, the file the HTML index links to and the files every complete folder holds (names in the folder; a
+    resumed batch runs a finished folder again when one of these, or of the files its run listed, is missing,
+    empty or unreadable: :func:`mapping.batch.resume.damage`)."""
 
     run: Callable[..., Any]
     complete: Callable[[Path], bool]
     rows: Callable[[Path], list[dict]]
     report: str
+    outputs: Callable[[Path], list[str]] = lambda folder: []
 
 
 #: the commands ``radiomap batch`` runs, by name (a command is one entry; its CLI module defines ``task_arguments``)
 COMMANDS = Registry("batch command", {
     "reconstruct": BatchCommand(run=reconstruct_command, complete=_reconstruct_complete, rows=reconstruct_rows,
-                                report="summary.txt"),
-    "compare": BatchCommand(run=compare_command, complete=compare_complete, rows=compare_rows, report="report.html"),
+                                report="summary.txt", outputs=_reconstruct_outputs),
+    "compare": BatchCommand(run=compare_command, complete=compare_complete, rows=compare_rows, report="report.html",
+                            outputs=_compare_outputs),
     "self-calibrate": BatchCommand(run=run_self_calibration, complete=self_calibration_complete,
-                                   rows=self_calibration_rows, report="summary.txt"),
+                                   rows=self_calibration_rows, report="summary.txt",
+                                   outputs=_self_calibration_outputs),
 })
 
 

@@ -14,7 +14,9 @@ from mapping.batch.runner import Outcome
 from radiometry.fileio import atomic_write_text
 from radiometry.tables import csv_text
 
-COLUMNS = ["sequence", "status", "frames", "fused", "seconds", "frames/s", "L1 mean", "L1 median", "L1 p90",
+#: "loop s": the frame loop's seconds (metrics.json timing.seconds), of which "frames/s" is the rate; a comparison adds
+#: "method s" (compare.csv's "seconds": each method's whole run), a self-calibration "total s" (all its stages)
+COLUMNS = ["sequence", "status", "frames", "fused", "loop s", "frames/s", "L1 mean", "L1 median", "L1 p90",
            "ATE cm", "error"]
 
 
@@ -34,6 +36,8 @@ def columns_of(rows: list[dict]) -> list[str]:
     """:data:`COLUMNS`, with ``method`` after the status when a row has one (comparisons) and a command's own
     columns (self-calibrate's sightings, ...) before ``error``, in the order the rows have them."""
     columns = COLUMNS[:2] + ["method"] + COLUMNS[2:] if any("method" in r for r in rows) else list(COLUMNS)
+    if rows and not any("loop s" in r for r in rows):      # a command that times no frame loop (self-calibrate)
+        columns = [c for c in columns if c not in ("loop s", "frames/s")]
     extra = [k for k in dict.fromkeys(k for r in rows for k in r) if k not in columns]
     return columns[:-1] + extra + columns[-1:]
 
@@ -90,7 +94,9 @@ tr.failed td {{ background: #fde8e8; }}
 <p>{len(outcomes)} sequences: {counts['complete']} run now, {counts['skipped']} complete before (skipped),
 {counts['failed']} failed. Each name links to the sequence's report (a failed one to its log); the table is also in
 <a href="summary.csv">summary.csv</a>. L1: colour disagreement of the fused samples (8-bit levels, summed over R, G,
-B); ATE: absolute trajectory error (RMSE).</p>
+B); ATE: absolute trajectory error (RMSE); loop s: seconds of the frame loop (read, track, render, colour, fuse,
+histogram: metrics.json timing.seconds), frames/s its rate; method s (comparisons): the method's whole run,
+compare.csv's seconds; total s (self-calibrations): all stages.</p>
 <table><thead><tr>{head}</tr></thead>
 <tbody>
 {chr(10).join(body)}

@@ -4,7 +4,8 @@ A task runs one command (:data:`mapping.batch.commands.COMMANDS`) on one sequenc
 process (:mod:`mapping.batch.worker`); only the command's name, its plain arguments (paths, numbers, text), the
 thread limit and the log file's path go to the worker, and a plain result comes back.
 
-Resumable and idempotent: a complete results folder is skipped (unless ``force``); any other is run again with the
+Resumable and idempotent: a complete results folder is skipped (unless ``force``; refused when it was made with other
+options: :mod:`mapping.batch.resume`); any other (a damaged one too) is run again with the
 command's ``force`` (the folder of a killed worker still holds RUNNING and a LOCK whose owner no longer runs:
 :class:`mapping.export.FolderLock` takes it over and :class:`mapping.export.ResultsFolder` removes the half run's
 files); a folder that a live process writes is refused by its lock, and that task fails. A failing task is reported
@@ -18,6 +19,7 @@ does) and ``processes`` (``workers`` child processes of this one, a new process 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import pickle
 import subprocess
@@ -29,8 +31,11 @@ from pathlib import Path
 from typing import Any
 
 from mapping.batch.commands import COMMANDS
+from mapping.batch.resume import damage, mismatch, recorded_run, recorded_sequence, refusal
 from mapping.batch.worker import thread_environment
 from radiometry.errors import RadiomapError
+
+log = logging.getLogger(__name__)
 
 ENGINES = ("auto", "ray", "processes")
 LOGS = "logs"          # OUT/logs/<name>.log: each task's output
@@ -82,8 +87,15 @@ def ray_available() -> bool:
 
 def run_batch(tasks: Iterable[Task], out: str | os.PathLike, *, workers: int | None = None,
               threads: int | None = None, engine: str = "auto", address: str | None = None, force: bool = False,
-              progress: bool = True, notify: Callable[[Outcome], None] | None = None) -> list[Outcome]:
+              progress: bool = True, notify: Callable[[Outcome], None] | None = None,
+              note: Callable[[str], None] | None = None) -> list[Outcome]:
     """Run every task not complete yet; returns one :class:`Outcome` per task, in the tasks' order.
+
+    Before anything runs (unless ``force``), a :class:`BatchError` refuses the batch, in one line, when an output
+    folder holds a run of another command or of another sequence, or is complete but was made with other options
+    than the task's (``arguments["manifest"]``, :mod:`mapping.batch.resume`): skipping it would report old
+    results as this batch's. A finished folder with a listed file missing, empty or unreadable is not complete:
+    it is run again, with a line to ``note`` (default: a logged warning) naming the file.
 
     workers: tasks at once (default: local, one per core; on a Ray cluster, its CPUs // threads).
     threads: threads per task (default: this machine's cores // workers, at least 1).
@@ -104,14 +116,21 @@ def run_batch(tasks: Iterable[Task], out: str | os.PathLike, *, workers: int | N
         if value is not None and not (isinstance(value, int) and value >= 1):
             raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
     out = Path(out)
+    plans = {task: ("run", None) if force else _plan(task) for task in tasks}
+    refused = refusal([(task.output, why) for task, (what, why) in plans.items() if what == "refuse"])
+    if refused is not None:
+        raise BatchError(refused)
     (out / LOGS).mkdir(parents=True, exist_ok=True)
     outcomes: dict[Task, Outcome] = {}
     todo = []
     for task in tasks:
-        if not force and COMMANDS[task.command].complete(task.output):
+        what, why = plans[task]
+        if what == "skip":
             outcomes[task] = _finish(Outcome(task, "skipped"), notify)
-        else:
-            todo.append(replace(task, arguments={**task.arguments, "force": True, "progress": False}))
+            continue
+        if why is not None:
+            (note or log.warning)(why)
+        todo.append(replace(task, arguments={**task.arguments, "force": True, "progress": False}))
     if todo:
         from radiometry.progress import progress_bar
 
@@ -133,6 +152,24 @@ def run_batch(tasks: Iterable[Task], out: str | os.PathLike, *, workers: int | N
     return [outcomes[t] for t in tasks]
 
 
+def _plan(task: Task) -> tuple[str, str | None]:
+    """What a resumed batch does with a task's folder: ``("skip", None)`` (complete, of this command, sequence and
+    options), ``("run", note)`` (not complete; the note names a damaged file) or ``("refuse", why)``."""
+    command = COMMANDS[task.command]
+    record = recorded_run(task.output)
+    made_from = recorded_sequence(record)
+    if record is not None and (record.get("command") not in (None, task.command) or
+                               (made_from is not None and made_from != Path(os.path.abspath(task.sequence)))):
+        return "refuse", mismatch(task.output, task.command, task.sequence, record, None)
+    if not command.complete(task.output):
+        return "run", None
+    why = damage(task.output, command.outputs(task.output))
+    if why is not None:
+        return "run", f"{task.name}: not complete ({task.output}/{why}); running it again"
+    why = mismatch(task.output, task.command, task.sequence, record, task.arguments.get("manifest"))
+    return ("refuse", why) if why is not None else ("skip", None)
+
+
 def _finish(outcome: Outcome, notify) -> Outcome:
     """Read the summary rows of a complete folder (a folder that does not read as complete fails the task)."""
     if outcome.status in ("complete", "skipped"):
@@ -140,6 +177,9 @@ def _finish(outcome: Outcome, notify) -> Outcome:
         try:
             if not command.complete(outcome.task.output):
                 raise RadiomapError(f"{outcome.task.output} is not complete after the run")
+            why = damage(outcome.task.output, command.outputs(outcome.task.output))
+            if why is not None:
+                raise RadiomapError(f"{outcome.task.output}: {why}")
             outcome.rows = command.rows(outcome.task.output)
         except (OSError, ValueError, KeyError, RadiomapError) as exc:
             outcome.status, outcome.error = "failed", f"cannot read the results: {exc}"

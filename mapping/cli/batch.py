@@ -20,8 +20,10 @@ Examples:
       on a Ray cluster: the sequences, the models and OUT on storage every node sees
 \b
 Run it again to resume: complete results folders are skipped, folders of runs that did not finish (killed,
-failed) are run again. Each task's output is in OUT/logs/<name>.log. Options after -- are those of
-'radiomap COMMAND' (all but SEQUENCE, -o and --force).
+failed) or that miss a file are run again, and a folder keeps its name. A complete folder made with other
+options (or by another command) is refused before anything runs: give another -o, or --force. Each task's
+output is in OUT/logs/<name>.log. Options after -- are those of 'radiomap COMMAND' (all but SEQUENCE, -o and
+--force).
 """
 
 #: options of the command that the batch sets itself
@@ -44,14 +46,14 @@ _OWN = {"-o": "-o OUT of batch (each sequence gets OUT/<name>)", "--output": "-o
                    "one; auto: Ray when it is installed (pip install 'radiomap[cluster]').")
 @click.option("--address", default=None, metavar="ADDR",
               help="Join a running Ray cluster: auto (the one 'ray start' made on this machine) or HOST:PORT.")
-@click.option("--force", is_flag=True, help="Run complete sequences again too.")
+@click.option("--force", is_flag=True, help="Run complete sequences again too (also those made with other options).")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def command(command_name: str, sequence_list: Path, options: tuple[str, ...], output: Path, workers: int | None,
             threads: int | None, engine: str, address: str | None, force: bool, no_progress: bool) -> None:
     """Run COMMAND (reconstruct, compare or self-calibrate) on every sequence folder listed in LIST, one task per
     sequence, each result in OUT/<name>/ exactly as 'radiomap COMMAND' writes it."""
-    from mapping.batch import (COMMANDS, BatchError, Task, read_sequence_list, run_batch, summary_rows,
-                               task_names, write_summary)
+    from mapping.batch import (COMMANDS, BatchError, Task, folder_names, read_sequence_list, run_batch,
+                               summary_rows, write_summary)
     from mapping.batch.report import columns_of
     from mapping.cli import SUBCOMMANDS
     from radiometry.tables import format_table
@@ -63,7 +65,9 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
         if key in _OWN or (token.startswith("-o") and not token.startswith("--")):
             raise click.UsageError(f"{token} is not an option of the command here: give {_OWN.get(key, _OWN['-o'])}")
     sequences = read_sequence_list(sequence_list)
-    names = task_names(sequences)
+    names, notes = folder_names(sequences, output)   # a folder keeps its sequence across resumes
+    for line in notes:
+        click.echo(line, err=True)
     ctx = click.get_current_context()
     cmd = SUBCOMMANDS[command_name]
     task_arguments = __import__(cmd.callback.__module__, fromlist=["task_arguments"]).task_arguments
@@ -83,7 +87,8 @@ def command(command_name: str, sequence_list: Path, options: tuple[str, ...], ou
             click.echo(f"{task.name}: failed: {outcome.error}", err=True)
 
     outcomes = run_batch(tasks, output, workers=workers, threads=threads, engine=engine, address=address,
-                         force=force, progress=not no_progress, notify=report)
+                         force=force, progress=not no_progress, notify=report,
+                         note=lambda line: click.echo(line, err=True))
     files = write_summary(outcomes, output, title=f"radiomap batch {command_name}: {sequence_list.name}")
     rows = summary_rows(outcomes)
     shown = [{k: "-" if v is None else v for k, v in row.items()} for row in rows]

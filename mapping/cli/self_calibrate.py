@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from mapping.cli._common import pose_arguments, pose_options, sequence_options
@@ -96,7 +98,14 @@ def task_arguments(ctx: click.Context) -> dict:
                                                "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
                                                "output": p["output"], "exposures": p["exposures_path"],
-                                               "holdout": p["holdout"], "strict": p["strict"]})
+                                               "holdout": p["holdout"], "strict": p["strict"],
+                                               # read by a resumed batch: a complete folder made with other
+                                               # values is refused (mapping.batch.resume)
+                                               "format": p["format"], "depth_scale": p["depth_scale"],
+                                               "intrinsics": p["intrinsics"] if not p["intrinsics"] or not
+                                               os.path.isfile(p["intrinsics"]) else os.path.abspath(p["intrinsics"]),
+                                               "poses_max_difference": p["poses_max_difference"],
+                                               "plots": not p["no_plots"]})
     return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],
             "tracker": p["tracker"], "poses_max_difference": max_difference,
             "frames": frames, "format": p["format"], "depth_scale": p["depth_scale"], "intrinsics": p["intrinsics"],
