@@ -3,7 +3,9 @@ input file (response, vignetting, poses, intrinsics, exposures) and the frames o
 would read other files or frames stops in one line naming the file, what changed and the fix (before, it ran with
 exit 0 and gave other results: a response overwritten with another gamma, L1 mean 37.52 -> 37.75 on the kitchen;
 a sequence that grew from 8 to 11 frames fused 11). An option (or SEQUENCE) given on the command line accepts the
-file as it is now; a config.json of an older radiomap still replays, with a note."""
+file as it is now; a config.json of an older radiomap still replays, with a note.
+
+Also: a run's config.json no longer holds the empty pre-run exposure summary."""
 
 from __future__ import annotations
 
@@ -89,6 +91,18 @@ def test_config_json_records_a_digest_and_the_size_of_every_input_and_the_frames
     names = "\n".join(f"color/{i:06d}.png\tdepth/{i:06d}.png" for i in range(6))
     assert config["dataset"]["frames"] == config["dataset"]["sequence_frames"] == 6
     assert config["dataset"]["frame_names_sha256"] == hashlib.sha256(names.encode()).hexdigest()
+
+
+def test_the_config_holds_no_pre_run_exposure_summary(kit):
+    """config.json recorded ``exposure.summary`` as it was before the run (frames 0, every source 0) while
+    metrics.json had the run's: the outcome is metrics.json's only now (and the k of a median mesh exposure)."""
+    _, _, run = kit
+    model = config_of(run)["colour_model"]
+    assert model["exposure"]["settings"] and "summary" not in model["exposure"]
+    assert model["export_reference"] == {"kind": "median"}
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["colour_model"]["exposure"]["summary"]["frames"] == metrics["frames"]["fused"] == 6
+    assert len(metrics["colour_model"]["export_reference"]["k"]) == 3
 
 
 def replayable_copy(kit, tmp_path, config=None):

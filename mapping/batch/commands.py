@@ -38,6 +38,7 @@ def reconstruct_command(*, manifest: dict, settings: str, replayed: dict | None 
               refuses the run, before anything is written, when the sequence now gives other frames)."""
     from mapping.datasets import describe_dataset, intrinsics_text
     from mapping.replay import check_frames, selection_record
+    from mapping.results import colour_model_setup
     from mapping.export import plain_value
     from mapping.publication import ReconstructionFolder
     from mapping.factory import ReconstructConfig, build_run
@@ -52,7 +53,7 @@ def reconstruct_command(*, manifest: dict, settings: str, replayed: dict | None 
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "dataset": {**describe_dataset(kwargs["dataset"]),
                           "selected_with": selection_record(config.sequence, config.frames, config.format)},
-              "colour_model": kwargs["colour_model"].describe(),
+              "colour_model": colour_model_setup(kwargs["colour_model"]),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
     from mapping.pipeline import TrackingLostError
