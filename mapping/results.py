@@ -187,7 +187,9 @@ def describe_run(dataset, colour_model, backend, tracker) -> dict:
             return None
         return {k: v for k, v in vars(obj).items() if not k.startswith("_") and isinstance(v, (int, float, str, bool,
                                                                                              tuple, type(None)))}
-    return {"dataset": repr(dataset), "colour_model": colour_model.describe(),
+    from mapping.datasets import describe_dataset
+
+    return {"dataset": describe_dataset(dataset), "colour_model": colour_model.describe(),
             "backend": {"class": type(backend).__name__, **(params(backend) or {})},
             "tracker": None if tracker is None else {"class": type(tracker).__name__, **params(tracker)}}
 

@@ -5,7 +5,8 @@ exit 0 and gave other results: a response overwritten with another gamma, L1 mea
 a sequence that grew from 8 to 11 frames fused 11). An option (or SEQUENCE) given on the command line accepts the
 file as it is now; a config.json of an older radiomap still replays, with a note.
 
-Also: a run's config.json no longer holds the empty pre-run exposure summary."""
+Also: a compare method folder's config.json says how to replay it, the top-level one records the sequence, and a
+run's config.json no longer holds the empty pre-run exposure summary."""
 
 from __future__ import annotations
 
@@ -241,3 +242,27 @@ def test_compare_records_its_inputs_and_refuses_a_replay_whose_lut_changed(kit, 
     assert res.output.startswith(f"radiomap: error: {config}: --vignetting-lut {copies['vignetting']} changed since "
                                  "the recorded run read it (sha256 ")
 
+
+@pytest.mark.slow
+def test_a_method_folder_of_a_comparison_records_plain_json_and_says_how_to_replay(comparison, tmp_path):
+    """A method folder's config.json held ``"dataset": "<mapping.compare.run.FixedPoses object at 0x...>"`` and
+    reconstruct --config blamed an old radiomap; now it records the method, the sequence and the colour model as
+    plain JSON and ``part_of``, and --config names the replay of the comparison."""
+    method = config_of(comparison / "lut")
+    assert method["part_of"] == str((comparison / "config.json").absolute()) and method["method"]["name"] == "lut"
+    assert method["dataset"]["frames"] == 6 and "<" not in json.dumps(method)
+    assert method["colour_model"]["vignetting"].startswith("LUTVignetting(160x120")
+    assert method["settings"]["poses"].endswith("traj.txt") and method["settings"]["brightness"] == "mean"
+    for command in ("reconstruct", "compare"):
+        res = invoke(command, "--config", comparison / "lut" / "config.json", "-o", tmp_path / "rep_lut")
+        assert res.exit_code == 1 and res.output.strip() == (
+            f"radiomap: error: {comparison / 'lut' / 'config.json'}: the record of method 'lut' of a comparison, not a "
+            f"run's config; replay the comparison: radiomap compare --config {(comparison / 'config.json').absolute()} "
+            "--methods lut -o OUT")
+    # a method folder written before (its dataset the repr of a Python object) gets the same advice
+    old = {"dataset": "<mapping.compare.run.FixedPoses object at 0x7f>", "colour_model": {}, "backend": {}}
+    (tmp_path / "cmp" / "lut").mkdir(parents=True)
+    (tmp_path / "cmp" / "lut" / "config.json").write_text(json.dumps(old))
+    res = invoke("reconstruct", "--config", tmp_path / "cmp" / "lut" / "config.json", "-o", tmp_path / "rep_old")
+    assert res.exit_code == 1 and res.output.strip().endswith(
+        f"replay the comparison: radiomap compare --config {tmp_path / 'cmp' / 'config.json'} --methods lut -o OUT")

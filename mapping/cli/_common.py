@@ -231,6 +231,14 @@ def read_replay_config(path: str | os.PathLike, command: click.Command) -> tuple
     if not isinstance(doc, dict):
         raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
                               "pass the config.json a reconstruct or compare run wrote")
+    if "config_version" not in doc and isinstance(doc.get("method"), dict) and "part_of" in doc:
+        method, top = doc["method"].get("name", "?"), doc["part_of"] or "its comparison's config.json"
+        raise ConfigFileError(f"{path}: the record of method {method!r} of a comparison, not a run's config; replay "
+                              f"the comparison: radiomap compare --config {top} --methods {method} -o OUT")
+    if "config_version" not in doc and "FixedPoses" in str(doc.get("dataset")):   # a method folder of radiomap < 0.2
+        top = path.parent.parent / "config.json"
+        raise ConfigFileError(f"{path}: the record of a method folder of a comparison, not a run's config; replay the "
+                              f"comparison: radiomap compare --config {top} --methods {path.parent.name} -o OUT")
     if "config_version" not in doc:
         raise ConfigFileError(f"{path}: no key 'config_version' (written before radiomap replayed runs, or not by "
                               "radiomap); it cannot be replayed: give its options on the command line")
