@@ -266,3 +266,38 @@ def test_a_method_folder_of_a_comparison_records_plain_json_and_says_how_to_repl
     res = invoke("reconstruct", "--config", tmp_path / "cmp" / "lut" / "config.json", "-o", tmp_path / "rep_old")
     assert res.exit_code == 1 and res.output.strip().endswith(
         f"replay the comparison: radiomap compare --config {tmp_path / 'cmp' / 'config.json'} --methods lut -o OUT")
+
+
+def test_a_replay_whose_sequence_intrinsics_or_ground_truth_changed_is_refused(box, tmp_path):
+    """The files a run reads from the sequence folder itself: its intrinsics file (compared as the K it gives) and its
+    ground truth (a sha256 of the selected frames' poses); --intrinsics given on the command line is not compared."""
+    seq = tmp_path / "seq"
+    write_sequence(seq, box[:3])
+    write_log_trajectory(seq / "trajectory.log", [f.pose for f in box[:3]])
+    K = box[0].K
+    (seq / "intrinsics.K.txt").write_text("\n".join(" ".join(f"{v:.10g}" for v in row) for row in K) + "\n")
+    res = invoke("reconstruct", seq, "-o", tmp_path / "run", "--poses", "gt", "--voxel-size", "0.05", "--depth-max",
+                 "4", "--no-progress")
+    assert res.exit_code == 0, res.output
+    config = tmp_path / "run" / "config.json"
+    assert config_of(tmp_path / "run")["dataset"]["ground_truth_sha256"]
+    edited = K.copy()
+    edited[0, 0] *= 1.02
+    (seq / "intrinsics.K.txt").write_text("\n".join(" ".join(f"{v:.10g}" for v in row) for row in edited) + "\n")
+    res = invoke("reconstruct", "--config", config, "-o", tmp_path / "k", "--no-progress")
+    assert res.exit_code == 1 and not (tmp_path / "k").exists()
+    assert res.output.strip() == (
+        f"radiomap: error: {config}: the sequence {seq.absolute()} now gives intrinsics {edited[0, 0]:.6g},{K[1, 1]:.6g},"
+        f"{K[0, 2]:.6g},{K[1, 2]:.6g} where the recorded run had {K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},"
+        f"{K[1, 2]:.6g} (its intrinsics file changed); restore it, give --intrinsics on the command line, or run anew "
+        "without --config")
+    values = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
+    res = invoke("reconstruct", "--config", config, "-o", tmp_path / "given", "--intrinsics", values, "--no-progress")
+    assert res.exit_code == 0, res.output
+    poses = [f.pose.copy() for f in box[:3]]
+    poses[1][0, 3] += 0.01
+    write_log_trajectory(seq / "trajectory.log", poses)
+    res = invoke("reconstruct", "--config", config, "-o", tmp_path / "gt", "--intrinsics", values, "--no-progress")
+    assert res.exit_code == 1 and not (tmp_path / "gt").exists()
+    assert f"the ground-truth poses of the sequence {seq.absolute()} differ from the recorded run's (sha256" \
+        in res.output

@@ -177,8 +177,8 @@ def check_replayed_inputs(ctx: click.Context, records: dict[str, Any], inputs: t
 
 def replayed_sequence(ctx: click.Context) -> dict[str, Any] | None:
     """With ``--config``, when SEQUENCE, --frames and --format all come from the config.json: what its run recorded
-    of the frames (``frames``, ``frame_names_sha256``) for :func:`mapping.replay.check_frames`, which the command
-    calls once the sequence is open; else None (nothing to check)."""
+    of the frames (``frames``, ``frame_names_sha256``, ``ground_truth_sha256``, K and depth scale unless given) for
+    :func:`mapping.replay.check_frames`, which the command calls once the sequence is open; else None."""
     config, doc = ctx.meta.get(_META_CONFIG), ctx.meta.get(_META_RECORD)
     if config is None or doc is None or not isinstance(doc.get("dataset"), dict):
         return None
@@ -197,8 +197,13 @@ def replayed_sequence(ctx: click.Context) -> dict[str, Any] | None:
     now = selection_record(ctx.params["sequence"], ctx.params.get("frames"), ctx.params.get("format"))
     if any(recorded.get(k) != v for k, v in now.items()):
         return None
+    given = {n for n in ("intrinsics", "depth_scale")   # values chosen on the command line are not compared
+             if ctx.get_parameter_source(n) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)}
     return {"config": str(config), "sequence": str(ctx.params.get("sequence")), "frames": dataset.get("frames"),
-            "frame_names_sha256": dataset.get("frame_names_sha256")}
+            "frame_names_sha256": dataset.get("frame_names_sha256"),
+            "K": None if "intrinsics" in given else dataset.get("K"),
+            "depth_scale": None if "depth_scale" in given else dataset.get("depth_scale"),
+            "ground_truth_sha256": dataset.get("ground_truth_sha256")}
 
 
 def _replayable(param: click.Parameter) -> bool:
@@ -551,8 +556,8 @@ def evaluation_options(f):
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange", "Number",
            "PoseSource", "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
            "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive",
-           "read_replay_config", "refuse_sequence_as_output", "replay_manifest", "replayed_sequence", "run_manifest", "sequence_options", "settings_line",
-           "warn_far_depth"]
+           "read_replay_config", "refuse_sequence_as_output", "replay_manifest", "replayed_sequence", "run_manifest",
+           "sequence_options", "settings_line", "warn_far_depth"]
 
 
 class MeshFormats(click.ParamType):

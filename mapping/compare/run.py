@@ -267,8 +267,9 @@ def _method_config(method: Method, dataset, colour_model, part_of: Path | None, 
     from mapping.datasets import describe_dataset
     from mapping.results import colour_model_setup
 
-    return {"command": "compare", "part_of": None if part_of is None else str(Path(part_of).absolute()), "method": method.describe(),
-            "dataset": describe_dataset(dataset), "colour_model": colour_model_setup(colour_model),
+    return {"command": "compare", "part_of": None if part_of is None else str(Path(part_of).absolute()),
+            "method": method.describe(), "dataset": describe_dataset(dataset),
+            "colour_model": colour_model_setup(colour_model),
             "settings": {k: str(v) if k == "poses" else v for k, v in settings.items()}}
 
 
