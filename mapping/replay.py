@@ -64,12 +64,13 @@ def file_record(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def input_records(values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    """The records of the options in ``values`` ({option: value}) whose value names an existing file (or folder of
-    pose files): what config.json keeps under :data:`INPUTS_KEY`."""
+    """The records of the options in ``values`` ({option: value}) whose value names an existing file (a text, e.g.
+    ``--intrinsics FILE``, or a path) or, given as a path, a folder (of pose files): what config.json keeps under
+    :data:`INPUTS_KEY`."""
     out = {}
     for name, value in values.items():
-        if isinstance(value, (str, os.PathLike)) and str(value) and os.path.exists(value) and \
-                (os.path.isfile(value) or os.path.isdir(value)):
+        if (isinstance(value, (str, os.PathLike)) and os.path.isfile(value)) or \
+                (isinstance(value, os.PathLike) and os.path.isdir(value)):
             out[name] = file_record(value)
     return out
 

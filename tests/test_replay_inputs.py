@@ -259,6 +259,13 @@ def test_a_method_folder_of_a_comparison_records_plain_json_and_says_how_to_repl
             f"radiomap: error: {comparison / 'lut' / 'config.json'}: the record of method 'lut' of a comparison, not a "
             f"run's config; replay the comparison: radiomap compare --config {(comparison / 'config.json').absolute()} "
             "--methods lut -o OUT")
+    # a comparison that wrote no config.json (radiomap demo's): nothing to replay but the command
+    doc = {**method, "part_of": None}
+    (tmp_path / "demo.json").write_text(json.dumps(doc))
+    res = invoke("reconstruct", "--config", tmp_path / "demo.json", "-o", tmp_path / "rep_demo")
+    assert res.exit_code == 1 and res.output.strip() == (
+        f"radiomap: error: {tmp_path / 'demo.json'}: the record of method 'lut' of a comparison that wrote no "
+        "replayable config.json (e.g. radiomap demo's), not a run's config; run that command again")
     # a method folder written before (its dataset the repr of a Python object) gets the same advice
     old = {"dataset": "<mapping.compare.run.FixedPoses object at 0x7f>", "colour_model": {}, "backend": {}}
     (tmp_path / "cmp" / "lut").mkdir(parents=True)

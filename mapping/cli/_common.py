@@ -129,7 +129,8 @@ def replay_manifest(ctx: click.Context, *, files: tuple[str, ...] = (), inputs: 
     file it takes from its config.json differs from the recorded one (:func:`check_replayed_inputs`)."""
     from mapping.replay import INPUTS_KEY, input_records
 
-    records = input_records({name: ctx.params.get(name) for name in inputs})
+    records = input_records({p.name: ctx.params.get(p.name) for p in ctx.command.params if p.name in inputs and
+                             not (isinstance(p.type, PoseSource) and isinstance(ctx.params.get(p.name), str))})
     check_replayed_inputs(ctx, records, inputs)
     params = {}
     for param in ctx.command.params:
@@ -237,10 +238,14 @@ def read_replay_config(path: str | os.PathLike, command: click.Command) -> tuple
         raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
                               "pass the config.json a reconstruct or compare run wrote")
     if "config_version" not in doc and isinstance(doc.get("method"), dict) and "part_of" in doc:
-        method, top = doc["method"].get("name", "?"), doc["part_of"] or "its comparison's config.json"
+        method, top = doc["method"].get("name", "?"), doc["part_of"]
+        if not top:     # a comparison that wrote no config.json (radiomap demo's)
+            raise ConfigFileError(f"{path}: the record of method {method!r} of a comparison that wrote no replayable "
+                                  "config.json (e.g. radiomap demo's), not a run's config; run that command again")
         raise ConfigFileError(f"{path}: the record of method {method!r} of a comparison, not a run's config; replay "
                               f"the comparison: radiomap compare --config {top} --methods {method} -o OUT")
-    if "config_version" not in doc and "FixedPoses" in str(doc.get("dataset")):   # a method folder of radiomap < 0.2
+    if "config_version" not in doc and "FixedPoses" in str(doc.get("dataset")):   # a method folder written before
+        # part_of was recorded: its dataset the repr of mapping.compare.run.FixedPoses
         top = path.parent.parent / "config.json"
         raise ConfigFileError(f"{path}: the record of a method folder of a comparison, not a run's config; replay the "
                               f"comparison: radiomap compare --config {top} --methods {path.parent.name} -o OUT")
