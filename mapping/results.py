@@ -187,9 +187,23 @@ def describe_run(dataset, colour_model, backend, tracker) -> dict:
             return None
         return {k: v for k, v in vars(obj).items() if not k.startswith("_") and isinstance(v, (int, float, str, bool,
                                                                                              tuple, type(None)))}
-    return {"dataset": repr(dataset), "colour_model": colour_model.describe(),
+    from mapping.datasets import describe_dataset
+
+    return {"dataset": describe_dataset(dataset), "colour_model": colour_model.describe(),
             "backend": {"class": type(backend).__name__, **(params(backend) or {})},
             "tracker": None if tracker is None else {"class": type(tracker).__name__, **params(tracker)}}
+
+
+def colour_model_setup(colour_model) -> dict:
+    """``colour_model.describe()`` as config.json records it before the run: without what only the run knows (the
+    exposure estimates' summary, the k of a median mesh exposure), which metrics.json records when it ends."""
+    doc = dict(colour_model.describe())
+    if isinstance(doc.get("exposure"), dict):
+        doc["exposure"] = {k: v for k, v in doc["exposure"].items() if k != "summary"}
+    reference = doc.get("export_reference")
+    if isinstance(reference, dict) and reference.get("kind") == "median":
+        doc["export_reference"] = {k: v for k, v in reference.items() if k != "k"}
+    return doc
 
 
 def write_results(run: RunResult, dataset, colour_model, backend, tracker, output, *, write_mesh: bool,
@@ -234,5 +248,6 @@ def write_results(run: RunResult, dataset, colour_model, backend, tracker, outpu
     output.complete()
 
 
-__all__ = ["GROUND_TRUTH_FILE", "FrameRecord", "RunResult", "backend_stats", "describe_run", "frames_csv",
+__all__ = ["GROUND_TRUTH_FILE", "FrameRecord", "RunResult", "backend_stats", "colour_model_setup", "describe_run",
+           "frames_csv",
            "peak_rss_mb", "reason_kind", "write_partial", "write_results"]

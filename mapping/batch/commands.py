@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------ radiomap reconstruct
-def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
+def reconstruct_command(*, manifest: dict, settings: str, replayed: dict | None = None, **options: Any):
     """Reconstruct one sequence into its results folder as ``radiomap reconstruct`` does; returns the run
     (:class:`mapping.results.RunResult`) and the summary it wrote to ``summary.txt``.
 
@@ -34,8 +34,12 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
               already checked by the command.
     manifest: config.json's record of the options (the command's replay manifest); ``started`` is set when the
               run starts and the dataset, the colour model and the pipeline's configuration are added.
-    settings: the summary's settings line (which value came from where)."""
+    settings: the summary's settings line (which value came from where).
+    replayed: with ``--config``, what the replayed run recorded of its frames (:func:`mapping.replay.check_frames`
+              refuses the run, before anything is written, when the sequence now gives other frames)."""
     from mapping.datasets import describe_dataset, intrinsics_text
+    from mapping.replay import check_frames, selection_record
+    from mapping.results import colour_model_setup
     from mapping.export import plain_value
     from mapping.publication import ReconstructionFolder
     from mapping.factory import ReconstructConfig, build_run
@@ -44,10 +48,13 @@ def reconstruct_command(*, manifest: dict, settings: str, **options: Any):
 
     config = ReconstructConfig(**options)
     kwargs = build_run(config)   # opens the dataset and loads the models: fails before anything is written
+    check_frames(replayed, kwargs["dataset"])
     settings += ", " + intrinsics_text(kwargs["dataset"])
     folder = ReconstructionFolder(config.output, force=config.force)   # --force keeps a complete run until replaced
     record = {**manifest, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-              "dataset": describe_dataset(kwargs["dataset"]), "colour_model": kwargs["colour_model"].describe(),
+              "dataset": {**describe_dataset(kwargs["dataset"]),
+                          "selected_with": selection_record(config.sequence, config.frames, config.format)},
+              "colour_model": colour_model_setup(kwargs["colour_model"]),
               "pipeline": {k: plain_value(v) for k, v in asdict(config).items() if k not in ("force", "progress")}}
     folder.write_json("config.json", record)
     from mapping.pipeline import TrackingLostError
@@ -92,7 +99,7 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                     manifest: dict, settings: str, notify: Callable[[str], None] = log.warning,
                     holdout_every: int | None = None, tracker: str = "auto", colour_map: str | None = None,
                     poses_max_difference: float = 0.02, mesh_formats: tuple[str, ...] = ("ply",),
-                    exposures: str | None = None):
+                    exposures: str | None = None, replayed: dict | None = None):
     """Compare the radiometric corrections on one sequence as ``radiomap compare`` does; returns the
     :class:`mapping.compare.CompareResult` and the summary it wrote to ``summary.txt``.
 
@@ -101,12 +108,16 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
     manifest: config.json's record of the options (``methods_run`` is added).
     settings: the summary's settings line (which value came from where).
     notify:   receives a note on the sequence before the run (a light that changes during a simulation).
-    holdout_every: withhold every N-th frame from fusion and judge each map by them (:mod:`mapping.holdout`)."""
+    holdout_every: withhold every N-th frame from fusion and judge each map by them (:mod:`mapping.holdout`).
+    replayed: with ``--config``, what the replayed comparison recorded of its frames
+              (:func:`mapping.replay.check_frames`)."""
     from mapping.compare import compare
-    from mapping.datasets import intrinsics_text, open_dataset
+    from mapping.datasets import describe_dataset, intrinsics_text, open_dataset
+    from mapping.replay import check_frames, selection_record
 
     dataset = open_dataset(sequence, format=format, depth_scale=depth_scale, intrinsics=intrinsics,
                            frames=frames or slice(None))
+    check_frames(replayed, dataset)
     settings += ", " + intrinsics_text(dataset)
     from mapping.pose_files import resolve_poses
 
@@ -144,7 +155,9 @@ def compare_command(sequence: Path, *, output: Path, response: Path, vignetting_
                      render_width=render_width, progress=progress, force=force,
                      title=f"radiomap compare: {Path(sequence).name}",
                      mesh_formats=mesh_formats,
-                     config={**manifest, "methods_run": [m.name for m in method_list]}, summary=summary,
+                     config={**manifest, "dataset": {**describe_dataset(dataset),
+                                                     "selected_with": selection_record(sequence, frames, format)},
+                             "methods_run": [m.name for m in method_list]}, summary=summary,
                      holdout_every=holdout_every, tracker_options={"name": tracker}, colour_map=colour_map,
                      given_exposures=None if given is None else given.known)
     return result, summary(result)

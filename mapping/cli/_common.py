@@ -33,8 +33,9 @@ CONFIG_VERSION = 1
 NOT_REPLAYED = frozenset({"config", "force", "no_progress", "progress", "help"})
 # keys of config.json besides "parameters": what the run was and where it ran (read by people, not replayed)
 CONFIG_INFO_KEYS = ("command", "config_version", "parameters", "argv", "replay_of", "radiomap_version", "python",
-                    "platform", "started", "dataset", "colour_model", "pipeline", "methods_run")
+                    "platform", "started", "dataset", "colour_model", "pipeline", "methods_run", "inputs")
 _META_CONFIG = "radiomap.config"
+_META_RECORD = "radiomap.config_record"     # the replayed config.json's document (its inputs and dataset)
 _META_ARGV = "radiomap.argv"
 _META_ALIAS_VALUES = "radiomap.alias_values"
 
@@ -119,10 +120,18 @@ def run_manifest(command: str, params: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def replay_manifest(ctx: click.Context, *, files: tuple[str, ...] = (), **info: Any) -> dict[str, Any]:
+def replay_manifest(ctx: click.Context, *, files: tuple[str, ...] = (), inputs: tuple[str, ...] = (),
+                    **info: Any) -> dict[str, Any]:
     """config.json of a replayable command: its options as plain values under "parameters" (``--config``
     reads them back), ``info`` (keys of :data:`CONFIG_INFO_KEYS`) beside them. ``files``: text options that
-    may name a file (e.g. ``--intrinsics``), recorded absolute when they do."""
+    may name a file (e.g. ``--intrinsics``), recorded absolute when they do. ``inputs``: the options whose file the
+    run reads, recorded under "inputs" with their sha256 and size (:mod:`mapping.replay`); a replay refuses when a
+    file it takes from its config.json differs from the recorded one (:func:`check_replayed_inputs`)."""
+    from mapping.replay import INPUTS_KEY, input_records
+
+    records = input_records({p.name: ctx.params.get(p.name) for p in ctx.command.params if p.name in inputs and
+                             not (isinstance(p.type, PoseSource) and isinstance(ctx.params.get(p.name), str))})
+    check_replayed_inputs(ctx, records, inputs)
     params = {}
     for param in ctx.command.params:
         if not _replayable(param) or param.name not in ctx.params:
@@ -143,7 +152,59 @@ def replay_manifest(ctx: click.Context, *, files: tuple[str, ...] = (), **info: 
     manifest.update({"radiomap_version": __version__, "python": sys.version.split()[0],
                      "platform": platform.platform(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     manifest.update(info)
+    manifest[INPUTS_KEY] = records
     return manifest
+
+
+def check_replayed_inputs(ctx: click.Context, records: dict[str, Any], inputs: tuple[str, ...]) -> None:
+    """With ``--config``: the files of ``inputs`` taken from the config.json compared with those it recorded
+    (:func:`mapping.replay.check_inputs`; an option given on the command line replaces the recorded file and is not
+    compared); a config.json that recorded none gets a one-line note on stderr."""
+    config, doc = ctx.meta.get(_META_CONFIG), ctx.meta.get(_META_RECORD)
+    if config is None or doc is None:
+        return
+    from mapping.replay import INPUTS_KEY, check_inputs, unchecked_note
+
+    note = unchecked_note(config, doc)
+    if note is not None:
+        click.echo(note, err=True)
+        return
+    recorded = doc[INPUTS_KEY] if isinstance(doc[INPUTS_KEY], dict) else {}
+    spellings = {p.name: max(p.opts, key=len) for p in ctx.command.params   # used, and taken from the file
+                 if p.name in inputs and ctx.params.get(p.name) is not None and
+                 ctx.get_parameter_source(p.name) is ParameterSource.DEFAULT_MAP}
+    check_inputs(config, recorded, records, spellings)
+
+
+def replayed_sequence(ctx: click.Context) -> dict[str, Any] | None:
+    """With ``--config``, when SEQUENCE, --frames and --format all come from the config.json: what its run recorded
+    of the frames (``frames``, ``frame_names_sha256``, ``ground_truth_sha256``, K and depth scale unless given) for
+    :func:`mapping.replay.check_frames`, which the command calls once the sequence is open; else None."""
+    config, doc = ctx.meta.get(_META_CONFIG), ctx.meta.get(_META_RECORD)
+    if config is None or doc is None or not isinstance(doc.get("dataset"), dict):
+        return None
+    if ctx.get_parameter_source("sequence") is not ParameterSource.DEFAULT_MAP or \
+            any(ctx.get_parameter_source(n) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
+                for n in ("frames", "format")):
+        return None
+    dataset = doc["dataset"]
+    from mapping.replay import selection_record
+
+    # what selected the recorded frames (an older file: its pipeline's options); another selection (a hand-edited
+    # parameters.frames) is not compared
+    recorded = dataset.get("selected_with") or doc.get("pipeline")
+    if not isinstance(recorded, dict):
+        return None
+    now = selection_record(ctx.params["sequence"], ctx.params.get("frames"), ctx.params.get("format"))
+    if any(recorded.get(k) != v for k, v in now.items()):
+        return None
+    given = {n for n in ("intrinsics", "depth_scale")   # values chosen on the command line are not compared
+             if ctx.get_parameter_source(n) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)}
+    return {"config": str(config), "sequence": str(ctx.params.get("sequence")), "frames": dataset.get("frames"),
+            "frame_names_sha256": dataset.get("frame_names_sha256"),
+            "K": None if "intrinsics" in given else dataset.get("K"),
+            "depth_scale": None if "depth_scale" in given else dataset.get("depth_scale"),
+            "ground_truth_sha256": dataset.get("ground_truth_sha256")}
 
 
 def _replayable(param: click.Parameter) -> bool:
@@ -156,6 +217,11 @@ def _replayable(param: click.Parameter) -> bool:
 def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[str, Any]:
     """The ``parameters`` of a config.json written by ``command``, checked: JSON, the same command, this
     version of the contract, only known keys. Values None (= the option's default) are left out."""
+    return read_replay_config(path, command)[1]
+
+
+def read_replay_config(path: str | os.PathLike, command: click.Command) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(document, parameters)`` of a config.json written by ``command`` (:func:`load_replay_config`)."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
@@ -171,6 +237,18 @@ def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[
     if not isinstance(doc, dict):
         raise ConfigFileError(f"{path}: holds a JSON {type(doc).__name__}, not the object a radiomap run writes; "
                               "pass the config.json a reconstruct or compare run wrote")
+    if "config_version" not in doc and isinstance(doc.get("method"), dict) and "part_of" in doc:
+        method, top = doc["method"].get("name", "?"), doc["part_of"]
+        if not top:     # a comparison that wrote no config.json (radiomap demo's)
+            raise ConfigFileError(f"{path}: the record of method {method!r} of a comparison that wrote no replayable "
+                                  "config.json (e.g. radiomap demo's), not a run's config; run that command again")
+        raise ConfigFileError(f"{path}: the record of method {method!r} of a comparison, not a run's config; replay "
+                              f"the comparison: radiomap compare --config {top} --methods {method} -o OUT")
+    if "config_version" not in doc and "FixedPoses" in str(doc.get("dataset")):   # a method folder written before
+        # part_of was recorded: its dataset the repr of mapping.compare.run.FixedPoses
+        top = path.parent.parent / "config.json"
+        raise ConfigFileError(f"{path}: the record of a method folder of a comparison, not a run's config; replay the "
+                              f"comparison: radiomap compare --config {top} --methods {path.parent.name} -o OUT")
     if "config_version" not in doc:
         raise ConfigFileError(f"{path}: no key 'config_version' (written before radiomap replayed runs, or not by "
                               "radiomap); it cannot be replayed: give its options on the command line")
@@ -196,15 +274,17 @@ def load_replay_config(path: str | os.PathLike, command: click.Command) -> dict[
                     " (not replayed: give it on the command line)" if key in NOT_REPLAYED else "")
             raise ConfigFileError(f"{path}: unknown key 'parameters.{key}' for radiomap {command.name}{hint}; "
                                   "remove or rename it")
-    return {k: v for k, v in params.items() if v is not None}
+    return doc, {k: v for k, v in params.items() if v is not None}
 
 
 def _load_config(ctx: click.Context, param: click.Parameter, value):
     if value is None or ctx.resilient_parsing:
         return value
-    ctx.default_map = {**(ctx.default_map or {}), **load_replay_config(value, ctx.command),
+    doc, params = read_replay_config(value, ctx.command)
+    ctx.default_map = {**(ctx.default_map or {}), **params,
                        **ctx.meta.get(_META_ALIAS_VALUES, {})}   # an old spelling given here beats the file
     ctx.meta[_META_CONFIG] = value
+    ctx.meta[_META_RECORD] = doc
     return value
 
 
@@ -481,8 +561,8 @@ def evaluation_options(f):
 __all__ = ["CONFIG_VERSION", "ConfigFileError", "DIFFERENT_DEFAULTS", "DeprecatedAlias", "FrameRange", "Number",
            "PoseSource", "RadiomapCommand", "config_option", "deprecated_alias", "drop_replayed", "evaluation_options",
            "fusion_options", "load_replay_config", "pose_arguments", "pose_options", "positive",
-           "refuse_sequence_as_output", "replay_manifest", "run_manifest", "sequence_options", "settings_line",
-           "warn_far_depth"]
+           "read_replay_config", "refuse_sequence_as_output", "replay_manifest", "replayed_sequence", "run_manifest",
+           "sequence_options", "settings_line", "warn_far_depth"]
 
 
 class MeshFormats(click.ParamType):

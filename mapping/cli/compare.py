@@ -8,7 +8,8 @@ import click
 
 from mapping.cli._common import (RadiomapCommand, config_option, drop_replayed, evaluation_options, formats_option,
                                  fusion_options,
-                                 pose_arguments, pose_options, replay_manifest, sequence_options, settings_line,
+                                 pose_arguments, pose_options, replay_manifest, replayed_sequence, sequence_options,
+                                 settings_line,
                                  warn_far_depth, written_text)
 from mapping.factory import TRACKERS
 
@@ -187,5 +188,7 @@ def task_arguments(ctx: click.Context) -> dict:
             "poses_max_difference": max_difference,
             "exposure_compensation": p["exposure_compensation"], "progress": not p["no_progress"],
             "exposures": p["exposures"],
-            "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
-            "settings": settings}
+            "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures"),
+                                        inputs=("response", "vignetting_lut", "vignetting_poly", "vignetting_self",
+                                                "poses", "intrinsics", "exposures")),
+            "settings": settings, "replayed": replayed_sequence(ctx)}

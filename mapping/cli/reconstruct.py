@@ -8,8 +8,8 @@ import click
 
 from mapping.cli._common import (RadiomapCommand, check_formats, config_option, deprecated_alias, drop_replayed,
                                  evaluation_options, formats_option, fusion_options, Number, pose_arguments,
-                                 pose_options, replay_manifest, sequence_options, settings_line, warn_far_depth,
-                                 written_text)
+                                 pose_options, replay_manifest, replayed_sequence, sequence_options, settings_line,
+                                 warn_far_depth, written_text)
 from mapping.validation import EXPOSURE_FACTOR
 from mapping.factory import TRACKERS
 
@@ -176,5 +176,7 @@ def task_arguments(ctx: click.Context) -> dict:
                  f"reconstruct's default {'with' if response is not None else 'without'} --response")]
     if backend == "tsdf":
         settings.append(("formats", "formats", ",".join(formats)))
-    return {**options, "manifest": replay_manifest(ctx, files=("intrinsics", "poses", "exposures")),
-            "settings": settings_line(ctx, settings)}
+    manifest = replay_manifest(ctx, files=("intrinsics", "poses", "exposures"),
+                               inputs=("response", "vignetting", "poses", "intrinsics", "exposures"))
+    return {**options, "manifest": manifest, "settings": settings_line(ctx, settings),
+            "replayed": replayed_sequence(ctx)}

@@ -172,6 +172,10 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     view = FixedPoses(dataset, None if (poses == "gt" or track or from_file) else fixed,
                                       on_frame=_ticks(bar, reads))
                     folder = folders.enter_context(top.subfolder(method.name))
+                    folder.write_json("config.json", _method_config(
+                        method, dataset, colour_model, top.published(top.path / "config.json") if config else None,
+                        backend=backend, poses=poses, voxel_size=voxel_size, depth_max=depth_max,
+                        brightness=brightness))
                     t0 = time.perf_counter()
                     tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
@@ -253,6 +257,20 @@ def _method_result(method: Method, run, folder: Path, fusion, colour_model, seco
                        "geometry": {"kind": geometry.kind, "vertices": len(geometry),
                                     "triangles": int(geometry.triangles.shape[0])}})
     return result
+
+
+def _method_config(method: Method, dataset, colour_model, part_of: Path | None, **settings: Any) -> dict[str, Any]:
+    """A method folder's config.json: the method, the sequence, its colour model before the run and the
+    comparison's settings, and ``part_of``, the comparison's config.json (None when the caller wrote none): a method
+    is replayed by replaying its comparison (``radiomap compare --config PART_OF --methods NAME``), which
+    ``--config`` says when given this file."""
+    from mapping.datasets import describe_dataset
+    from mapping.results import colour_model_setup
+
+    return {"command": "compare", "part_of": None if part_of is None else str(Path(part_of).absolute()),
+            "method": method.describe(), "dataset": describe_dataset(dataset),
+            "colour_model": colour_model_setup(colour_model),
+            "settings": {k: str(v) if k == "poses" else v for k, v in settings.items()}}
 
 
 def _ticks(bar, reads: int) -> Callable[[], None]:

@@ -68,9 +68,13 @@ def open_dataset(path: str | os.PathLike, *, format: str | None = None, depth_sc
 
 def describe_dataset(dataset: RGBDDataset) -> dict:
     """What a results folder records about the sequence it was made from (config.json's "dataset"): the loader,
-    the selected frames, the image size, K, and, for a file sequence, its depth scale and where K came from."""
+    the selected frames (their number, and for a file sequence a sha256 of their file names and the whole sequence's
+    number, which a replay checks: :mod:`mapping.replay`), the image size, K, and, for a file sequence, its depth
+    scale and where K came from."""
+    from mapping.replay import frames_record
+
     source = getattr(dataset, "intrinsics_source", None)
-    return {"class": type(dataset).__name__, "frames": len(dataset), "width": dataset.width,
+    return {"class": type(dataset).__name__, "frames": len(dataset), **frames_record(dataset), "width": dataset.width,
             "height": dataset.height, "K": np.asarray(dataset.K).tolist(),
             "depth_scale": getattr(dataset, "depth_scale", None),
             "intrinsics_source": None if source is None else str(source)}
