@@ -115,6 +115,18 @@ def test_a_resume_with_other_options_is_refused_before_anything_runs(data, tmp_p
         assert json.loads((out / name / "config.json").read_text())["parameters"]["voxel_size"] == 0.04
     res = _batch(data["list"], out, _options(data, voxel="0.04"))
     assert res.returncode == 0 and res.stdout.count("skipped, complete in") == 2
+    # the response rewritten under the same path (its contents are recorded: mapping.replay): refused, naming it
+    from radiometry.response import CameraResponse
+
+    CameraResponse.gamma(1.8).save(data["crf"].with_name("crf18.npz"))
+    shutil.copyfile(data["crf"], tmp_path / "crf_saved.npz")
+    try:
+        shutil.copyfile(data["crf"].with_name("crf18.npz"), data["crf"])
+        res = _batch(data["list"], out, _options(data, voxel="0.04"))
+        assert res.returncode == 1, res.stdout
+        assert f"--response {data['crf']} (sha256 " in res.stderr and "-> other contents" in res.stderr, res.stderr
+    finally:
+        shutil.copyfile(tmp_path / "crf_saved.npz", data["crf"])
 
 
 def test_a_folder_of_another_sequence_or_command_is_refused(tmp_path):

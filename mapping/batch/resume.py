@@ -20,6 +20,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from mapping.replay import INPUTS_KEY
+
 #: the record of a run: (file in its folder, key of the record in it; None: the whole file)
 RECORDS = (("config.json", None), ("self_calibration.json", "run"))
 #: parameters that say where a run read and wrote, not what it computed (compared apart: the sequence)
@@ -58,13 +60,23 @@ def _plain(value: Any) -> Any:
 def changed_options(old: dict, new: dict) -> list[tuple[str, Any, Any]]:
     """``(name, old value, new value)`` of every option the records ``old`` (a folder's) and ``new`` (this
     batch's) both hold with different values, the place (:data:`PLACE`) left out; an option one record does not
-    hold (written by an older radiomap) is not compared. Top-level entries named ``*digest*`` or ``*sha256*``
+    hold (written by an older radiomap) is not compared. The input files' recorded contents (``inputs``, where both
+    records hold a file's sha256) and top-level entries named ``*digest*`` or ``*sha256*``
     that both hold are compared too (the contents of the input files, where a record keeps them)."""
     a, b = _plain(old.get("parameters") or {}), _plain(new.get("parameters") or {})
     changed = [(k, a[k], b[k]) for k in a if k in b and k not in PLACE and a[k] != b[k]]
     for key in old:
         if ("digest" in key or "sha256" in key) and key in new and _plain(old[key]) != _plain(new[key]):
             changed.append((key, "recorded contents", "other contents"))
+    # the input files' contents (mapping.replay: "inputs", per option its path, sha256 and size), where both hold one
+    before, now = old.get(INPUTS_KEY), new.get(INPUTS_KEY)
+    if isinstance(before, dict) and isinstance(now, dict):
+        for name, record in before.items():
+            digest = record.get("sha256") if isinstance(record, dict) else None
+            other = now.get(name).get("sha256") if isinstance(now.get(name), dict) else None
+            if digest and other and digest != other and name not in {k for k, _, _ in changed}:
+                changed.append((name, f"{record.get('path', '?')} (sha256 {digest[:12]})",
+                                f"other contents (sha256 {other[:12]})"))
     return changed
 
 
