@@ -29,6 +29,10 @@ data alone (``--estimators`` lists them; :func:`sigma_estimates`). ``--estimate-
 against the truth without SIMEX fits (``--noise`` sets the post-noise levels to render). ``--real`` runs the real
 stacks in ``../shared/data/brackets`` (no truth: how far SIMEX moves the curve).
 
+Variants (measured 2026-11-28, docs/calibration_pipelines.md; none passed): ``--stall noisy`` / ``window`` (which
+readings the noisy refits may use), ``--freeze-top K``, ``--lambdas``, ``--draws``, ``--no-rounding``; ``--dump DIR``
+saves each stack's curves per lambda.
+
 Usage::
 
     python scripts/study_simex.py --size 320x240 --curves kink-4x flat-then-steep --pipelines post-noise
@@ -153,14 +157,15 @@ def extrapolate(lams: np.ndarray, curves: np.ndarray, how: str) -> np.ndarray:
 
 def simex_fit(images, times, sigma: float | list[float], *, lambdas=(0.5, 1.0, 2.0), draws: int = 4,
               rounding: bool = True, seed: int = 0, lam: float | None = None,
-              smooth: float | None = None, stall: str = "data") -> dict:
+              smooth: float | None = None, stall: str = "data", freeze_top: int = 0) -> dict:
     """The default fit and its SIMEX corrections: ``{"base": table (256, C), extrapolant: table (256, C), ...,
     "declared": [(lo, hi)], "sigma": [...], "seconds_base": s, "seconds": s, "g": per channel (K, 256)}``.
     ``sigma``: the level noise (levels) per channel or one for all. ``stall``: ``"data"`` leaves out, in every
     noisy refit, the observations the data's stall test left out; ``"noisy"`` runs the stall test on the noisy
     readings (its 4-level tolerance then lets far more saturated readings in as the noise grows); ``"window"``:
     as ``"data"``, and the readings outside the data's level window left out too (no influx across the window's
-    ends: a saturated reading that the stall test missed stays out however much noise is added)."""
+    ends: a saturated reading that the stall test missed stays out however much noise is added). ``freeze_top``: the
+    levels above ``top - freeze_top`` take that level's correction (0: none)."""
     from radiometry.response.inputs import _as_stack
     from radiometry.response.levels import BLOCKY, _pile, prepare, stalled_observations
     from radiometry.response.loglog import DEFAULT_LAM, DEFAULT_SMOOTH, _saturates_at
@@ -213,6 +218,9 @@ def simex_fit(images, times, sigma: float | list[float], *, lambdas=(0.5, 1.0, 2
         for how in EXTRAPOLANTS if len(lambdas) and draws else ():
             g = np.full(256, -np.inf)  # level 0: f^-1 = 0 (ln = -inf) in every fit
             g[1:] = extrapolate(real_lams, curves[:, 1:], how)
+            if freeze_top:  # the top levels take the correction of level top - freeze_top
+                keep = top - int(freeze_top)
+                g[keep + 1:] = curves[0, keep + 1:] + (g[keep] - curves[0, keep])
             g = np.maximum.accumulate(g)  # keep f^-1 non-decreasing
             tables[how].append(np.exp(g))
     for key, cols in tables.items():
@@ -360,7 +368,7 @@ def synthetic_rows(args) -> list[dict]:
                 else:
                     sigma = float(args.sigma)
                 res = simex_fit(images, times, sigma, lambdas=tuple(args.lambdas), draws=args.draws,
-                                rounding=not args.no_rounding, stall=args.stall)
+                                rounding=not args.no_rounding, stall=args.stall, freeze_top=args.freeze_top)
                 row = {"curve": name, "pipeline": pipeline, "design": design,
                        "sigma": "/".join(f"{s:.2f}" for s in res["sigma"]),
                        "fit": _fmt(max_error_scale_free(res["base"], table, res["declared"]))}
@@ -458,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draws", type=int, default=4)
     parser.add_argument("--stall", choices=("data", "noisy", "window"), default="data",
                         help="the noisy refits leave out the data's stalled observations, or test the noisy ones")
+    parser.add_argument("--freeze-top", type=int, default=0,
+                        help="the top K levels take the correction of level top - K (0: none)")
     parser.add_argument("--no-rounding", action="store_true", help="V0 = sigma^2 (not + 1/12)")
     parser.add_argument("--extrapolants", nargs="+", choices=EXTRAPOLANTS, default=list(EXTRAPOLANTS))
     parser.add_argument("--estimate-only", action="store_true")
