@@ -269,3 +269,32 @@ def test_the_summary_names_which_seconds_it_shows(data, tmp_path):
         assert float(row["frames/s"]) == pytest.approx(metrics["timing"]["frames_per_second"], abs=0.006)
     rows = list(csv.DictReader((data["made"] / "summary.csv").open()))
     assert "loop s" in rows[0] and "seconds" not in rows[0]
+
+
+def test_a_self_calibration_record_compares_file_contents_not_spellings(tmp_path, monkeypatch):
+    """A self-calibrate record (what a resumed ``batch self-calibrate`` compares) held its paths as typed and no file
+    contents: a response rewritten in place was skipped as complete, the same file spelled from another folder was
+    refused, and --no-plots (figures only) refused a resume (review of 2026-11-28). Now the paths are absolute, the
+    response's sha256 is recorded and compared, and --no-plots is not compared."""
+    from mapping.cli.self_calibrate import command, task_arguments
+    from mapping.simulation import sample_sequence
+    from radiometry.response import CameraResponse
+
+    seq = sample_sequence("room")
+    (tmp_path / "x").mkdir()
+    CameraResponse.gamma().save(tmp_path / "x" / "crf.npz")
+
+    def record(cwd, response, *extra):
+        monkeypatch.chdir(cwd)
+        with command.make_context("self-calibrate", [str(seq), "-r", response, "-o", str(tmp_path / "out"),
+                                                     *extra]) as ctx, ctx.scope():
+            return task_arguments(ctx)["manifest"]
+
+    first = record(tmp_path / "x", "crf.npz")
+    assert first["parameters"]["response"] == str(tmp_path / "x" / "crf.npz")
+    assert first["inputs"]["response"]["path"] == str(tmp_path / "x" / "crf.npz")
+    assert changed_options(first, record(tmp_path, "x/crf.npz")) == []            # the same file from elsewhere
+    assert changed_options(first, record(tmp_path / "x", "crf.npz", "--no-plots")) == []   # figures only
+    CameraResponse.gamma(1.8).save(tmp_path / "x" / "crf.npz")                    # rewritten in place
+    changed = changed_options(first, record(tmp_path / "x", "crf.npz"))
+    assert [name for name, _, _ in changed] == ["response"] and "other contents" in changed[0][2], changed

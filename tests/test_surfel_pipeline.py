@@ -179,6 +179,11 @@ def test_cli_surfel_backend_refuses_mesh_formats_it_does_not_write(tmp_path):
         assert res.exit_code == 2, res.output
         assert "--formats" in res.output and "glb" in res.output and "PLY files only" in res.output, res.output
         assert not out.exists()
+    # compare's old spelling --glb is named as typed
+    res = runner.invoke(cli, ["compare", str(seq), "--poses", "gt", "--frames", "0:2", "--no-progress", "-r",
+                              str(seq / "truth" / "response.npz"), "--backend", "surfel", "--glb", "-o",
+                              str(tmp_path / "glb")])
+    assert res.exit_code == 2 and "drop --glb" in res.output, res.output
     res = runner.invoke(cli, ["reconstruct", str(seq), "--poses", "gt", "--frames", "0:2", "--no-progress",
                               "--backend", "surfel", "--formats", "ply", "-o", str(tmp_path / "ply")])
     assert res.exit_code == 0, res.output

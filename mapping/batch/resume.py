@@ -26,6 +26,8 @@ from mapping.replay import INPUTS_KEY
 RECORDS = (("config.json", None), ("self_calibration.json", "run"))
 #: parameters that say where a run read and wrote, not what it computed (compared apart: the sequence)
 PLACE = frozenset({"sequence", "output"})
+#: recorded options that do not change a run's results (self-calibrate's figures: --no-plots), never compared
+NO_EFFECT = frozenset({"plots"})
 #: the list of files a run wrote (:data:`mapping.export.MANIFEST`; spelled here so that nothing heavy is imported)
 FILE_LIST = ".radiomap-files.json"
 
@@ -64,7 +66,7 @@ def changed_options(old: dict, new: dict) -> list[tuple[str, Any, Any]]:
     records hold a file's sha256) and top-level entries named ``*digest*`` or ``*sha256*``
     that both hold are compared too (the contents of the input files, where a record keeps them)."""
     a, b = _plain(old.get("parameters") or {}), _plain(new.get("parameters") or {})
-    changed = [(k, a[k], b[k]) for k in a if k in b and k not in PLACE and a[k] != b[k]]
+    changed = [(k, a[k], b[k]) for k in a if k in b and k not in PLACE | NO_EFFECT and a[k] != b[k]]
     for key in old:
         if ("digest" in key or "sha256" in key) and key in new and _plain(old[key]) != _plain(new[key]):
             changed.append((key, "recorded contents", "other contents"))

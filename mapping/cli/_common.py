@@ -588,15 +588,16 @@ def formats_option(f):
              "The surfel backend writes PLY only.")(f)
 
 
-def check_formats(ctx: click.Context, formats: tuple[str, ...], backend: str) -> tuple[str, ...]:
+def check_formats(ctx: click.Context, formats: tuple[str, ...], backend: str, *, spelling: str = "--formats"
+                  ) -> tuple[str, ...]:
     """``--formats`` checked against ``--backend``: the surfel backend writes PLY files only (surfels.ply, and
     surfels_mesh. py with --surfel-mesh), so other formats asked for are a usage error rather than silently not
     written (a replayed value is dropped with a note: :func:`drop_replayed`)."""
     extra = [f for f in formats if f != "ply"]
     if backend == "surfel" and extra and not drop_replayed(ctx, "formats", ("ply",), "--backend surfel"):
         raise click.BadParameter(f"{','.join(extra)}: the surfel backend writes PLY files only (surfels.ply, and "
-                                 "surfels_mesh.ply with --surfel-mesh); drop --formats or use --backend tsdf",
-                                 param_hint="--formats")
+                                 f"surfels_mesh.ply with --surfel-mesh); drop {spelling} or use --backend tsdf",
+                                 param_hint=spelling)
     return ("ply",) if backend == "surfel" else formats
 
 

@@ -136,7 +136,7 @@ def task_arguments(ctx: click.Context) -> dict:
         formats = formats or ("ply",)
     from mapping.cli._common import check_formats, refuse_sequence_as_output
 
-    formats = check_formats(ctx, formats, p["backend"])
+    formats = check_formats(ctx, formats, p["backend"], spelling="--glb" if p["glb"] else "--formats")
 
     refuse_sequence_as_output(p["sequence"], p["output"])
     poses, max_difference = pose_arguments(ctx)   # a trajectory file of the sequence resolved

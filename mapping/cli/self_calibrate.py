@@ -93,11 +93,19 @@ def task_arguments(ctx: click.Context) -> dict:
         from mapping.exposure_files import read_exposure_file
 
         read_exposure_file(p["exposures_path"])   # a bad file fails here, before anything is written
-    manifest = run_manifest("self-calibrate", {"sequence": p["sequence"], "response": p["response_path"],
-                                               "poses": p["poses"], "tracker": p["tracker"],
+    from mapping.replay import INPUTS_KEY, input_records
+
+    def absolute(value):   # a path as typed is another text from another folder (mapping.batch.resume compares them)
+        return os.path.abspath(value) if isinstance(value, str) and value and os.path.exists(value) else value
+
+    manifest = run_manifest("self-calibrate", {"sequence": absolute(p["sequence"]),
+                                               "response": absolute(p["response_path"]),
+                                               "poses": absolute(p["poses"]) if isinstance(p["poses"], str) and
+                                               os.path.isfile(p["poses"]) else p["poses"], "tracker": p["tracker"],
                                                "frames": None if frames is None else
                                                f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}",
-                                               "output": p["output"], "exposures": p["exposures_path"],
+                                               "output": absolute(p["output"]),
+                                               "exposures": absolute(p["exposures_path"]),
                                                "holdout": p["holdout"], "strict": p["strict"],
                                                # read by a resumed batch: a complete folder made with other
                                                # values is refused (mapping.batch.resume)
@@ -106,6 +114,10 @@ def task_arguments(ctx: click.Context) -> dict:
                                                os.path.isfile(p["intrinsics"]) else os.path.abspath(p["intrinsics"]),
                                                "poses_max_difference": p["poses_max_difference"],
                                                "plots": not p["no_plots"]})
+    # the contents of the files it reads (sha256, mapping.replay): a resumed batch compares them
+    manifest[INPUTS_KEY] = input_records({"response": p["response_path"], "exposures": p["exposures_path"],
+                                          "poses": p["poses"] if isinstance(p["poses"], str) and
+                                          os.path.isfile(p["poses"]) else None})
     return {"sequence": p["sequence"], "output": p["output"], "response": p["response_path"], "poses": p["poses"],
             "tracker": p["tracker"], "poses_max_difference": max_difference,
             "frames": frames, "format": p["format"], "depth_scale": p["depth_scale"], "intrinsics": p["intrinsics"],
