@@ -133,7 +133,8 @@ def frames_record(dataset) -> dict[str, Any]:
 
 def _names_digest(dataset) -> str | None:
     names = frame_names(dataset)
-    return None if names is None else hashlib.sha256("\n".join(names).encode()).hexdigest()
+    # names read from non-UTF-8 lists keep their bytes as surrogates (radiometry.textlists): hash those bytes
+    return None if names is None else hashlib.sha256("\n".join(names).encode("utf-8", "surrogateescape")).hexdigest()
 
 
 def _ground_truth_digest(dataset) -> str | None:

@@ -172,12 +172,12 @@ def compare(dataset, methods: Sequence[Method], *, output: str | Path, backend: 
                     view = FixedPoses(dataset, None if (poses == "gt" or track or from_file) else fixed,
                                       on_frame=_ticks(bar, reads))
                     folder = folders.enter_context(top.subfolder(method.name))
+                    tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     folder.write_json("config.json", _method_config(
                         method, dataset, colour_model, top.published(top.path / "config.json") if config else None,
-                        backend=backend, poses=poses, voxel_size=voxel_size, depth_max=depth_max,
+                        fusion, tracker, backend=backend, poses=poses, voxel_size=voxel_size, depth_max=depth_max,
                         brightness=brightness))
                     t0 = time.perf_counter()
-                    tracker = make_tracker(depth_max=depth_max, **dict(tracker_options or {})) if track else None
                     run = reconstruct(view, colour_model=colour_model, backend=fusion, tracker=tracker,
                                       poses="icp" if track else poses if from_file else "gt", output=folder,
                                       progress=False,
@@ -259,17 +259,19 @@ def _method_result(method: Method, run, folder: Path, fusion, colour_model, seco
     return result
 
 
-def _method_config(method: Method, dataset, colour_model, part_of: Path | None, **settings: Any) -> dict[str, Any]:
-    """A method folder's config.json: the method, the sequence, its colour model before the run and the
-    comparison's settings, and ``part_of``, the comparison's config.json (None when the caller wrote none): a method
-    is replayed by replaying its comparison (``radiomap compare --config PART_OF --methods NAME``), which
-    ``--config`` says when given this file."""
-    from mapping.datasets import describe_dataset
-    from mapping.results import colour_model_setup
+def _method_config(method: Method, dataset, colour_model, part_of: Path | None, fusion, tracker,
+                   **settings: Any) -> dict[str, Any]:
+    """A method folder's config.json: the method, the sequence, its colour model before the run, the fusion backend
+    and the tracker (their classes and parameters, as a run's config.json records them) and the comparison's
+    settings, and ``part_of``, the comparison's config.json (None when the caller wrote none): a method is replayed
+    by replaying its comparison (``radiomap compare --config PART_OF --methods NAME``), which ``--config`` says when
+    given this file."""
+    from mapping.results import colour_model_setup, describe_run
 
+    run = describe_run(dataset, colour_model, fusion, tracker)
     return {"command": "compare", "part_of": None if part_of is None else str(Path(part_of).absolute()),
-            "method": method.describe(), "dataset": describe_dataset(dataset),
-            "colour_model": colour_model_setup(colour_model),
+            "method": method.describe(), "dataset": run["dataset"], "colour_model": colour_model_setup(colour_model),
+            "backend": run["backend"], "tracker": run["tracker"],
             "settings": {k: str(v) if k == "poses" else v for k, v in settings.items()}}
 
 
