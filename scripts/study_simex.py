@@ -337,18 +337,31 @@ def _fmt(err) -> str:
     return "/".join(f"{v:.2f}" for v in err)
 
 
-def synthetic_rows(args) -> list[dict]:
-    from camera_pipelines import PIPELINES, max_error_scale_free, render
+def _stacks(args):
+    """The curves ``args`` selects and the scene's radiance at ``args.size``; :func:`_render` makes their stacks."""
     from response_curves import curves, scene
+
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    return ([(name, table) for name, table in curves().items() if not args.curves or name in args.curves],
+            scene(height, width, seed=args.seed + 1))
+
+
+def _render(args, table, radiance, design: str, options: dict):
+    """``(times, images)``: the bracket of ``design`` rendered through ``tests/camera_pipelines.py``."""
+    from camera_pipelines import render
 
     from bench_calibration import design_times
 
-    width, height = (int(v) for v in args.size.lower().split("x"))
-    radiance = scene(height, width, seed=args.seed + 1)
+    times = design_times(design)
+    return times, render(table, radiance, times, seed=args.seed + 2, **options)
+
+
+def synthetic_rows(args) -> list[dict]:
+    from camera_pipelines import PIPELINES, max_error_scale_free
+
+    selected, radiance = _stacks(args)
     rows = []
-    for name, table in curves().items():
-        if args.curves and name not in args.curves:
-            continue
+    for name, table in selected:
         for pipeline in args.pipelines:
             options = dict(PIPELINES.get(pipeline, {}))
             if pipeline.startswith("post-noise-"):  # post-noise-3: noise of 3 levels after the response
@@ -357,8 +370,7 @@ def synthetic_rows(args) -> list[dict]:
                 raise SystemExit(f"unknown pipeline {pipeline!r}: one of {', '.join(PIPELINES)} or post-noise-S")
             true_sigma = float(options.get("post_noise", 0.0))
             for design in args.design:
-                times = design_times(design)
-                images = render(table, radiance, times, seed=args.seed + 2, **options)
+                times, images = _render(args, table, radiance, design, options)
                 estimated = None
                 if args.sigma == "true":
                     sigma = true_sigma
@@ -388,25 +400,18 @@ def synthetic_rows(args) -> list[dict]:
 
 
 def estimate_rows(args) -> list[dict]:
-    from camera_pipelines import PIPELINES, render
-    from response_curves import curves, scene
+    from camera_pipelines import PIPELINES
 
-    from bench_calibration import design_times
-
-    width, height = (int(v) for v in args.size.lower().split("x"))
-    radiance = scene(height, width, seed=args.seed + 1)
+    selected, radiance = _stacks(args)
     rows = []
-    for name, table in curves().items():
-        if args.curves and name not in args.curves:
-            continue
+    for name, table in selected:
         for noise in args.noise:
             cases = [("post-noise", {"post_noise": noise} if noise > 0 else {})]
             if noise == 0:
                 cases += [(p, PIPELINES[p]) for p in ("wb-jpeg92", "jpeg75") if p in args.pipelines]
             for pipeline, options in cases:
                 for design in args.design:
-                    times = design_times(design)
-                    images = render(table, radiance, times, seed=args.seed + 2, **options)
+                    times, images = _render(args, table, radiance, design, options)
                     est = sigma_estimates(images, times)
                     row = {"curve": name, "pipeline": pipeline if options.get("quality") else
                            f"noise {noise:g}", "design": design}
